@@ -1,0 +1,37 @@
+"""The shared core: meshes, phantoms, I/O, metrics, plotting and runtime settings.
+
+Imports nothing from :mod:`toolkit.static` or :mod:`toolkit.impact`.
+"""
+
+from toolkit.common.io import TimeSeries, TimeSeriesWriter, read, read_time_series, write, write_time_series
+from toolkit.common.mesh import (
+    CELL_TYPES,
+    DegenerateElementError,
+    InvertedElementError,
+    Mesh,
+    MeshError,
+)
+from toolkit.common.phantom import BoneSegment, FacePhantom, FaceShape, ball, ball_density, face_hex, face_tet
+from toolkit.common.runtime import set_threads
+
+__all__ = [
+    "Mesh",
+    "MeshError",
+    "InvertedElementError",
+    "DegenerateElementError",
+    "CELL_TYPES",
+    "FaceShape",
+    "FacePhantom",
+    "BoneSegment",
+    "face_hex",
+    "face_tet",
+    "ball",
+    "ball_density",
+    "read",
+    "write",
+    "read_time_series",
+    "write_time_series",
+    "TimeSeries",
+    "TimeSeriesWriter",
+    "set_threads",
+]

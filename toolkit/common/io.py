@@ -1,0 +1,407 @@
+"""Mesh files: VTU, XDMF (also time series) and Abaqus ``.inp``, through meshio.
+
+Node and element sets survive every format: Abaqus stores them as ``*NSET`` and
+``*ELSET``; VTU and XDMF, which have no sets, carry them as ``uint8`` masks named
+``nodeset:NAME`` / ``elset:NAME`` that :func:`read` turns back into sets. Reading a
+real mesh with its sets gives the same :class:`~toolkit.common.mesh.Mesh` the
+phantoms give.
+
+Every write is atomic: the file is written under a temporary name in the target
+folder and moved into place, so an interrupted run never leaves a half-written
+file under the final name.
+
+Units: files are taken to be in mm. A mesh whose extent looks like metres
+(largest bounding-box edge < 1) or micrometres (> 5,000) is refused unless
+``units=`` says how to convert it.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Mapping
+
+import numpy as np
+
+from toolkit.common.convert import ELSET_PREFIX, NODESET_PREFIX, from_meshio, to_meshio
+from toolkit.common.mesh import Mesh, MeshError
+
+__all__ = [
+    "read",
+    "write",
+    "write_time_series",
+    "read_time_series",
+    "TimeSeries",
+    "TimeSeriesWriter",
+    "check_units",
+    "UnitsError",
+    "FORMATS",
+    "UNIT_SCALES",
+    "atomic_path",
+]
+
+#: suffix -> meshio format name
+FORMATS = {".vtu": "vtu", ".xdmf": "xdmf", ".inp": "abaqus"}
+#: factor that converts a length in the given unit to mm
+UNIT_SCALES = {"mm": 1.0, "m": 1000.0, "cm": 10.0, "um": 1e-3}
+#: plausible largest extent of a head/face/ball model, mm
+PLAUSIBLE_EXTENT_MM = (1.0, 5000.0)
+
+
+class UnitsError(MeshError):
+    """A mesh's size suggests another length unit than mm."""
+
+
+def _format(path: Path) -> str:
+    fmt = FORMATS.get(path.suffix.lower())
+    if fmt is None:
+        raise ValueError(f"unknown mesh format {path.suffix!r} of {str(path)!r}; expected one of {sorted(FORMATS)}")
+    return fmt
+
+
+def check_units(mesh: Mesh, source: str = "mesh") -> None:
+    """Raise :class:`UnitsError` if the extent does not look like millimetres."""
+    if mesh.n_points == 0:
+        return
+    ext = float(mesh.extent.max())
+    lo, hi = PLAUSIBLE_EXTENT_MM
+    if ext < lo:
+        raise UnitsError(
+            f"{source} is {ext:.4g} units across: that looks like metres, not mm (a face is ~100-200 mm)."
+            f" Pass units='m' to convert, or units='mm' with check_units=False if it really is that small."
+        )
+    if ext > hi:
+        raise UnitsError(
+            f"{source} is {ext:.4g} units across: that looks like micrometres, not mm (a face is ~100-200 mm)."
+            f" Pass units='um' to convert."
+        )
+
+
+class atomic_path:
+    """Context manager yielding a temporary path that replaces ``path`` on success.
+
+    >>> with atomic_path("out.vtu") as tmp:
+    ...     write_somehow(tmp)
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+
+    def __enter__(self) -> Path:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=self.path.suffix, dir=self.path.parent)
+        os.close(fd)
+        self.tmp = Path(tmp)
+        return self.tmp
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            os.replace(self.tmp, self.path)
+        else:
+            self.tmp.unlink(missing_ok=True)
+        return False
+
+
+def _encode_sets(mesh: Mesh):
+    """meshio mesh with sets as uint8 masks (for VTU/XDMF)."""
+    pdata = dict(mesh.point_data)
+    cdata = dict(mesh.cell_data)
+    for name, ids in mesh.node_sets.items():
+        mask = np.zeros(mesh.n_points, dtype=np.uint8)
+        mask[ids] = 1
+        pdata[NODESET_PREFIX + name] = mask
+    for name, ids in mesh.element_sets.items():
+        mask = np.zeros(mesh.n_cells, dtype=np.uint8)
+        mask[ids] = 1
+        cdata[ELSET_PREFIX + name] = mask
+    m = Mesh(mesh.points, mesh.cells, point_data=pdata, cell_data=cdata)
+    out = to_meshio(m)
+    return out
+
+
+def _decode_sets(mesh: Mesh) -> Mesh:
+    node_sets = dict(mesh.node_sets)
+    element_sets = dict(mesh.element_sets)
+    pdata, cdata = {}, {}
+    for k, v in mesh.point_data.items():
+        if k.startswith(NODESET_PREFIX):
+            node_sets[k[len(NODESET_PREFIX):]] = np.flatnonzero(v)
+        else:
+            pdata[k] = v
+    for k, v in mesh.cell_data.items():
+        if k.startswith(ELSET_PREFIX):
+            element_sets[k[len(ELSET_PREFIX):]] = np.flatnonzero(v)
+        else:
+            cdata[k] = v
+    return Mesh(mesh.points, mesh.cells, node_sets, element_sets, pdata, cdata)
+
+
+def write(path: str | os.PathLike, mesh: Mesh) -> Path:
+    """Write ``mesh`` to VTU, XDMF or Abaqus ``.inp`` (by suffix), atomically.
+
+    Abaqus files keep the sets but no fields (the format has none).
+    """
+    import meshio
+
+    path = Path(path)
+    fmt = _format(path)
+    m = to_meshio(mesh) if fmt == "abaqus" else _encode_sets(mesh)
+    if fmt == "xdmf":
+        # XDMF is two files (.xdmf + .h5); write both in a scratch folder, then move
+        with tempfile.TemporaryDirectory(dir=path.parent if path.parent.exists() else None) as tmp:
+            scratch = Path(tmp) / path.name
+            meshio.write(scratch, m, file_format="xdmf")
+            _move_xdmf(scratch, path)
+        return path
+    with atomic_path(path) as tmp:
+        meshio.write(tmp, m, file_format=fmt)
+    return path
+
+
+def _move_xdmf(scratch: Path, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    h5 = scratch.with_suffix(".h5")
+    if h5.exists():
+        os.replace(h5, path.with_suffix(".h5"))
+    os.replace(scratch, path)
+
+
+def read(
+    path: str | os.PathLike,
+    units: str = "mm",
+    require_node_sets: Iterable[str] = (),
+    require_element_sets: Iterable[str] = (),
+    check: bool = True,
+) -> Mesh:
+    """Read a VTU, XDMF or Abaqus ``.inp`` mesh with its sets.
+
+    Parameters
+    ----------
+    path : file name; the suffix picks the format
+    units : length unit of the file (``mm``, ``m``, ``cm``, ``um``); points are
+        converted to mm
+    require_node_sets, require_element_sets : names that must be present
+    check : refuse meshes whose size does not look like mm (see :func:`check_units`)
+
+    Returns
+    -------
+    Mesh, points ``(n, 3)`` mm
+    """
+    import meshio
+
+    path = Path(path)
+    fmt = _format(path)
+    if not path.exists():
+        raise FileNotFoundError(f"mesh file {str(path)!r} does not exist")
+    if units not in UNIT_SCALES:
+        raise ValueError(f"unknown units {units!r}; expected one of {sorted(UNIT_SCALES)}")
+    mesh = _decode_sets(from_meshio(meshio.read(path, file_format=fmt)))
+    if UNIT_SCALES[units] != 1.0:
+        mesh = mesh.with_points(mesh.points * UNIT_SCALES[units])
+    if check:
+        check_units(mesh, source=f"{path.name}")
+    missing = [n for n in require_node_sets if n not in mesh.node_sets]
+    missing += [n for n in require_element_sets if n not in mesh.element_sets]
+    if missing:
+        raise KeyError(
+            f"{path.name} lacks the sets {missing}; it has node sets {sorted(mesh.node_sets)} and element sets"
+            f" {sorted(mesh.element_sets)}"
+        )
+    return mesh
+
+
+# ------------------------------------------------------------------ time series
+_XDMF_TOPOLOGY = {"hex8": "Hexahedron", "tet4": "Tetrahedron", "tet10": "Tetrahedron_10",
+                  "tri3": "Triangle", "quad4": "Quadrilateral"}
+
+
+@dataclass(frozen=True, eq=False)
+class TimeSeries:
+    """Fields over time on a fixed mesh.
+
+    Attributes
+    ----------
+    mesh : Mesh (with its node/element sets)
+    times : (n_frames,) float, s
+    point_data : mapping name -> (n_frames, n_points, ...) arrays
+    """
+
+    mesh: Mesh
+    times: np.ndarray
+    point_data: Mapping[str, np.ndarray]
+
+
+class TimeSeriesWriter:
+    """Append frames to an XDMF time series (``NAME.xdmf`` + ``NAME.h5``).
+
+    Each :meth:`append` writes the frame's arrays to the HDF5 file, flushes it,
+    and atomically rewrites the small XDMF index to list every finished frame, so
+    an interrupted run leaves a readable series of the frames it completed. The
+    HDF5 file also keeps the mesh's node and element sets (``/mesh/node_sets``,
+    ``/mesh/element_sets``), which :func:`read_time_series` restores. ParaView and
+    meshio read the XDMF as a standard temporal collection.
+
+    Parameters
+    ----------
+    path : ``*.xdmf``
+    mesh : Mesh with a single cell block
+    resume : keep the frames already in an existing series and append after them
+    """
+
+    def __init__(self, path: str | os.PathLike, mesh: Mesh, resume: bool = False):
+        import h5py
+
+        self.path = Path(path)
+        if self.path.suffix.lower() != ".xdmf":
+            raise ValueError(f"time series are written as XDMF; got {str(self.path)!r}, expected a '.xdmf' name")
+        if len(mesh.cells) != 1:
+            raise ValueError(f"a time series holds one cell block; the mesh has {list(mesh.cells)}")
+        self.mesh = mesh
+        self.h5_path = self.path.with_suffix(".h5")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.times: list[float] = []
+        self.fields: dict[str, tuple[int, ...]] = {}
+        if resume and self.h5_path.exists():
+            self.h5 = h5py.File(self.h5_path, "a")
+            self.times = [float(t) for t in self.h5["times"][()]] if "times" in self.h5 else []
+            for name, group in self.h5.get("data", {}).items():
+                self.fields[name] = group[f"{0:06d}"].shape[1:] if len(group) else ()
+            n_done = len(self.times)
+            for name, group in self.h5.get("data", {}).items():  # drop frames written after the last index
+                for key in list(group):
+                    if int(key) >= n_done:
+                        del group[key]
+        else:
+            self.h5 = h5py.File(self.h5_path, "w")
+            self.h5["mesh/points"] = mesh.points
+            (ctype, conn), = mesh.cells.items()
+            self.h5["mesh/cells"] = conn
+            self.h5["mesh"].attrs["cell_type"] = ctype
+            for name, ids in mesh.node_sets.items():
+                self.h5[f"mesh/node_sets/{name}"] = ids
+            for name, ids in mesh.element_sets.items():
+                self.h5[f"mesh/element_sets/{name}"] = ids
+            for name, arr in mesh.cell_data.items():
+                self.h5[f"mesh/cell_data/{name}"] = arr
+            self.h5.flush()
+            self._write_index()
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def append(self, time: float, **point_data: np.ndarray) -> None:
+        """Add one frame: ``time`` in s, fields ``(n_points, ...)`` (e.g. mm, MPa)."""
+        k = len(self.times)
+        if self.times and not time > self.times[-1]:
+            raise ValueError(f"frame times must increase; got {time} after {self.times[-1]}")
+        for name, arr in point_data.items():
+            arr = np.asarray(arr)
+            if arr.shape[:1] != (self.mesh.n_points,):
+                raise ValueError(f"{name} has shape {arr.shape}, expected ({self.mesh.n_points}, ...)")
+            if not np.isfinite(arr).all():
+                raise ValueError(f"{name} at t = {time} s holds NaN/inf; refusing to write it to {self.path.name}")
+            if self.fields.setdefault(name, arr.shape[1:]) != arr.shape[1:]:
+                raise ValueError(f"{name} changed shape from {self.fields[name]} to {arr.shape[1:]}")
+            key = f"data/{name}/{k:06d}"
+            if key in self.h5:
+                del self.h5[key]
+            self.h5[key] = arr
+        self.times.append(float(time))
+        if "times" in self.h5:
+            del self.h5["times"]
+        self.h5["times"] = np.asarray(self.times)
+        self.h5.flush()
+        self._write_index()
+
+    def _write_index(self) -> None:
+        from xml.sax.saxutils import quoteattr
+
+        (ctype, conn), = self.mesh.cells.items()
+        h5 = self.h5_path.name
+        n, ne = self.mesh.n_points, conn.shape[0]
+        parts = ['<?xml version="1.0"?>', '<Xdmf Version="3.0"><Domain>',
+                 '<Grid Name="TimeSeries" GridType="Collection" CollectionType="Temporal">']
+        for k, t in enumerate(self.times):
+            parts.append(f'<Grid Name="frame_{k}" GridType="Uniform"><Time Value="{t!r}"/>')
+            parts.append(f'<Topology TopologyType="{_XDMF_TOPOLOGY[ctype]}" NumberOfElements="{ne}">'
+                         f'<DataItem DataType="Int" Precision="8" Dimensions="{ne} {conn.shape[1]}" Format="HDF">'
+                         f'{h5}:/mesh/cells</DataItem></Topology>')
+            parts.append(f'<Geometry GeometryType="XYZ"><DataItem DataType="Float" Precision="8" Dimensions="{n} 3"'
+                         f' Format="HDF">{h5}:/mesh/points</DataItem></Geometry>')
+            for name, shape in self.fields.items():
+                kind = {(): "Scalar", (3,): "Vector"}.get(shape, "Tensor" if shape == (3, 3) else "Matrix")
+                dims = " ".join(str(d) for d in (n,) + shape)
+                dtype = self.h5[f"data/{name}/{k:06d}"].dtype
+                num = "Float" if dtype.kind == "f" else "Int"
+                parts.append(f'<Attribute Name={quoteattr(name)} AttributeType="{kind}" Center="Node">'
+                             f'<DataItem DataType="{num}" Precision="{dtype.itemsize}" Dimensions="{dims}"'
+                             f' Format="HDF">{h5}:/data/{name}/{k:06d}</DataItem></Attribute>')
+            parts.append("</Grid>")
+        parts.append("</Grid></Domain></Xdmf>")
+        with atomic_path(self.path) as tmp:
+            tmp.write_text("\n".join(parts))
+
+    def close(self) -> None:
+        if self.h5.id:
+            self.h5.close()
+
+    def __enter__(self) -> "TimeSeriesWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def write_time_series(
+    path: str | os.PathLike,
+    mesh: Mesh,
+    times: np.ndarray,
+    point_data: Mapping[str, np.ndarray],
+) -> Path:
+    """Write a whole XDMF time series at once (see :class:`TimeSeriesWriter`).
+
+    Parameters
+    ----------
+    path : ``*.xdmf``
+    mesh : Mesh with one cell block
+    times : (n_frames,) s
+    point_data : name -> (n_frames, n_points, ...) e.g. ``displacement`` in mm
+    """
+    times = np.asarray(times, dtype=float)
+    for name, arr in point_data.items():
+        if np.shape(arr)[:2] != (times.size, mesh.n_points):
+            raise ValueError(
+                f"point_data[{name!r}] has shape {np.shape(arr)}, expected ({times.size}, {mesh.n_points}, ...)"
+            )
+    with TimeSeriesWriter(path, mesh) as writer:
+        for k, t in enumerate(times):
+            writer.append(t, **{name: arr[k] for name, arr in point_data.items()})
+    return Path(path)
+
+
+def read_time_series(path: str | os.PathLike) -> TimeSeries:
+    """Read a series written by :class:`TimeSeriesWriter` (frames listed in the XDMF)."""
+    import h5py
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"time series {str(path)!r} does not exist")
+    h5_path = path.with_suffix(".h5")
+    with h5py.File(h5_path, "r") as h5:
+        if "mesh" not in h5 or "cell_type" not in h5["mesh"].attrs:
+            raise ValueError(f"{h5_path.name} was not written by toolkit's TimeSeriesWriter (no /mesh group)")
+        g = h5["mesh"]
+        mesh = Mesh(
+            g["points"][()],
+            {g.attrs["cell_type"]: g["cells"][()]},
+            node_sets={k: v[()] for k, v in g.get("node_sets", {}).items()},
+            element_sets={k: v[()] for k, v in g.get("element_sets", {}).items()},
+            cell_data={k: v[()] for k, v in g.get("cell_data", {}).items()},
+        )
+        times = h5["times"][()] if "times" in h5 else np.zeros(0)
+        n = times.size
+        data = {name: np.stack([grp[f"{k:06d}"][()] for k in range(n)]) if n else np.zeros((0, mesh.n_points))
+                for name, grp in h5.get("data", {}).items()}
+    return TimeSeries(mesh, np.asarray(times, dtype=float), data)
