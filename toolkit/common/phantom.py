@@ -538,15 +538,16 @@ def face_tet(
     points = g.points
     sets = {k: hexface.node_sets[k] for k in ("skin", "bone", "upper_lip_face", "lower_lip_face")}
     z_fix = geom.z_bot + lower_fixed_fraction * shape.face_height
-    sets["fixed"] = np.flatnonzero(points[:, 2] < z_fix)
     lip_hex = np.zeros(g.hexes[..., 0, 0, 0].size, dtype=bool)
     lip_hex[hexface.element_sets["lip_muscle"]] = True
     elsets = {"lip_muscle": np.flatnonzero(lip_hex[hex_of_tet])}
     cdata = {"fibre_direction": hexface.cell_data["fibre_direction"][hex_of_tet]}
     if order == 1:
+        sets["fixed"] = np.flatnonzero(points[:, 2] < z_fix)
         return Mesh(points, {"tet4": tets}, node_sets=sets, element_sets=elsets, cell_data=cdata)
     points10, tets10 = tet10_from_tet4(points, tets)
     sets = {name: _with_midside_nodes(ids, tets10, points.shape[0]) for name, ids in sets.items()}
+    sets["fixed"] = np.flatnonzero(points10[:, 2] < z_fix)
     return Mesh(points10, {"tet10": tets10}, node_sets=sets, element_sets=elsets, cell_data=cdata)
 
 

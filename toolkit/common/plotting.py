@@ -22,6 +22,8 @@ from toolkit.common.mesh import Mesh
 
 __all__ = ["render", "plot_curves", "plot_tradeoff", "CAMERAS"]
 
+_SET_COLOURS = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#e377c2", "#8c564b", "#bcbd22"]
+
 #: camera direction (from the focal point) and view-up, in the phantom axes
 #: (x lateral, y anterior, z superior)
 CAMERAS = {
@@ -29,6 +31,7 @@ CAMERAS = {
     "left": ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
     "right": ((-1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
     "iso": ((0.8, 1.0, 0.45), (0.0, 0.0, 1.0)),
+    "inner": ((0.45, -1.0, 0.3), (0.0, 0.0, 1.0)),
 }
 
 
@@ -76,6 +79,7 @@ def render(
     scalar_label: str | None = None,
     show_edges: bool = True,
     window_size: tuple[int, int] = (900, 700),
+    node_sets: Mapping[str, np.ndarray] | None = None,
     extra: Sequence[tuple[Mesh, dict]] = (),
 ) -> Path:
     """Render ``mesh`` (its outer surface) to a PNG, off-screen.
@@ -90,6 +94,8 @@ def render(
     displacement : (n_points, 3) mm, drawn deformed when given
     camera : one of :data:`CAMERAS`
     clim : colour range; default the data range
+    node_sets : name -> node indices to mark as coloured points with a legend
+        (e.g. the boundary sets)
     extra : further ``(mesh, pyvista add_mesh keyword arguments)`` to draw, e.g. a ball
 
     Returns
@@ -115,10 +121,17 @@ def render(
         plotter.set_background("white")
         kwargs = dict(show_edges=show_edges, edge_color="#404040", line_width=0.5, smooth_shading=False)
         if values is not None:
-            plotter.add_mesh(surface, scalars="_scalars", cmap=cmap, clim=clim,
-                             scalar_bar_args={"title": scalar_label or label, "color": "black"}, **kwargs)
+            bar = {"title": scalar_label or label, "color": "black"}
+            plotter.add_mesh(surface, scalars="_scalars", cmap=cmap, clim=clim, scalar_bar_args=bar, **kwargs)
         else:
             plotter.add_mesh(surface, color="#f1c9a5", **kwargs)
+        for i, (name, ids) in enumerate((node_sets or {}).items()):
+            ids = np.asarray(ids, dtype=np.int64)
+            if ids.size:
+                plotter.add_points(shown.points[ids], color=_SET_COLOURS[i % len(_SET_COLOURS)], label=name,
+                                   point_size=8, render_points_as_spheres=True)
+        if node_sets:
+            plotter.add_legend(bcolor="white", face="circle", size=(0.22, 0.3))
         for other, opts in extra:
             g = other.to_pyvista()
             plotter.add_mesh(g.extract_surface(algorithm="dataset_surface"), **{"color": "#9fb7d9", "opacity": 0.6, **opts})
@@ -126,9 +139,9 @@ def render(
             plotter.add_text(title, font_size=11, color="black")
         direction, up = CAMERAS[camera]
         centre = np.asarray(surface.center)
-        dist = 2.6 * float(np.linalg.norm(np.ptp(np.asarray(surface.points), axis=0)))
         d = np.asarray(direction) / np.linalg.norm(direction)
-        plotter.camera_position = [tuple(centre + dist * d), tuple(centre), up]
+        plotter.camera_position = [tuple(centre + 100.0 * d), tuple(centre), up]
+        plotter.reset_camera()
         with atomic_path(Path(path).with_suffix(".png")) as tmp:
             plotter.screenshot(str(tmp))
     finally:

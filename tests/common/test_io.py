@@ -1,0 +1,194 @@
+"""Mesh files and conversions: round trips that keep every set and field."""
+
+import meshio
+import numpy as np
+import pytest
+
+from toolkit.common import io
+from toolkit.common.convert import skfem_node_map
+from toolkit.common.mesh import Mesh
+from toolkit.common.phantom import ball, face_hex, face_tet
+
+
+@pytest.fixture(scope="module")
+def meshes():
+    return {
+        "hex8": face_hex("coarse").mesh,
+        "tet4": face_tet("coarse", 1),
+        "tet10": face_tet("coarse", 2),
+        "ball": ball(resolution="coarse", order=2),
+    }
+
+
+@pytest.mark.parametrize("kind", ["hex8", "tet4", "tet10", "ball"])
+@pytest.mark.parametrize("suffix", [".vtu", ".xdmf", ".inp"])
+def test_file_round_trip_keeps_sets(tmp_path, meshes, kind, suffix):
+    """VTU/XDMF keep everything; Abaqus keeps geometry and all node/element sets."""
+    mesh = meshes[kind]
+    path = io.write(tmp_path / f"m{suffix}", mesh)
+    back = io.read(path)
+    expected = mesh.without_fields() if suffix == ".inp" else mesh
+    assert back.equals(expected)
+
+
+def test_abaqus_file_from_elsewhere_reads_like_a_phantom(tmp_path):
+    """A hand-written Abaqus deck (1-based ids, GENERATE ranges, upper-case names) reads
+    into the same container, sets included."""
+    text = """*HEADING
+two tets
+*NODE
+1, 0., 0., 0.
+2, 10., 0., 0.
+3, 0., 10., 0.
+4, 0., 0., 10.
+5, 10., 10., 10.
+*ELEMENT, TYPE=C3D4, ELSET=SOFT
+1, 1, 2, 3, 4
+2, 2, 3, 4, 5
+*NSET, NSET=FIXED, GENERATE
+1, 3, 1
+*NSET, NSET=skin
+4, 5
+*ELSET, ELSET=lip_muscle
+2
+"""
+    path = tmp_path / "real.inp"
+    path.write_text(text)
+    m = io.read(path, require_node_sets=["FIXED", "skin"], require_element_sets=["lip_muscle"])
+    assert m.volume_type == "tet4" and m.n_points == 5
+    assert m.node_sets["FIXED"].tolist() == [0, 1, 2]
+    assert m.node_sets["skin"].tolist() == [3, 4]
+    assert m.element_sets["lip_muscle"].tolist() == [1]
+    assert m.element_sets["SOFT"].tolist() == [0, 1]
+    m.check()
+    with pytest.raises(KeyError, match=r"lacks the sets \['mucosa_sliding'\].*node sets \['FIXED', 'skin'\]"):
+        io.read(path, require_node_sets=["mucosa_sliding"])
+
+
+def test_units_that_look_like_metres_are_refused(tmp_path, meshes):
+    mesh = meshes["hex8"]
+    metres = mesh.with_points(mesh.points / 1000.0)
+    path = io.write(tmp_path / "metres.vtu", metres)
+    with pytest.raises(io.UnitsError, match=r"0\.1\d* units across: that looks like metres"):
+        io.read(path)
+    back = io.read(path, units="m")
+    assert np.allclose(back.points, mesh.points)
+    huge = io.write(tmp_path / "um.vtu", mesh.with_points(mesh.points * 1000.0))
+    with pytest.raises(io.UnitsError, match="micrometres"):
+        io.read(huge)
+
+
+def test_unknown_format_and_missing_file(tmp_path, meshes):
+    with pytest.raises(ValueError, match=r"unknown mesh format '\.stl'.*expected one of \['\.inp', '\.vtu', '\.xdmf'\]"):
+        io.write(tmp_path / "m.stl", meshes["hex8"])
+    with pytest.raises(FileNotFoundError, match="nope.vtu"):
+        io.read(tmp_path / "nope.vtu")
+    ok = io.write(tmp_path / "ok.vtu", meshes["hex8"])
+    with pytest.raises(ValueError, match="unknown units 'inch'"):
+        io.read(ok, units="inch")
+
+
+def test_write_is_atomic(tmp_path, meshes, monkeypatch):
+    """A write that fails midway leaves the previous file intact and no temporary behind."""
+    path = io.write(tmp_path / "m.vtu", meshes["tet4"])
+    before = path.read_bytes()
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(meshio, "write", boom)
+    with pytest.raises(RuntimeError, match="disk full"):
+        io.write(path, meshes["hex8"])
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.vtu"]
+
+
+def test_time_series_round_trip_and_meshio_interop(tmp_path, meshes):
+    mesh = meshes["tet10"]
+    rng = np.random.default_rng(0)
+    times = np.array([0.0, 0.1, 0.25])
+    u = rng.normal(size=(3, mesh.n_points, 3))
+    vm = rng.random((3, mesh.n_points))
+    path = io.write_time_series(tmp_path / "series.xdmf", mesh, times, {"displacement": u, "von_mises": vm})
+    ts = io.read_time_series(path)
+    assert ts.mesh.equals(mesh)
+    assert np.array_equal(ts.times, times)
+    assert np.array_equal(ts.point_data["displacement"], u) and np.array_equal(ts.point_data["von_mises"], vm)
+    with meshio.xdmf.TimeSeriesReader(path) as reader:  # standard XDMF, as ParaView reads it
+        points, cells = reader.read_points_cells()
+        t, pdata, _ = reader.read_data(2)
+    assert cells[0].type == "tetra10" and np.allclose(points, mesh.points)
+    assert t == pytest.approx(0.25) and np.allclose(pdata["displacement"], u[2])
+
+
+def test_time_series_resumes_after_interruption(tmp_path, meshes):
+    """Frames written before an interruption stay readable; resume appends after them."""
+    mesh = meshes["tet4"]
+    path = tmp_path / "run.xdmf"
+    w = io.TimeSeriesWriter(path, mesh)
+    for k in range(3):
+        w.append(0.1 * k, displacement=np.full((mesh.n_points, 3), k, float))
+    w.h5.flush()  # simulate a crash: no close()
+    assert io.read_time_series(path).times.size == 3
+    w.close()
+    with io.TimeSeriesWriter(path, mesh, resume=True) as w2:
+        assert len(w2) == 3
+        w2.append(0.3, displacement=np.full((mesh.n_points, 3), 3, float))
+        with pytest.raises(ValueError, match="frame times must increase"):
+            w2.append(0.3, displacement=np.zeros((mesh.n_points, 3)))
+        with pytest.raises(ValueError, match="NaN"):
+            w2.append(0.5, displacement=np.full((mesh.n_points, 3), np.nan))
+    ts = io.read_time_series(path)
+    assert np.allclose(ts.times, [0, 0.1, 0.2, 0.3])
+    assert np.allclose(ts.point_data["displacement"][:, 0, 0], [0, 1, 2, 3])
+
+
+@pytest.mark.parametrize("kind", ["hex8", "tet4", "tet10", "ball"])
+def test_pyvista_round_trip(meshes, kind):
+    pytest.importorskip("pyvista")
+    mesh = meshes[kind]
+    assert Mesh.from_pyvista(mesh.to_pyvista()).equals(mesh)
+    assert Mesh.from_meshio(mesh.to_meshio()).equals(mesh)
+
+
+@pytest.mark.parametrize("kind", ["hex8", "tet4", "tet10"])
+def test_skfem_round_trip_and_volume(meshes, kind):
+    """scikit-fem sees the same nodes (identity map for phantoms), the same element sets,
+    and integrates the same volume as the straight-sided tetrahedra/hexahedra."""
+    import skfem
+
+    mesh = meshes[kind]
+    sk = mesh.to_skfem()
+    node_map = skfem_node_map(mesh, sk)
+    assert np.array_equal(node_map, np.arange(mesh.n_points))
+    assert np.allclose(sk.doflocs.T, mesh.points)
+    back = Mesh.from_skfem(sk, node_sets=dict(mesh.node_sets), cell_data=dict(mesh.cell_data))
+    assert back.equals(mesh)
+    elem = {"hex8": skfem.ElementHex1(), "tet4": skfem.ElementTetP1(), "tet10": skfem.ElementTetP2()}[kind]
+    basis = skfem.Basis(sk, elem)
+    volume = skfem.Functional(lambda w: 1.0 + 0 * w.x[0]).assemble(basis)
+    assert volume == pytest.approx(_reference_volume(mesh), rel=1e-10)
+    assert set(sk.subdomains) == set(mesh.element_sets)
+
+
+def _reference_volume(mesh):
+    """Exact volume: straight tetrahedra by the triple product; trilinear hexahedra by
+    2x2x2 Gauss quadrature of det J (exact: det J is quadratic in each coordinate)."""
+    x = mesh.points[mesh.volume_cells]
+    if mesh.volume_type != "hex8":
+        x = x[:, :4]
+        return np.einsum("ij,ij->i", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]).sum() / 6
+    ref = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+    g = 0.5 + np.array([-1, 1]) / (2 * np.sqrt(3))
+    total = 0.0
+    for a in g:
+        for b in g:
+            for c in g:
+                q = np.array([a, b, c])
+                # dN/dxi for N = prod(r q + (1 - r)(1 - q)) over the three directions
+                f = ref * q + (1 - ref) * (1 - q)  # (8, 3)
+                s = 2 * ref - 1
+                dN = np.stack([s[:, k] * np.prod(np.delete(f, k, axis=1), axis=1) for k in range(3)], axis=1)
+                J = np.einsum("eai,ak->eik", x, dN)
+                total += np.linalg.det(J).sum() / 8.0
+    return total
