@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 
 from toolkit.common._validate import _as_points, _as_triangles, _region_indices
 
-__all__ = ["vertex_normals", "SurfaceDeviation", "surface_deviation"]
+__all__ = ["vertex_normals", "SurfaceDeviation", "surface_deviation", "ClosestPoints", "closest_points"]
 
 
 def vertex_normals(points, triangles) -> np.ndarray:
@@ -196,11 +196,11 @@ def _line_triangle_t(x, d, a, b, c, tol: float = 1e-9) -> np.ndarray:
     return np.where(inside, tt, np.inf)
 
 
-def _closest_point_distance(x, a, b, c) -> np.ndarray:
-    """Distance from points to the nearest of their candidate triangles.
+def _closest_on_triangles(x, a, b, c) -> np.ndarray:
+    """Closest point of each candidate triangle to its point.
 
     x : (n, 3); a, b, c : (n, k, 3). Vectorised closest point on a triangle (Ericson,
-    Real-Time Collision Detection, 5.1.5), region by region. Returns (n,) float.
+    Real-Time Collision Detection, 5.1.5), region by region. Returns (n, k, 3).
     """
     p = x[:, None, :]
     ab, ac, ap = b - a, c - a, p - a
@@ -235,4 +235,64 @@ def _closest_point_distance(x, a, b, c) -> np.ndarray:
     ]
     for mask, point in cases:
         closest = np.where(mask[..., None], point, closest)
-    return np.min(np.linalg.norm(closest - p, axis=-1), axis=1)
+    return closest
+
+
+def _closest_point_distance(x, a, b, c) -> np.ndarray:
+    """Distance (n,) from points x (n, 3) to the nearest of their candidate triangles (n, k, 3)."""
+    return np.min(np.linalg.norm(_closest_on_triangles(x, a, b, c) - x[:, None, :], axis=-1), axis=1)
+
+
+@dataclass(frozen=True, eq=False)
+class ClosestPoints:
+    """Closest points of a triangle surface.
+
+    Attributes
+    ----------
+    point : (n, 3) float, mm — closest point on the surface
+    distance : (n,) float, mm
+    triangle : (n,) int64 — index of the triangle holding it
+    normal : (n, 3) float — unit normal of that triangle (its orientation)
+    """
+
+    point: np.ndarray
+    distance: np.ndarray
+    triangle: np.ndarray
+    normal: np.ndarray
+
+
+def closest_points(points, surface_points, triangles, k: int = 16, tree: cKDTree | None = None) -> ClosestPoints:
+    """Closest point on a triangle surface for every query point (exact among candidates).
+
+    Candidates are the ``k`` triangles whose centroids are nearest to the point (a
+    cKDTree, or ``tree`` built on those centroids to reuse it); on surfaces whose
+    triangles are of similar size this finds the exact closest point.
+
+    Parameters
+    ----------
+    points : (n, 3) float, mm
+    surface_points : (m, 3) float, mm
+    triangles : (t, 3) int
+    k : candidate triangles per point
+
+    Returns
+    -------
+    ClosestPoints
+    """
+    x = _as_points(points, "points")
+    sp = _as_points(surface_points, "surface_points")
+    tri = _as_triangles(triangles, sp.shape[0], "triangles")
+    v0, v1, v2 = sp[tri[:, 0]], sp[tri[:, 1]], sp[tri[:, 2]]
+    if tree is None:
+        tree = cKDTree((v0 + v1 + v2) / 3.0)
+    k = int(min(k, tri.shape[0]))
+    _, cand = tree.query(x, k=k)
+    cand = cand.reshape(x.shape[0], k)
+    cp = _closest_on_triangles(x, v0[cand], v1[cand], v2[cand])
+    d = np.linalg.norm(cp - x[:, None, :], axis=-1)
+    best = np.argmin(d, axis=1)
+    rows = np.arange(x.shape[0])
+    t_best = cand[rows, best]
+    n = np.cross(v1[t_best] - v0[t_best], v2[t_best] - v0[t_best])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return ClosestPoints(cp[rows, best], d[rows, best], t_best.astype(np.int64), n)

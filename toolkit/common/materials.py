@@ -1,0 +1,217 @@
+"""Elastic material laws (units: MPa), each a small class from kinematics to stress and tangent.
+
+- :class:`LinearElastic`: isotropic Hooke law (seed 001: E = 0.003 MPa, nu = 0.47).
+- :class:`TransverselyIsotropic`: linear, stiffer along a fibre (seed 001's lip muscle:
+  E along superior-inferior 0.009 MPa, transverse 0.003 MPa, nu 0.47).
+- :class:`NeoHookean`: compressible Neo-Hookean (FEBio's ``neo-Hookean``),
+  ``W = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2``.
+
+Voigt order is ``[xx, yy, zz, yz, xz, xy]`` with engineering shear strains. Each law
+also exposes its *volumetric* Lame part ``lam`` so element formulations can integrate
+it with reduced quadrature (selective reduced integration against volumetric locking).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["LinearElastic", "TransverselyIsotropic", "NeoHookean", "lame", "VOIGT", "MaterialWarning"]
+
+#: Voigt index pairs
+VOIGT = np.array([[0, 0], [1, 1], [2, 2], [1, 2], [0, 2], [0, 1]])
+
+#: plausible Young's moduli of soft tissue and rubber, MPa
+_SOFT_RANGE_MPA = (1e-5, 100.0)
+
+
+class MaterialWarning(UserWarning):
+    """A material parameter looks like it is in the wrong unit."""
+
+
+def lame(E: float, nu: float) -> tuple[float, float]:
+    """Lame parameters ``(lam, mu)`` in MPa from Young's modulus (MPa) and Poisson's ratio."""
+    return E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+
+
+def _check(name: str, E: float, nu: float) -> None:
+    if not np.isfinite(E) or E <= 0:
+        raise ValueError(f"{name}: Young's modulus E = {E!r} MPa must be positive and finite")
+    if not np.isfinite(nu) or not -1.0 < nu < 0.5:
+        raise ValueError(f"{name}: Poisson's ratio nu = {nu!r} must lie in (-1, 0.5)")
+    lo, hi = _SOFT_RANGE_MPA
+    if not lo <= E <= hi:
+        hint = "Pa (divide by 1e6)" if E > hi else "GPa or kPa confusion"
+        warnings.warn(f"{name}: E = {E:g} MPa is outside the soft-tissue range [{lo:g}, {hi:g}] MPa; "
+                      f"is it in {hint}? 3000 Pa = 0.003 MPa", MaterialWarning, stacklevel=3)
+
+
+def _iso_voigt(lam: float, mu: float) -> np.ndarray:
+    D = np.zeros((6, 6))
+    D[:3, :3] = lam
+    D[np.arange(3), np.arange(3)] += 2 * mu
+    D[np.arange(3, 6), np.arange(3, 6)] = mu
+    return D
+
+
+@dataclass(frozen=True)
+class LinearElastic:
+    """Isotropic linear elasticity. ``E`` in MPa, ``nu`` dimensionless."""
+
+    E: float = 0.003
+    nu: float = 0.47
+
+    def __post_init__(self):
+        _check("LinearElastic", self.E, self.nu)
+
+    @property
+    def lam(self) -> float:
+        return lame(self.E, self.nu)[0]
+
+    @property
+    def mu(self) -> float:
+        return lame(self.E, self.nu)[1]
+
+    def stiffness(self, fibre: np.ndarray | None = None) -> np.ndarray:
+        """Voigt stiffness ``(6, 6)`` MPa, or ``(n, 6, 6)`` if fibres ``(n, 3)`` are given."""
+        D = _iso_voigt(self.lam, self.mu)
+        return D if fibre is None else np.broadcast_to(D, (len(fibre), 6, 6)).copy()
+
+    def volumetric_lambda(self) -> float:
+        """The ``lam (tr eps)^2 / 2`` part of the energy, MPa (reduced-integrated)."""
+        return self.lam
+
+
+def _bond_matrix(R: np.ndarray) -> np.ndarray:
+    """Voigt (stress) transformation matrices ``(n, 6, 6)`` for rotations ``R (n, 3, 3)``."""
+    i, j = VOIGT[:, 0], VOIGT[:, 1]
+    # M[I, J] = R[i_I, k_J] R[j_I, l_J] (+ symmetric part for shear columns)
+    a = R[:, i[:, None], i[None, :]] * R[:, j[:, None], j[None, :]]
+    b = R[:, i[:, None], j[None, :]] * R[:, j[:, None], i[None, :]]
+    M = a.copy()
+    M[:, :, 3:] = a[:, :, 3:] + b[:, :, 3:]
+    return M
+
+
+@dataclass(frozen=True)
+class TransverselyIsotropic:
+    """Linear transversely isotropic elasticity with the fibre as the symmetry axis.
+
+    Attributes (MPa unless dimensionless)
+    -------------------------------------
+    E_fibre : Young's modulus along the fibre (seed 001: 0.009)
+    E_transverse : Young's modulus across it (0.003)
+    nu : Poisson's ratio for both planes (0.47)
+    G_fibre : shear modulus in planes containing the fibre; default the transverse
+        ``E_transverse / (2 (1 + nu))``
+    """
+
+    E_fibre: float = 0.009
+    E_transverse: float = 0.003
+    nu: float = 0.47
+    G_fibre: float | None = None
+
+    def __post_init__(self):
+        _check("TransverselyIsotropic", self.E_fibre, self.nu)
+        _check("TransverselyIsotropic", self.E_transverse, self.nu)
+        if np.linalg.eigvalsh(self._local_stiffness()).min() <= 0:
+            raise ValueError(f"{self} is not positive definite; lower nu or the fibre/transverse ratio")
+
+    @property
+    def g_fibre(self) -> float:
+        return self.G_fibre if self.G_fibre is not None else self.E_transverse / (2 * (1 + self.nu))
+
+    def _local_stiffness(self) -> np.ndarray:
+        """Stiffness in the frame (fibre, t1, t2)."""
+        EL, ET, nu = self.E_fibre, self.E_transverse, self.nu
+        S = np.zeros((6, 6))
+        S[0, 0] = 1 / EL
+        S[1, 1] = S[2, 2] = 1 / ET
+        S[0, 1] = S[1, 0] = S[0, 2] = S[2, 0] = -nu / EL
+        S[1, 2] = S[2, 1] = -nu / ET
+        S[3, 3] = 2 * (1 + nu) / ET
+        S[4, 4] = S[5, 5] = 1 / self.g_fibre
+        return np.linalg.inv(S)
+
+    def stiffness(self, fibre: np.ndarray) -> np.ndarray:
+        """Voigt stiffness ``(n, 6, 6)`` MPa in global axes for unit fibres ``(n, 3)``."""
+        a = np.asarray(fibre, dtype=float).reshape(-1, 3)
+        a = a / np.linalg.norm(a, axis=1, keepdims=True)
+        helper = np.where(np.abs(a[:, [0]]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+        t1 = np.cross(a, helper)
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+        t2 = np.cross(a, t1)
+        R = np.stack([a, t1, t2], axis=2)  # columns: local axes in global coordinates
+        M = _bond_matrix(R)
+        return M @ self._local_stiffness() @ np.transpose(M, (0, 2, 1))
+
+    def volumetric_lambda(self) -> float:
+        """Lame lambda of the transverse (matrix) material, reduced-integrated."""
+        return lame(self.E_transverse, self.nu)[0]
+
+
+@dataclass(frozen=True)
+class NeoHookean:
+    """Compressible Neo-Hookean solid, ``W = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2``.
+
+    ``E`` in MPa, ``nu`` dimensionless (``mu``, ``lam`` from :func:`lame`). Its small-strain
+    limit is :class:`LinearElastic` with the same ``E``, ``nu``.
+    """
+
+    E: float = 0.003
+    nu: float = 0.47
+
+    def __post_init__(self):
+        _check("NeoHookean", self.E, self.nu)
+
+    @property
+    def lam(self) -> float:
+        return lame(self.E, self.nu)[0]
+
+    @property
+    def mu(self) -> float:
+        return lame(self.E, self.nu)[1]
+
+    def volumetric_lambda(self) -> float:
+        return self.lam
+
+    def energy(self, F: np.ndarray) -> np.ndarray:
+        """Strain energy density ``(...)`` MPa (= mJ/mm^3) for ``F (..., 3, 3)``."""
+        J = np.linalg.det(F)
+        I1 = np.einsum("...ij,...ij->...", F, F)
+        lnJ = np.log(J)
+        return 0.5 * self.mu * (I1 - 3) - self.mu * lnJ + 0.5 * self.lam * lnJ**2
+
+    def first_piola(self, F: np.ndarray, part: str = "all") -> tuple[np.ndarray, np.ndarray]:
+        """First Piola-Kirchhoff stress ``P (..., 3, 3)`` MPa and tangent ``dP/dF (..., 3, 3, 3, 3)``.
+
+        ``part``: ``"all"``, ``"shear"`` (the mu terms) or ``"volumetric"`` (the lam term),
+        for selective reduced integration.
+        """
+        J = np.linalg.det(F)
+        if np.any(J <= 0):
+            raise FloatingPointError(f"deformation gradient with det F = {J.min():.3g} <= 0 (inverted material)")
+        Finv_T = np.swapaxes(np.linalg.inv(F), -1, -2)
+        lnJ = np.log(J)[..., None, None]
+        eye = np.eye(3)
+        P = np.zeros_like(F)
+        A = np.zeros(F.shape + (3, 3))
+        # d(F^-T)_ij / dF_kl = -F^-T_il F^-T_kj
+        dFinvT = -np.einsum("...il,...kj->...ijkl", Finv_T, Finv_T)
+        if part in ("all", "shear"):
+            P = P + self.mu * (F - Finv_T)
+            A = A + self.mu * (np.einsum("ik,jl->ijkl", eye, eye) - dFinvT)
+        if part in ("all", "volumetric"):
+            P = P + self.lam * lnJ * Finv_T
+            A = A + self.lam * (np.einsum("...ij,...kl->...ijkl", Finv_T, Finv_T) + lnJ[..., None, None] * dFinvT)
+        if part not in ("all", "shear", "volumetric"):
+            raise ValueError(f"part must be 'all', 'shear' or 'volumetric', got {part!r}")
+        return P, A
+
+    def cauchy(self, F: np.ndarray) -> np.ndarray:
+        """Cauchy stress ``(..., 3, 3)`` MPa."""
+        P, _ = self.first_piola(F)
+        J = np.linalg.det(F)[..., None, None]
+        return P @ np.swapaxes(F, -1, -2) / J

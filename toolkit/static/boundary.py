@@ -1,0 +1,191 @@
+"""Boundary types of the face nodes (seeds 000 and 001) and which bony segment drives them.
+
+Types: ``free=0, moving=1, fixed=2, mucosa_sliding=3, lip_sliding=4``. Moving nodes are
+attached to a bony segment and follow its rigid motion; mucosa-sliding nodes slide on
+the surface of their segment; lip-sliding nodes are the two faces of the mouth slit.
+
+Types come from the mesh's node sets (:meth:`BoundaryConditions.from_mesh`), or are
+transferred by a k-nearest-neighbour vote from labelled points — e.g. a full-resolution
+mesh's types onto a down-sampled one, as seed 000 did (:func:`knn_labels`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Mapping
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from toolkit.common.mesh import Mesh
+from toolkit.common.surface_distance import closest_points
+
+__all__ = ["NodeType", "BoundaryConditions", "knn_labels", "BoundaryError"]
+
+
+class NodeType(IntEnum):
+    FREE = 0
+    MOVING = 1
+    FIXED = 2
+    MUCOSA_SLIDING = 3
+    LIP_SLIDING = 4
+
+
+class BoundaryError(ValueError):
+    """Boundary conditions are inconsistent or leave the problem under-constrained."""
+
+
+def knn_labels(points: np.ndarray, labelled_points: np.ndarray, labels: np.ndarray, k: int = 5,
+               max_distance: float = np.inf, default: int = 0) -> np.ndarray:
+    """Majority vote of the ``k`` nearest labelled points (seed 000's k-NN assignment).
+
+    Parameters
+    ----------
+    points : (n, 3) mm — nodes to label
+    labelled_points : (m, 3) mm; labels : (m,) int
+    k : voters; ties go to the smallest label
+    max_distance : mm; nodes farther than this from every labelled point get ``default``
+
+    Returns
+    -------
+    (n,) int64
+    """
+    labels = np.asarray(labels, dtype=np.int64)
+    k = int(min(k, len(labels)))
+    d, idx = cKDTree(labelled_points).query(points, k=k)
+    d, idx = d.reshape(len(points), k), idx.reshape(len(points), k)
+    votes = labels[idx]
+    votes = np.where(d <= max_distance, votes, -1)
+    n_labels = labels.max() + 1
+    counts = np.stack([(votes == c).sum(axis=1) for c in range(n_labels)], axis=1)
+    out = np.argmax(counts, axis=1)
+    out[counts.max(axis=1) == 0] = default
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class BoundaryConditions:
+    """Node types and segment ownership of a face mesh.
+
+    Attributes
+    ----------
+    types : (n,) int8 — :class:`NodeType` per node
+    segment : (n,) int8 — index into ``segment_names`` for moving and mucosa nodes, else -1
+    segment_names : tuple of str
+    upper_lip, lower_lip : (k,) int64 — lip-sliding nodes on the upper and lower slit faces
+    """
+
+    types: np.ndarray
+    segment: np.ndarray
+    segment_names: tuple[str, ...]
+    upper_lip: np.ndarray
+    lower_lip: np.ndarray
+
+    def __post_init__(self):
+        types = np.asarray(self.types, dtype=np.int8)
+        if types.min(initial=0) < 0 or types.max(initial=0) > 4:
+            raise BoundaryError(f"node types must be 0..4 ({[t.name for t in NodeType]}), got {np.unique(types)}")
+        object.__setattr__(self, "types", types)
+        object.__setattr__(self, "segment", np.asarray(self.segment, dtype=np.int8))
+        needs = np.isin(types, (NodeType.MOVING, NodeType.MUCOSA_SLIDING)) & (self.segment < 0)
+        if needs.any():
+            raise BoundaryError(f"{needs.sum()} moving/mucosa nodes have no bony segment (first: "
+                                f"{np.flatnonzero(needs)[:5].tolist()})")
+        constrained = np.isin(types, (NodeType.MOVING, NodeType.FIXED)).sum()
+        if constrained < 3:
+            raise BoundaryError(f"only {constrained} fixed/moving nodes: the face would float freely (rigid-body "
+                                f"modes); expected at least 3 non-collinear fixed or moving nodes")
+
+    @property
+    def n_nodes(self) -> int:
+        return self.types.size
+
+    def nodes(self, kind: NodeType) -> np.ndarray:
+        return np.flatnonzero(self.types == kind)
+
+    def segment_nodes(self, kind: NodeType, name: str) -> np.ndarray:
+        k = self.segment_names.index(name)
+        return np.flatnonzero((self.types == kind) & (self.segment == k))
+
+    def one_hot(self) -> np.ndarray:
+        """Seed 000's explicit boundary encoding ``(n, 3)``: free, moving, fixed (sliding count as free)."""
+        out = np.zeros((self.n_nodes, 3))
+        out[np.arange(self.n_nodes), 0] = 1.0
+        for col, kind in ((1, NodeType.MOVING), (2, NodeType.FIXED)):
+            ids = self.nodes(kind)
+            out[ids] = 0.0
+            out[ids, col] = 1.0
+        return out
+
+    def with_sliding(self, sliding: str) -> "BoundaryConditions":
+        """Copy for a sliding model: ``"mucosa+lip"`` (seed 001), ``"mucosa"`` (lips free)
+        or ``"none"`` (mucosa nodes attached to their segment, lips free: seed 001's method 1)."""
+        if sliding not in ("none", "mucosa", "mucosa+lip"):
+            raise ValueError(f"sliding must be 'none', 'mucosa' or 'mucosa+lip', got {sliding!r}")
+        types = self.types.copy()
+        if sliding == "none":
+            types[types == NodeType.MUCOSA_SLIDING] = NodeType.MOVING
+        if sliding != "mucosa+lip":
+            types[types == NodeType.LIP_SLIDING] = NodeType.FREE
+        lips = sliding == "mucosa+lip"
+        empty = np.zeros(0, np.int64)
+        return BoundaryConditions(types, self.segment, self.segment_names,
+                                  self.upper_lip if lips else empty, self.lower_lip if lips else empty)
+
+    @classmethod
+    def from_mesh(cls, mesh: Mesh, segments: Mapping, *, lip_threshold: float = 0.2) -> "BoundaryConditions":
+        """Types from the node sets ``fixed``, the segments' attachment sets,
+        ``mucosa_sliding`` and ``lip_sliding``.
+
+        Parameters
+        ----------
+        mesh : the face (hex or tet) with those node sets; sets must be disjoint
+        segments : name -> :class:`~toolkit.common.phantom.BoneSegment`; each mucosa node
+            slides on the segment surface nearest to it
+        lip_threshold : mm; without ``upper_lip_face``/``lower_lip_face`` sets, lip nodes are
+            paired by proximity below this distance (seed 001's collision threshold), the
+            higher node of a pair being the upper lip
+        """
+        n = mesh.n_points
+        types = np.zeros(n, dtype=np.int8)
+        segment = np.full(n, -1, dtype=np.int8)
+        names = tuple(segments)
+        owner: dict[int, str] = {}
+
+        def claim(ids, kind, label):
+            ids = np.asarray(ids, dtype=np.int64)
+            clash = ids[types[ids] != NodeType.FREE]
+            if clash.size:
+                raise BoundaryError(f"node sets {owner.get(int(clash[0]), '?')!r} and {label!r} share {clash.size} "
+                                    f"nodes (first: {clash[:5].tolist()}); a node can have one boundary type")
+            types[ids] = kind
+            owner.update(dict.fromkeys(ids.tolist(), label))
+
+        claim(mesh.node_set("fixed"), NodeType.FIXED, "fixed")
+        for k, (name, seg) in enumerate(segments.items()):
+            if seg.node_set in mesh.node_sets:
+                ids = mesh.node_sets[seg.node_set]
+                claim(ids, NodeType.MOVING, seg.node_set)
+                segment[ids] = k
+        if "mucosa_sliding" in mesh.node_sets:
+            muc = mesh.node_sets["mucosa_sliding"]
+            claim(muc, NodeType.MUCOSA_SLIDING, "mucosa_sliding")
+            if muc.size:
+                dist = np.stack([closest_points(mesh.points[muc], s.surface.points, s.surface.cells["tri3"]).distance
+                                 for s in segments.values()], axis=1)
+                segment[muc] = np.argmin(dist, axis=1)
+        upper = lower = np.zeros(0, np.int64)
+        if "lip_sliding" in mesh.node_sets:
+            lip = mesh.node_sets["lip_sliding"]
+            claim(lip, NodeType.LIP_SLIDING, "lip_sliding")
+            if "upper_lip_face" in mesh.node_sets and "lower_lip_face" in mesh.node_sets:
+                upper = np.intersect1d(lip, mesh.node_sets["upper_lip_face"])
+                lower = np.intersect1d(lip, mesh.node_sets["lower_lip_face"])
+            else:
+                pts = mesh.points[lip]
+                pairs = cKDTree(pts).query_pairs(lip_threshold, output_type="ndarray")
+                a, b = lip[pairs[:, 0]], lip[pairs[:, 1]]
+                up_first = mesh.points[a, 2] >= mesh.points[b, 2]
+                upper, lower = np.where(up_first, a, b), np.where(up_first, b, a)
+        return cls(types, segment, names, np.asarray(upper, np.int64), np.asarray(lower, np.int64))

@@ -1,0 +1,253 @@
+"""Static finite-element solves of the face on scikit-fem kinematics.
+
+:class:`StaticProblem` holds one configuration of a mesh with its materials and
+solves it under :class:`~toolkit.static.constraints.Constraints`:
+
+- linear materials (isotropic, transversely isotropic): one SPD solve;
+- Neo-Hookean: Newton's method with the consistent tangent, a backtracking line
+  search on the total energy (which also refuses steps that invert an element),
+  and automatic load sub-stepping when Newton does not converge.
+
+:func:`solve_with_lip_contact` adds seed 001's lip sliding: master-slave pairs across
+the mouth slit may not interpenetrate craniocaudally but slide freely otherwise,
+found by an active-set iteration (release pairs in tension, add pairs that
+penetrate).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from toolkit.common.mesh import Mesh
+from toolkit.static.assembly import (
+    MaterialAssignment,
+    SparsePattern,
+    kinematics,
+    linear_stiffness,
+    neo_hookean_energy,
+    neo_hookean_system,
+)
+from toolkit.static.constraints import Constraints
+from toolkit.static.solvers import SolveInfo, rigid_body_modes, solve
+
+__all__ = ["StaticProblem", "Solution", "ConvergenceError", "solve_with_lip_contact", "ContactResult"]
+
+log = logging.getLogger(__name__)
+
+
+class ConvergenceError(RuntimeError):
+    """A nonlinear solve failed; carries where and a suggestion."""
+
+    def __init__(self, message: str, iteration: int | None = None, residual: float | None = None):
+        super().__init__(message)
+        self.iteration = iteration
+        self.residual = residual
+
+
+@dataclass(frozen=True, eq=False)
+class Solution:
+    """Result of one constrained solve.
+
+    Attributes
+    ----------
+    displacement : (n, 3) mm, from the problem's configuration
+    residual : (3n,) N — ``K u`` (linear) or internal force (Neo-Hookean): the constraint
+        (reaction) forces, zero at free dofs up to the solver tolerance
+    solves : list of SolveInfo — one per linear solve
+    newton_iterations : int (0 for linear)
+    """
+
+    displacement: np.ndarray
+    residual: np.ndarray
+    solves: list = field(default_factory=list)
+    newton_iterations: int = 0
+
+
+class StaticProblem:
+    """A mesh configuration, its materials and a linear solver, ready to solve.
+
+    Parameters
+    ----------
+    mesh : Mesh (hex8 for selective reduced integration; tet4/tet10 accepted)
+    materials : MaterialAssignment (all linear, or all Neo-Hookean)
+    solver : ``auto``, ``superlu``, ``amg`` or ``cholmod`` (see :mod:`toolkit.static.solvers`)
+    pattern : a SparsePattern of the same topology to reuse
+    """
+
+    def __init__(self, mesh: Mesh, materials: MaterialAssignment, solver: str = "auto",
+                 pattern: SparsePattern | None = None):
+        self.mesh = mesh
+        self.materials = materials
+        self.solver = solver
+        self.kin = kinematics(mesh)
+        if np.any(self.kin.weight <= 0):
+            bad = np.flatnonzero((self.kin.weight <= 0).any(axis=1))
+            raise ConvergenceError(f"{bad.size} elements have a non-positive Jacobian at a Gauss point "
+                                   f"(first: {bad[:5].tolist()}); the configuration is inverted")
+        self.pattern = pattern or SparsePattern(self.kin.conn, mesh.n_points)
+        self.linear = materials.is_linear
+        self.groups = materials.groups(mesh)
+        self._K = None
+        self._modes = rigid_body_modes(mesh.points)
+
+    @property
+    def stiffness(self):
+        """Small-strain stiffness (N/mm), assembled once (linear materials)."""
+        if self._K is None:
+            D, lam = self.materials.voigt(self.mesh)
+            self._K = linear_stiffness(self.kin, D, lam, self.pattern)
+        return self._K
+
+    def _solve_reduced(self, T, A, b, x0=None) -> tuple[np.ndarray, SolveInfo]:
+        modes = T.T @ self._modes if self.solver in ("amg", "auto") else None
+        return solve(A, b, method=self.solver, near_nullspace=modes, x0=x0)
+
+    def solve(self, constraints: Constraints, u_start: np.ndarray | None = None) -> Solution:
+        """Equilibrium under ``constraints``; ``u_start (n, 3)`` seeds Newton."""
+        T, u0 = constraints.reduction()
+        if self.linear:
+            K = self.stiffness
+            A = (T.T @ K @ T).tocsr()
+            v, info = self._solve_reduced(T, A, -(T.T @ (K @ u0)))
+            u = T @ v + u0
+            return Solution(u.reshape(-1, 3), K @ u, [info], 0)
+        return self._newton(T, u0, u_start)
+
+    # ----------------------------------------------------------------- Newton
+    def _newton(self, T, u0, u_start, max_iter: int = 25, max_substeps: int = 6) -> Solution:
+        n = self.mesh.n_points
+        u_prev = np.zeros(3 * n) if u_start is None else np.asarray(u_start, float).reshape(-1)
+        v = T.T @ (u_prev - u0)  # admissible start: the free part of the previous state
+        # prescribed part is reached in load sub-steps if a full step fails
+        solves, total_iter = [], 0
+        start_u0 = u_prev - T @ (T.T @ (u_prev - u0))  # constrained part of the previous state
+        fractions = [1.0]
+        done = 0.0
+        level = 0
+        while done < 1.0:
+            target = fractions[0]
+            u0_k = start_u0 + target * (u0 - start_u0)
+            try:
+                v_new, iters, infos = self._newton_fixed(T, u0_k, v, max_iter)
+            except ConvergenceError:
+                level += 1
+                if level > max_substeps:
+                    raise
+                step = (target - done) / 2.0
+                fractions = [done + step, *fractions]
+                log.info("Newton failed; sub-stepping the prescribed displacements to %.3f", done + step)
+                continue
+            solves += infos
+            total_iter += iters
+            v = v_new
+            done = target
+            fractions.pop(0)
+            if not fractions and done < 1.0:
+                fractions = [1.0]
+        u = T @ v + u0
+        f, _ = neo_hookean_system(self.kin, u.reshape(-1, 3), self.groups, self.pattern, tangent=False)
+        return Solution(u.reshape(-1, 3), f, solves, total_iter)
+
+    def _newton_fixed(self, T, u0, v, max_iter):
+        infos = []
+        energy = lambda vv: neo_hookean_energy(self.kin, (T @ vv + u0).reshape(-1, 3), self.groups)  # noqa: E731
+        E = energy(v)
+        if not np.isfinite(E):
+            # the previous free state is inadmissible with the new prescribed part: start linearly
+            v = np.zeros_like(v) if not np.isfinite(energy(np.zeros_like(v))) else np.zeros_like(v)
+            E = energy(v)
+            if not np.isfinite(E):
+                raise ConvergenceError("the prescribed displacements invert elements before any free motion")
+        r0 = None
+        for it in range(1, max_iter + 1):
+            u = T @ v + u0
+            f, K = neo_hookean_system(self.kin, u.reshape(-1, 3), self.groups, self.pattern)
+            g = T.T @ f
+            gn = np.linalg.norm(g)
+            r0 = gn if r0 is None else r0
+            scale = max(r0, np.abs(f).max(), 1e-30)
+            if gn <= 1e-9 * scale or (it > 1 and gn < 1e-12):
+                return v, it - 1, infos
+            A = (T.T @ K @ T).tocsr()
+            dv, info = self._solve_reduced(T, A, -g)
+            infos.append(info)
+            slope = g @ dv
+            if slope >= 0:  # not a descent direction (indefinite tangent): steepest descent
+                dv = -g * (np.abs(dv).max() / max(np.abs(g).max(), 1e-30))
+                slope = g @ dv
+            alpha = 1.0
+            for _ in range(30):
+                E_new = energy(v + alpha * dv)
+                if np.isfinite(E_new) and E_new <= E + 1e-4 * alpha * slope:
+                    break
+                alpha *= 0.5
+            else:
+                raise ConvergenceError(f"line search failed at Newton iteration {it} (residual {gn:.3e} N)", it, gn)
+            v = v + alpha * dv
+            E = E_new
+        raise ConvergenceError(f"Newton did not converge in {max_iter} iterations (residual {gn:.3e} N)",
+                               max_iter, gn)
+
+
+@dataclass(frozen=True, eq=False)
+class ContactResult:
+    """A solve with lip contact.
+
+    Attributes
+    ----------
+    solution : Solution
+    active : (k,) bool — candidate pairs tied at the end
+    gaps : (k,) mm — craniocaudal gap (upper minus lower) of every candidate pair after the solve
+    iterations : active-set iterations
+    """
+
+    solution: Solution
+    active: np.ndarray
+    gaps: np.ndarray
+    iterations: int
+
+    @property
+    def max_penetration(self) -> float:
+        """Largest craniocaudal interpenetration over the candidate pairs, mm (0 if none)."""
+        return float(max(0.0, -self.gaps.min())) if self.gaps.size else 0.0
+
+
+def solve_with_lip_contact(problem: StaticProblem, constraints: Constraints, upper: np.ndarray,
+                           lower: np.ndarray, threshold: float = 0.2, axis: int = 2,
+                           max_iter: int = 20, tol: float = 1e-6, u_start=None) -> ContactResult:
+    """Solve with master-slave lip pairs (upper = slave, lower = master) in an active set.
+
+    Pairs start active when their craniocaudal gap is within ``threshold`` mm (seed
+    001's collision detection); a pair is released when its tie pulls (tension) and
+    (re)activated when its lips would interpenetrate by more than ``tol`` mm.
+    """
+    x = problem.mesh.points
+    upper, lower = np.asarray(upper, np.int64), np.asarray(lower, np.int64)
+    gap0 = x[upper, axis] - x[lower, axis]
+    active = gap0 <= threshold
+    history = set()
+    sol = None
+    for it in range(1, max_iter + 1):
+        c = replace(constraints, tie_slaves=upper[active], tie_masters=lower[active], tie_offsets=-gap0[active],
+                    tie_axis=axis)
+        sol = problem.solve(c, u_start=u_start if sol is None else sol.displacement)
+        u = sol.displacement
+        gaps = gap0 + u[upper, axis] - u[lower, axis]
+        force = c.forces(sol.residual)["tie"]
+        fscale = max(np.abs(sol.residual).max(), 1e-30)
+        release = np.zeros_like(active)
+        release[np.flatnonzero(active)] = force < -1e-8 * fscale
+        add = ~active & (gaps < -tol)
+        if not release.any() and not add.any():
+            return ContactResult(sol, active, gaps, it)
+        new_active = (active & ~release) | add
+        key = new_active.tobytes()
+        if key in history:  # cycling: keep the pairs that penetrate tied
+            new_active = active | add
+        history.add(key)
+        active = new_active
+    raise ConvergenceError(f"lip contact active set did not settle in {max_iter} iterations", max_iter)
