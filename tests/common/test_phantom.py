@@ -74,7 +74,7 @@ def test_boundary_sets_disjoint_and_nonempty(coarse):
     for name in BOUNDARY_SETS + ("skin", "bone"):
         assert sets[name].size > 0, name
     bone = set(sets["bone"].tolist())
-    for name in ("maxilla", "mandible", "mucosa_sliding", "proximal_left", "proximal_right"):
+    for name in ("maxilla", "mandible", "mucosa_sliding"):
         assert set(sets[name].tolist()) <= bone, name
 
 
@@ -118,19 +118,26 @@ def test_lip_muscle_fibres_run_superior_inferior(coarse):
 
 
 def test_bone_segments_carry_their_nodes(coarse):
-    """Attached and sliding nodes lie on (are vertices of) their segment surfaces;
-    proximal pivots are the condyles."""
+    """Attached and sliding nodes lie on (are vertices of) their own segment's surface; the
+    per-segment mucosa sets partition mucosa_sliding; proximal pivots are the condyles."""
     m, segs = coarse.mesh, coarse.segments
+    sliding = []
     for seg in segs.values():
-        ids = m.node_sets[seg.node_set]
-        d, _ = cKDTree(seg.surface.points).query(m.points[ids])
-        assert d.max() < 1e-9, seg.name
-    muc = m.points[m.node_sets["mucosa_sliding"]]
-    on_upper = muc[:, 2] >= 0
-    for z_sel, names in ((on_upper, ["lefort"]), (~on_upper, ["distal", "proximal_left", "proximal_right"])):
-        verts = np.vstack([segs[n].surface.points for n in names])
-        d, _ = cKDTree(verts).query(muc[z_sel])
-        assert d.max() < 1e-9
+        for set_name in (seg.node_set, seg.sliding_set):
+            if set_name is None:
+                continue
+            ids = m.node_sets[set_name]
+            assert ids.size > 0, set_name
+            d, _ = cKDTree(seg.surface.points).query(m.points[ids])
+            assert d.max() < 1e-9, (seg.name, set_name)
+        sliding.append(m.node_sets[seg.sliding_set])
+    allm = np.concatenate(sliding)
+    assert allm.size == np.unique(allm).size and np.array_equal(np.sort(allm), m.node_sets["mucosa_sliding"])
+    # the two faces of the slit on the occlusal plane slide on the bone of their own side
+    slit_inner = np.intersect1d(m.node_sets["upper_lip_face"], m.node_sets["bone"])
+    assert np.isin(slit_inner, m.node_sets["mucosa_lefort"]).all()
+    slit_inner = np.intersect1d(m.node_sets["lower_lip_face"], m.node_sets["bone"])
+    assert np.isin(slit_inner, m.node_sets["mucosa_distal"]).all()
     assert np.allclose(segs["proximal_left"].pivot, coarse.condyles[0])
     assert coarse.condyles[0, 0] > 0 > coarse.condyles[1, 0]
 

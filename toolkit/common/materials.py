@@ -148,8 +148,22 @@ class TransverselyIsotropic:
         return M @ self._local_stiffness() @ np.transpose(M, (0, 2, 1))
 
     def volumetric_lambda(self) -> float:
-        """Lame lambda of the transverse (matrix) material, reduced-integrated."""
-        return lame(self.E_transverse, self.nu)[0]
+        """The part ``lam (tr eps)^2 / 2`` split off for mean-dilatation integration, MPa.
+
+        The remainder ``D - lam m m^T`` must stay positive semi-definite, or modes with zero
+        mean dilatation would have negative energy. For an isotropic solid the split is
+        the Lame ``lam = K - 2 G / 3``; here ``K`` is the Reuss bulk modulus
+        ``1 / (m^T S m)`` and ``G`` the smallest shear modulus, capped by the transverse
+        Lame lambda.
+        """
+        m = np.array([1.0, 1, 1, 0, 0, 0])
+        C = self._local_stiffness()
+        bulk = 1.0 / (m @ np.linalg.solve(C, m))
+        g_min = min(self.g_fibre, self.E_transverse / (2 * (1 + self.nu)))
+        lam = min(lame(self.E_transverse, self.nu)[0], bulk - 2.0 * g_min / 3.0)
+        if np.linalg.eigvalsh(C - lam * np.outer(m, m)).min() < -1e-12 * np.abs(C).max():
+            raise ValueError(f"{self}: no positive volumetric split (check nu and the moduli)")
+        return lam
 
 
 @dataclass(frozen=True)

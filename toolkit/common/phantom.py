@@ -18,12 +18,14 @@ the bone to ``mouth_open`` at the skin).
 
 Node sets (boundary types, pairwise disjoint): ``fixed`` (top row near the
 infraorbital line, posterior edges, and the bone-side nodes above the Le Fort I
-cut), ``maxilla`` (bone-side nodes on the Le Fort I segment), ``mandible``
-(bone-side nodes on the distal mandible), ``proximal_left``/``proximal_right``
-(bone-side nodes on the proximal mandible behind the sagittal split),
-``mucosa_sliding`` (bone-side nodes of the vestibule, which slide on the teeth
-and alveolus), ``lip_sliding`` (both faces of the mouth slit). Region sets:
-``skin`` (outer surface), ``bone`` (inner surface), ``upper_lip_face`` and
+cut), ``maxilla`` (bone-side nodes attached to the Le Fort I segment, which ends
+laterally at the pterygomaxillary junction), ``mandible``
+(bone-side nodes attached to the distal mandible), ``mucosa_sliding`` (bone-side
+nodes of the vestibule, which slide on the teeth and alveolus, and of the tissue
+over the ramus, which slides on the proximal segments), ``lip_sliding`` (both faces
+of the mouth slit). ``mucosa_lefort``, ``mucosa_distal``, ``mucosa_proximal_left``
+and ``mucosa_proximal_right`` split the mucosa by the segment it slides on. Region
+sets: ``skin`` (outer surface), ``bone`` (inner surface), ``upper_lip_face`` and
 ``lower_lip_face``. Element set ``lip_muscle`` (orbicularis oris); cell field
 ``fibre_direction`` (the local superior-inferior unit vector of every element).
 
@@ -78,7 +80,7 @@ TET_RESOLUTIONS: Mapping[str, tuple[int, int, int]] = MappingProxyType(
 BALL_RESOLUTIONS: Mapping[str, int] = MappingProxyType({"coarse": 3, "paper": 8, "fine": 12})
 
 #: node sets that are boundary types and must be pairwise disjoint
-BOUNDARY_SETS = ("fixed", "maxilla", "mandible", "proximal_left", "proximal_right", "mucosa_sliding", "lip_sliding")
+BOUNDARY_SETS = ("fixed", "maxilla", "mandible", "mucosa_sliding", "lip_sliding")
 
 _THETA_MAX = np.deg2rad(80.0)  # half-angle of the arch covered by the face
 _MOUTH_FRACTION = 0.6  # fraction of the height below the occlusal plane
@@ -153,13 +155,15 @@ class BoneSegment:
     surface : Mesh with one ``tri3`` block, mm; outward normals point into the soft tissue
     pivot : (3,) float, mm — the condyle for proximal segments, the midpoint of the
         condyles for the distal mandible, the segment's attachment centroid for Le Fort I
-    node_set : name of the face node set rigidly attached to this segment
+    node_set : name of the face node set rigidly attached to this segment, or None
+    sliding_set : name of the node set of mucosa nodes that slide on this segment
     """
 
     name: str
     surface: Mesh
     pivot: np.ndarray
-    node_set: str
+    node_set: str | None
+    sliding_set: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -195,6 +199,7 @@ class _Geometry:
         self.z_vest_up = 10.0 * h / 90.0  # upper vestibule depth
         self.z_vest_low = -12.0 * h / 90.0
         self.theta_osteo = np.deg2rad(50.0)  # sagittal split, molar region
+        self.theta_maxilla = np.deg2rad(55.0)  # posterior end of the Le Fort I segment
         t_cheek = shape.tissue_thickness + 3.0
         self.a0 = shape.face_width / (2.0 * np.sin(_THETA_MAX)) - t_cheek
         h = shape.face_height
@@ -434,15 +439,25 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
 
     fixed = (j == nv1 - 1) | (i == 0) | (i == nu1 - 1) | (inner & (z > geom.z_lefort + 1e-9))
     in_slit = (j == g.j_mouth) & np.isin(i, g.slit_cols)
-    mucosa = inner & ~fixed & (z >= geom.z_vest_low - 1e-9) & (z <= geom.z_vest_up + 1e-9)
-    maxilla = inner & ~fixed & ~mucosa & (z > 0)
-    below = inner & ~fixed & ~mucosa & (z < 0)
-    distal = below & (np.abs(theta) <= geom.theta_osteo)
-    prox_left = below & (theta > geom.theta_osteo)
-    prox_right = below & (theta < -geom.theta_osteo)
-    lip = in_slit & ~inner
     is_upper_copy = np.zeros(n_points, dtype=bool)
     is_upper_copy[g.upper_slit[g.slit_cols].reshape(-1)] = True
+    vestibule = (z >= geom.z_vest_low - 1e-9) & (z <= geom.z_vest_up + 1e-9)
+    over_proximal = np.abs(theta) > geom.theta_osteo
+    # the tissue over the ramus slides on the proximal segments: behind the sagittal split the
+    # distal and proximal bones move apart by millimetres, which an attachment would tear
+    mucosa = inner & ~fixed & ((z < 0) & over_proximal | vestibule)
+    # the Le Fort I segment ends at the pterygomaxillary junction: laterally the tissue lies
+    # on the zygoma and ramus and is left free
+    maxilla = inner & ~fixed & ~mucosa & (z > 0) & (np.abs(theta) <= geom.theta_maxilla)
+    distal = inner & ~fixed & ~mucosa & (z < 0)
+    upper_side = (z > 0) | is_upper_copy
+    mucosa_on = {
+        "lefort": mucosa & upper_side,
+        "distal": mucosa & ~upper_side & ~over_proximal,
+        "proximal_left": mucosa & ~upper_side & over_proximal & (theta > 0),
+        "proximal_right": mucosa & ~upper_side & over_proximal & (theta < 0),
+    }
+    lip = in_slit & ~inner
 
     # ---- element sets and fibre direction
     x = g.points[hexes]
@@ -458,9 +473,8 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
         "fixed": np.flatnonzero(fixed),
         "maxilla": np.flatnonzero(maxilla),
         "mandible": np.flatnonzero(distal),
-        "proximal_left": np.flatnonzero(prox_left),
-        "proximal_right": np.flatnonzero(prox_right),
         "mucosa_sliding": np.flatnonzero(mucosa),
+        **{f"mucosa_{name}": np.flatnonzero(sel) for name, sel in mucosa_on.items()},
         "lip_sliding": np.flatnonzero(lip),
         "skin": np.flatnonzero(k == nw1 - 1),
         "bone": np.flatnonzero(inner),
@@ -483,20 +497,16 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
     th_distal = _extend(g.theta, -geom.theta_osteo, geom.theta_osteo)
     z_mand = _extend(g.z, g.z[0], 0.0)
     segments = {
-        "lefort": BoneSegment("lefort", lefort_surface, g.points[node_sets["maxilla"]].mean(axis=0), "maxilla"),
-        "distal": BoneSegment("distal", _segment_surface(geom, th_distal, z_mand), condyles.mean(axis=0), "mandible"),
+        "lefort": BoneSegment("lefort", lefort_surface, g.points[node_sets["maxilla"]].mean(axis=0), "maxilla",
+                              "mucosa_lefort"),
+        "distal": BoneSegment("distal", _segment_surface(geom, th_distal, z_mand), condyles.mean(axis=0), "mandible",
+                              "mucosa_distal"),
         "proximal_left": BoneSegment(
-            "proximal_left",
-            _segment_surface(geom, _extend(g.theta, geom.theta_osteo, g.theta[-1]), z_mand),
-            condyles[0],
-            "proximal_left",
-        ),
+            "proximal_left", _segment_surface(geom, _extend(g.theta, geom.theta_osteo, g.theta[-1]), z_mand),
+            condyles[0], None, "mucosa_proximal_left"),
         "proximal_right": BoneSegment(
-            "proximal_right",
-            _segment_surface(geom, _extend(g.theta, g.theta[0], -geom.theta_osteo), z_mand),
-            condyles[1],
-            "proximal_right",
-        ),
+            "proximal_right", _segment_surface(geom, _extend(g.theta, g.theta[0], -geom.theta_osteo), z_mand),
+            condyles[1], None, "mucosa_proximal_right"),
     }
     return FacePhantom(mesh, MappingProxyType(segments), condyles, shape, resolution)
 

@@ -32,6 +32,16 @@ class NodeType(IntEnum):
     LIP_SLIDING = 4
 
 
+def _element_side(mesh: Mesh) -> np.ndarray:
+    """Mean centroid of the elements around each node, ``(n, 3)`` mm."""
+    cells = mesh.volume_cells
+    centroids = mesh.points[cells].mean(axis=1)
+    acc = np.zeros((mesh.n_points, 3))
+    np.add.at(acc, cells.ravel(), np.repeat(centroids, cells.shape[1], axis=0))
+    count = np.bincount(cells.ravel(), minlength=mesh.n_points)[:, None]
+    return np.divide(acc, count, out=mesh.points.copy(), where=count > 0)
+
+
 class BoundaryError(ValueError):
     """Boundary conditions are inconsistent or leave the problem under-constrained."""
 
@@ -141,8 +151,9 @@ class BoundaryConditions:
         Parameters
         ----------
         mesh : the face (hex or tet) with those node sets; sets must be disjoint
-        segments : name -> :class:`~toolkit.common.phantom.BoneSegment`; each mucosa node
-            slides on the segment surface nearest to it
+        segments : name -> :class:`~toolkit.common.phantom.BoneSegment`; a mucosa node slides
+            on the segment whose ``sliding_set`` holds it, or (without such sets) on the
+            segment surface nearest to it
         lip_threshold : mm; without ``upper_lip_face``/``lower_lip_face`` sets, lip nodes are
             paired by proximity below this distance (seed 001's collision threshold), the
             higher node of a pair being the upper lip
@@ -164,15 +175,27 @@ class BoundaryConditions:
 
         claim(mesh.node_set("fixed"), NodeType.FIXED, "fixed")
         for k, (name, seg) in enumerate(segments.items()):
-            if seg.node_set in mesh.node_sets:
+            if seg.node_set is not None and seg.node_set in mesh.node_sets:
                 ids = mesh.node_sets[seg.node_set]
                 claim(ids, NodeType.MOVING, seg.node_set)
                 segment[ids] = k
         if "mucosa_sliding" in mesh.node_sets:
             muc = mesh.node_sets["mucosa_sliding"]
             claim(muc, NodeType.MUCOSA_SLIDING, "mucosa_sliding")
-            if muc.size:
-                dist = np.stack([closest_points(mesh.points[muc], s.surface.points, s.surface.cells["tri3"]).distance
+            sliding_sets = [getattr(s, "sliding_set", None) for s in segments.values()]
+            if muc.size and all(n in mesh.node_sets for n in sliding_sets if n) and any(sliding_sets):
+                for k, name in enumerate(sliding_sets):
+                    if name:
+                        segment[mesh.node_sets[name]] = k
+                unassigned = muc[segment[muc] < 0]
+                if unassigned.size:
+                    raise BoundaryError(f"{unassigned.size} mucosa nodes are in no segment's sliding set (first: "
+                                        f"{unassigned[:5].tolist()})")
+            elif muc.size:
+                # nudge each node towards its elements so that coincident nodes (the two faces of
+                # the mouth slit on the occlusal plane) go to the segment on their own side
+                probe = mesh.points[muc] + 0.25 * (_element_side(mesh)[muc] - mesh.points[muc])
+                dist = np.stack([closest_points(probe, s.surface.points, s.surface.cells["tri3"]).distance
                                  for s in segments.values()], axis=1)
                 segment[muc] = np.argmin(dist, axis=1)
         upper = lower = np.zeros(0, np.int64)

@@ -76,10 +76,13 @@ class StaticProblem:
     materials : MaterialAssignment (all linear, or all Neo-Hookean)
     solver : ``auto``, ``superlu``, ``amg`` or ``cholmod`` (see :mod:`toolkit.static.solvers`)
     pattern : a SparsePattern of the same topology to reuse
+    rtol : Newton stops when the free-dof residual falls below ``rtol`` times the
+        largest nodal force (reactions included)
     """
 
     def __init__(self, mesh: Mesh, materials: MaterialAssignment, solver: str = "auto",
-                 pattern: SparsePattern | None = None):
+                 pattern: SparsePattern | None = None, rtol: float = 1e-8):
+        self.rtol = rtol
         self.mesh = mesh
         self.materials = materials
         self.solver = solver
@@ -119,59 +122,57 @@ class StaticProblem:
 
     # ----------------------------------------------------------------- Newton
     def _newton(self, T, u0, u_start, max_iter: int = 25, max_substeps: int = 6) -> Solution:
+        """Newton from ``u_start`` to the prescribed ``u0``, bisecting the prescribed
+        increment (load sub-steps) when a step does not converge."""
         n = self.mesh.n_points
         u_prev = np.zeros(3 * n) if u_start is None else np.asarray(u_start, float).reshape(-1)
-        v = T.T @ (u_prev - u0)  # admissible start: the free part of the previous state
-        # prescribed part is reached in load sub-steps if a full step fails
+        # the previous state's constrained part; sub-steps move it linearly to u0
+        start_u0 = u_prev - T @ (T.T @ (u_prev - u0))
         solves, total_iter = [], 0
-        start_u0 = u_prev - T @ (T.T @ (u_prev - u0))  # constrained part of the previous state
-        fractions = [1.0]
-        done = 0.0
-        level = 0
-        while done < 1.0:
-            target = fractions[0]
+        done, step, level = 0.0, 1.0, 0
+        while done < 1.0 - 1e-12:
+            target = min(1.0, done + step)
             u0_k = start_u0 + target * (u0 - start_u0)
             try:
-                v_new, iters, infos = self._newton_fixed(T, u0_k, v, max_iter)
+                v, iters, infos = self._newton_fixed(T, u0_k, u_prev, max_iter)
             except ConvergenceError:
                 level += 1
                 if level > max_substeps:
                     raise
-                step = (target - done) / 2.0
-                fractions = [done + step, *fractions]
-                log.info("Newton failed; sub-stepping the prescribed displacements to %.3f", done + step)
+                step /= 2.0
+                log.info("Newton failed; sub-stepping the prescribed displacements (step %.3g)", step)
                 continue
             solves += infos
             total_iter += iters
-            v = v_new
+            u_prev = T @ v + u0_k
             done = target
-            fractions.pop(0)
-            if not fractions and done < 1.0:
-                fractions = [1.0]
-        u = T @ v + u0
-        f, _ = neo_hookean_system(self.kin, u.reshape(-1, 3), self.groups, self.pattern, tangent=False)
-        return Solution(u.reshape(-1, 3), f, solves, total_iter)
+        f, _ = neo_hookean_system(self.kin, u_prev.reshape(-1, 3), self.groups, self.pattern, tangent=False)
+        return Solution(u_prev.reshape(-1, 3), f, solves, total_iter)
 
-    def _newton_fixed(self, T, u0, v, max_iter):
+    def _newton_fixed(self, T, u0, u_prev, max_iter):
+        """Newton with fixed prescribed part ``u0``, starting from the tangent predictor at
+        the previous equilibrium ``u_prev`` (the linearised response to the new ``u0``)."""
         infos = []
         energy = lambda vv: neo_hookean_energy(self.kin, (T @ vv + u0).reshape(-1, 3), self.groups)  # noqa: E731
+        f, K = neo_hookean_system(self.kin, u_prev.reshape(-1, 3), self.groups, self.pattern)
+        A = (T.T @ K @ T).tocsr()
+        v, info = self._solve_reduced(T, A, -(T.T @ (f + K @ (u0 - u_prev))))
+        infos.append(info)
         E = energy(v)
-        if not np.isfinite(E):
-            # the previous free state is inadmissible with the new prescribed part: start linearly
-            v = np.zeros_like(v) if not np.isfinite(energy(np.zeros_like(v))) else np.zeros_like(v)
+        if not np.isfinite(E):  # the predictor inverts elements: fall back to the previous free state
+            v = T.T @ (u_prev - u0)
             E = energy(v)
             if not np.isfinite(E):
-                raise ConvergenceError("the prescribed displacements invert elements before any free motion")
-        r0 = None
+                raise ConvergenceError("the prescribed displacements invert elements; a smaller step is needed")
+        gn = np.inf
         for it in range(1, max_iter + 1):
             u = T @ v + u0
             f, K = neo_hookean_system(self.kin, u.reshape(-1, 3), self.groups, self.pattern)
             g = T.T @ f
             gn = np.linalg.norm(g)
-            r0 = gn if r0 is None else r0
-            scale = max(r0, np.abs(f).max(), 1e-30)
-            if gn <= 1e-9 * scale or (it > 1 and gn < 1e-12):
-                return v, it - 1, infos
+            scale = max(np.abs(f).max(), 1e-30)
+            if gn <= self.rtol * scale:
+                return v, it, infos
             A = (T.T @ K @ T).tocsr()
             dv, info = self._solve_reduced(T, A, -g)
             infos.append(info)
@@ -182,11 +183,13 @@ class StaticProblem:
             alpha = 1.0
             for _ in range(30):
                 E_new = energy(v + alpha * dv)
-                if np.isfinite(E_new) and E_new <= E + 1e-4 * alpha * slope:
+                # Armijo, with slack for round-off once the energy change nears machine precision
+                if np.isfinite(E_new) and E_new <= E + 1e-4 * alpha * slope + 1e-12 * abs(E):
                     break
                 alpha *= 0.5
             else:
                 raise ConvergenceError(f"line search failed at Newton iteration {it} (residual {gn:.3e} N)", it, gn)
+            log.debug("Newton %d: residual %.3e N, step %.3g, energy %.6e mJ", it, gn, alpha, E_new)
             v = v + alpha * dv
             E = E_new
         raise ConvergenceError(f"Newton did not converge in {max_iter} iterations (residual {gn:.3e} N)",

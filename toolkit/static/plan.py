@@ -1,0 +1,579 @@
+"""Surgical plans for orthognathic surgery: rigid motions of the bony segments.
+
+A :class:`SurgicalPlan` holds one :class:`RigidMotion` per bony segment
+(:data:`SEGMENTS`: ``lefort``, ``distal``, ``proximal_left``, ``proximal_right``;
+segments not given stay put). A motion rotates about its pivot, then translates:
+``x' = R (x - pivot) + pivot + t``, everything in mm, axes as in
+:mod:`toolkit.common.phantom` (``x`` patient's left, ``y`` anterior, ``z`` superior).
+
+Seed 001 (section 2.3.2.2) applies the planned movements in increments: the
+intermediate bone positions interpolate the rotation by quaternion slerp from the
+identity (short arc) and the translation linearly; :meth:`SurgicalPlan.increments`
+gives the cumulative plans at fractions ``1/n, 2/n, ..., 1`` (3 by default).
+
+The proximal mandibular segments rotate about their ipsilateral condyle to follow
+the distal mandible (:meth:`SurgicalPlan.with_proximal_following`): the rotation
+about the condyle that best maps the proximal bone onto where the distal motion
+takes it (least squares, proper rotations only), so the condyles stay in their fossae.
+
+**Validation** runs at construction. Movements beyond the physiological ranges of
+seed 001 (:data:`PHYSIOLOGICAL_RANGES`) warn with :class:`PlanRangeWarning`; beyond
+twice the range they raise ``ValueError`` unless the plan is built with
+``force=True`` (then they warn). NaN never gets in: :class:`RigidMotion` refuses it.
+
+**Files** (``.toml`` or ``.json``): one table per segment with ``translation_mm``,
+a rotation (``rotation_quaternion = [w, x, y, z]``, ``rotation_vector_deg`` = axis
+times angle in degrees, or ``euler_deg`` = angles about x, y, z applied in that
+order) and ``pivot_mm``. ``pivot_mm`` may be left out when the segment does not
+rotate, or when the file is read with a phantom, whose segment pivots fill it in
+(:meth:`SurgicalPlan.read`); with a phantom, proximal segments absent from the
+file follow the distal one. :func:`default_plan` is the packaged typical
+bimaxillary plan (``toolkit/static/data/default_plan.toml``) on a phantom.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from toolkit.common.io import atomic_path
+
+if TYPE_CHECKING:  # pragma: no cover
+    import pandas as pd
+
+    from toolkit.common.phantom import FacePhantom
+
+__all__ = [
+    "PHYSIOLOGICAL_RANGES",
+    "PLAN_FORMATS",
+    "SEGMENTS",
+    "PlanRangeWarning",
+    "RigidMotion",
+    "SurgicalPlan",
+    "default_plan",
+    "proximal_reference_points",
+]
+
+SEGMENTS = ("lefort", "distal", "proximal_left", "proximal_right")
+#: segment -> (largest translation of the pivot in mm, largest rotation in degrees),
+#: seed 001; the proximal segments have no stated range and take the distal one
+PHYSIOLOGICAL_RANGES: Mapping[str, tuple[float, float]] = MappingProxyType(
+    {"lefort": (6.3, 9.8), "distal": (11.5, 13.3), "proximal_left": (11.5, 13.3), "proximal_right": (11.5, 13.3)}
+)
+PLAN_FORMATS = (".toml", ".json")
+_ROTATION_KEYS = ("rotation_quaternion", "rotation_vector_deg", "euler_deg")
+_MOTION_KEYS = ("translation_mm", "pivot_mm") + _ROTATION_KEYS
+
+
+class PlanRangeWarning(UserWarning):
+    """A bony movement lies outside the physiological range of seed 001."""
+
+
+def _vector(value, n: int, name: str) -> np.ndarray:
+    """``value`` as a read-only float64 ``(n,)`` array of finite numbers."""
+    try:
+        a = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} = {value!r} is not {n} numbers: {exc}") from exc
+    if a.shape != (n,):
+        raise ValueError(f"{name} has shape {a.shape}, expected ({n},)")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} = {a.tolist()} holds NaN or inf; expected {n} finite numbers")
+    a.flags.writeable = False
+    return a
+
+
+def _quaternion_from_rotvec(rotvec_rad: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(w, x, y, z)`` of a rotation vector (axis times angle, rad)."""
+    angle = float(np.linalg.norm(rotvec_rad))
+    if angle == 0.0:
+        return np.array([1.0, 0.0, 0.0, 0.0])
+    return np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) / angle * rotvec_rad])
+
+
+def _hamilton(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Quaternion product ``a b`` (rotation ``b`` first, then ``a``)."""
+    w1, v1, w2, v2 = a[0], a[1:], b[0], b[1:]
+    return np.concatenate([[w1 * w2 - v1 @ v2], w1 * v2 + w2 * v1 + np.cross(v1, v2)])
+
+
+@dataclass(frozen=True, eq=False)
+class RigidMotion:
+    """A rigid motion about a pivot: ``x' = R (x - pivot) + pivot + translation``.
+
+    Attributes
+    ----------
+    rotation : (4,) float, unit quaternion ``(w, x, y, z)``; normalised at
+        construction and given the sign with ``w >= 0`` (``q`` and ``-q`` are the
+        same rotation), so the rotation angle is in [0, 180] degrees
+    translation : (3,) float, mm — the displacement of the pivot
+    pivot : (3,) float, mm
+    """
+
+    rotation: np.ndarray = (1.0, 0.0, 0.0, 0.0)
+    translation: np.ndarray = (0.0, 0.0, 0.0)
+    pivot: np.ndarray = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        q = np.array(_vector(self.rotation, 4, "rotation quaternion (w, x, y, z)"))
+        norm = float(np.linalg.norm(q))
+        if norm == 0.0:
+            raise ValueError(f"rotation quaternion {q.tolist()} has zero norm; expected a unit quaternion (w, x, y, z)")
+        q /= norm
+        if q[0] < 0:
+            q = -q
+        q.flags.writeable = False
+        object.__setattr__(self, "rotation", q)
+        object.__setattr__(self, "translation", _vector(self.translation, 3, "translation (mm)"))
+        object.__setattr__(self, "pivot", _vector(self.pivot, 3, "pivot (mm)"))
+
+    # ----------------------------------------------------------- constructors
+    @classmethod
+    def identity(cls, pivot=(0.0, 0.0, 0.0)) -> RigidMotion:
+        """No motion; ``pivot`` (3,) mm."""
+        return cls(pivot=pivot)
+
+    @classmethod
+    def from_rotation_vector(cls, rotvec_deg, translation=(0.0, 0.0, 0.0), pivot=(0.0, 0.0, 0.0)) -> RigidMotion:
+        """From ``rotvec_deg`` (3,) = unit axis times angle in degrees; translation, pivot (3,) mm."""
+        rotvec = np.deg2rad(_vector(rotvec_deg, 3, "rotation_vector_deg"))
+        return cls(_quaternion_from_rotvec(rotvec), translation, pivot)
+
+    @classmethod
+    def from_euler_deg(cls, angles_deg, translation=(0.0, 0.0, 0.0), pivot=(0.0, 0.0, 0.0)) -> RigidMotion:
+        """From ``angles_deg`` (3,) about the fixed x, y, z axes applied in that order
+        (``R = Rz Ry Rx``); translation, pivot (3,) mm."""
+        from scipy.spatial.transform import Rotation
+
+        x, y, z, w = Rotation.from_euler("xyz", _vector(angles_deg, 3, "euler_deg"), degrees=True).as_quat()
+        return cls((w, x, y, z), translation, pivot)
+
+    @classmethod
+    def from_matrix(cls, matrix, translation=(0.0, 0.0, 0.0), pivot=(0.0, 0.0, 0.0)) -> RigidMotion:
+        """From a proper rotation ``matrix`` (3, 3); translation, pivot (3,) mm."""
+        from scipy.spatial.transform import Rotation
+
+        m = np.asarray(matrix, dtype=float)
+        if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+            raise ValueError(f"rotation matrix has shape {m.shape} (or holds NaN); expected a finite (3, 3) array")
+        err, det = float(np.abs(m.T @ m - np.eye(3)).max()), float(np.linalg.det(m))
+        if err > 1e-6 or det <= 0:
+            raise ValueError(
+                f"matrix is not a proper rotation (|M^T M - I| = {err:.3g}, det = {det:.6g}); "
+                "expected an orthogonal matrix with det = +1"
+            )
+        x, y, z, w = Rotation.from_matrix(m).as_quat()
+        return cls((w, x, y, z), translation, pivot)
+
+    # ------------------------------------------------------------- properties
+    @property
+    def matrix(self) -> np.ndarray:
+        """Rotation matrix, (3, 3)."""
+        w, x, y, z = self.rotation
+        return np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+
+    @property
+    def angle_deg(self) -> float:
+        """Rotation angle in degrees, in [0, 180]."""
+        return math.degrees(2.0 * math.atan2(float(np.linalg.norm(self.rotation[1:])), abs(self.rotation[0])))
+
+    @property
+    def rotation_vector_deg(self) -> np.ndarray:
+        """Unit axis times angle in degrees, (3,)."""
+        v = self.rotation[1:]
+        s = float(np.linalg.norm(v))
+        return np.zeros(3) if s == 0.0 else v / s * self.angle_deg
+
+    @property
+    def translation_mm(self) -> float:
+        """Distance travelled by the pivot, mm."""
+        return float(np.linalg.norm(self.translation))
+
+    @property
+    def is_identity(self) -> bool:
+        """True when neither rotating nor translating."""
+        return not np.any(self.rotation[1:]) and not np.any(self.translation)
+
+    # ------------------------------------------------------------- operations
+    def apply(self, points) -> np.ndarray:
+        """Moved points: ``points`` (n, 3) mm -> (n, 3) mm (a (3,) point also works)."""
+        p = np.asarray(points, dtype=float)
+        return (p - self.pivot) @ self.matrix.T + self.pivot + self.translation
+
+    def displacement(self, points) -> np.ndarray:
+        """Displacement ``apply(points) - points``: (n, 3) mm -> (n, 3) mm."""
+        return self.apply(points) - np.asarray(points, dtype=float)
+
+    def scaled(self, factor: float) -> RigidMotion:
+        """The motion with rotation angle and translation multiplied by ``factor`` (same
+        axis and pivot); ``factor`` in [0, 1] is the quaternion slerp from the identity."""
+        factor = float(factor)
+        if not math.isfinite(factor):
+            raise ValueError(f"factor = {factor!r}; expected a finite number")
+        if factor == 1.0:
+            return self
+        w, v = self.rotation[0], self.rotation[1:]
+        s = float(np.linalg.norm(v))
+        if s == 0.0:
+            return RigidMotion(self.rotation, factor * self.translation, self.pivot)
+        half = math.atan2(s, w)  # half the angle, in [0, pi/2] since w >= 0: the short arc
+        q = np.concatenate([[math.cos(factor * half)], math.sin(factor * half) / s * v])
+        return RigidMotion(q, factor * self.translation, self.pivot)
+
+    def interpolated(self, fraction: float) -> RigidMotion:
+        """The motion ``fraction`` in [0, 1] of the way from the identity: rotation by
+        quaternion slerp (short arc), translation linear, same pivot."""
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"fraction = {fraction!r}; expected a number in [0, 1]")
+        return self.scaled(fraction)
+
+    def inverted(self) -> RigidMotion:
+        """The inverse motion (expressed about the moved pivot ``pivot + translation``)."""
+        conj = self.rotation * np.array([1.0, -1.0, -1.0, -1.0])
+        return RigidMotion(conj, -self.translation, self.pivot + self.translation)
+
+    def after(self, first: RigidMotion) -> RigidMotion:
+        """The motion ``first`` followed by ``self``, expressed about ``first.pivot``."""
+        t = (
+            self.matrix @ (first.pivot + first.translation - self.pivot)
+            + self.pivot
+            + self.translation
+            - first.pivot
+        )
+        return RigidMotion(_hamilton(self.rotation, first.rotation), t, first.pivot)
+
+    def as_dict(self) -> dict[str, list[float]]:
+        """Plain floats: ``rotation_quaternion`` (w, x, y, z), the readable
+        ``rotation_vector_deg``, ``translation_mm`` and ``pivot_mm``."""
+        return {
+            "translation_mm": [float(v) for v in self.translation],
+            "rotation_quaternion": [float(v) for v in self.rotation],
+            "rotation_vector_deg": [float(v) for v in self.rotation_vector_deg],
+            "pivot_mm": [float(v) for v in self.pivot],
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], pivot=None) -> RigidMotion:
+        """From the keys of :meth:`as_dict`; give at most one of ``rotation_quaternion``,
+        ``rotation_vector_deg``, ``euler_deg`` — or the quaternion with the rotation
+        vector, which must then agree (to 1e-6 degrees). Missing ``translation_mm``:
+        zero; missing rotation: none; missing ``pivot_mm``: ``pivot`` (3,) mm if given,
+        else required unless the motion does not rotate."""
+        unknown = sorted(set(d) - set(_MOTION_KEYS))
+        if unknown:
+            raise ValueError(f"unknown keys {unknown}; expected some of {list(_MOTION_KEYS)}")
+        given = [k for k in _ROTATION_KEYS if k in d]
+        if len(given) > 1 and set(given) != {"rotation_quaternion", "rotation_vector_deg"}:
+            raise ValueError(f"rotation given as {given}; give one of {list(_ROTATION_KEYS)}")
+        translation = _vector(d.get("translation_mm", (0.0, 0.0, 0.0)), 3, "translation_mm")
+        if "rotation_quaternion" in d:
+            motion = cls(_vector(d["rotation_quaternion"], 4, "rotation_quaternion"), translation)
+            if "rotation_vector_deg" in d:
+                other = cls.from_rotation_vector(d["rotation_vector_deg"])
+                gap = other.inverted().after(motion).angle_deg
+                if gap > 1e-6:
+                    raise ValueError(
+                        f"rotation_quaternion {motion.rotation.tolist()} and rotation_vector_deg "
+                        f"{list(d['rotation_vector_deg'])} differ by {gap:.3g} degrees; give only one"
+                    )
+        elif "rotation_vector_deg" in d:
+            motion = cls.from_rotation_vector(d["rotation_vector_deg"], translation)
+        elif "euler_deg" in d:
+            motion = cls.from_euler_deg(d["euler_deg"], translation)
+        else:
+            motion = cls(translation=translation)
+        if "pivot_mm" in d:
+            pivot = _vector(d["pivot_mm"], 3, "pivot_mm")
+        elif pivot is None:
+            if motion.angle_deg > 0:
+                raise ValueError(
+                    "pivot_mm is missing and the segment rotates; give pivot_mm = [x, y, z] (mm) "
+                    "or read the plan with a phantom, whose segment pivots fill it in"
+                )
+            pivot = (0.0, 0.0, 0.0)
+        return cls(motion.rotation, motion.translation, pivot)
+
+
+def _rotation_about(centre: np.ndarray, points: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """Proper rotation R (3, 3) minimising ``sum |R (p - c) - (q - c)|^2`` (Kabsch, no translation)."""
+    a, b = points - centre, targets - centre
+    s = np.linalg.svd(a, compute_uv=False)
+    if s.size < 2 or s[1] <= 1e-9 * s[0]:
+        raise ValueError(
+            f"the {points.shape[0]} reference points are collinear with the centre {centre.tolist()}; "
+            "the rotation about it is undetermined — give points spanning a plane"
+        )
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+
+
+def _following(distal: RigidMotion, condyle, points) -> RigidMotion:
+    """Rotation about ``condyle`` (3,) mm that best follows ``distal`` at ``points`` (n, 3) mm."""
+    c = _vector(condyle, 3, "condyle (mm)")
+    p = np.asarray(points, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] < 2 or not np.all(np.isfinite(p)):
+        raise ValueError(f"reference points have shape {p.shape} (or hold NaN); expected finite (n, 3), n >= 2")
+    return RigidMotion.from_matrix(_rotation_about(c, p, distal.apply(p)), pivot=c)
+
+
+def proximal_reference_points(phantom: FacePhantom, fraction: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """Reference points of the proximal segments for following the distal one.
+
+    The ``fraction`` of each proximal surface's vertices nearest to the distal
+    segment's surface (at least 3; ties within 1e-6 mm all kept, so a symmetric
+    phantom gives mirror-image sets): the region of the sagittal split, where the two
+    segments are plated together. Returns ``(points_left, points_right)``, each (k, 3) mm.
+    """
+    from scipy.spatial import cKDTree
+
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"fraction = {fraction!r}; expected a number in (0, 1]")
+    distal = cKDTree(phantom.segments["distal"].surface.points)
+    out = []
+    for name in ("proximal_left", "proximal_right"):
+        pts = phantom.segments[name].surface.points
+        dist = distal.query(pts)[0]
+        k = min(pts.shape[0], max(3, round(fraction * pts.shape[0])))
+        out.append(pts[dist <= np.partition(dist, k - 1)[k - 1] + 1e-6])
+    return out[0], out[1]
+
+
+def _check_names(names) -> None:
+    unknown = sorted(set(names) - set(SEGMENTS))
+    if unknown:
+        raise ValueError(f"unknown segments {unknown}; the known segments are {list(SEGMENTS)}")
+
+
+@dataclass(frozen=True, eq=False)
+class SurgicalPlan:
+    """Rigid motions of the bony segments, validated at construction.
+
+    Attributes
+    ----------
+    motions : mapping segment -> RigidMotion for every name in :data:`SEGMENTS`
+        (segments not given are the identity); read-only
+    force : bool — accept movements beyond twice the physiological range (with a
+        :class:`PlanRangeWarning` instead of a ``ValueError``)
+    """
+
+    motions: Mapping[str, RigidMotion]
+    force: bool = False
+
+    def __post_init__(self):
+        if not isinstance(self.motions, Mapping):
+            raise TypeError(f"motions is a {type(self.motions).__name__}; expected a mapping segment -> RigidMotion")
+        _check_names(self.motions)
+        for name, m in self.motions.items():
+            if not isinstance(m, RigidMotion):
+                raise TypeError(f"segment {name!r} has a {type(m).__name__}; expected a RigidMotion")
+        full = {name: self.motions.get(name, RigidMotion.identity()) for name in SEGMENTS}
+        object.__setattr__(self, "motions", MappingProxyType(full))
+        object.__setattr__(self, "force", bool(self.force))
+        self._validate(self.force, stacklevel=4)  # warn at the caller of SurgicalPlan(...)
+
+    def validate(self, force: bool | None = None) -> None:
+        """Check every movement against :data:`PHYSIOLOGICAL_RANGES` (done at construction).
+
+        Beyond the range: :class:`PlanRangeWarning`. Beyond twice the range:
+        ``ValueError``, or a warning when ``force`` (default: the plan's own) is true.
+        """
+        self._validate(self.force if force is None else force, stacklevel=3)
+
+    def _validate(self, force: bool, stacklevel: int) -> None:
+        for name, m in self.motions.items():
+            max_mm, max_deg = PHYSIOLOGICAL_RANGES[name]
+            checks = (("translation", m.translation_mm, max_mm, "mm"), ("rotation", m.angle_deg, max_deg, "degrees"))
+            for what, value, limit, unit in checks:
+                if value <= limit:
+                    continue
+                msg = (
+                    f"segment {name!r}: {what} {value:.3g} {unit} is beyond the physiological "
+                    f"range 0-{limit} {unit} (seed 001)"
+                )
+                if value > 2 * limit:
+                    if not force:
+                        raise ValueError(f"{msg} by more than twice; build the plan with force=True to accept it")
+                    msg += ", more than twice; accepted because force=True"
+                warnings.warn(msg, PlanRangeWarning, stacklevel=stacklevel)
+
+    # ------------------------------------------------------------ constructors
+    @classmethod
+    def for_phantom(
+        cls,
+        phantom: FacePhantom,
+        *,
+        lefort: RigidMotion | Mapping[str, Any] | None = None,
+        distal: RigidMotion | Mapping[str, Any] | None = None,
+        proximal_left: RigidMotion | Mapping[str, Any] | None = None,
+        proximal_right: RigidMotion | Mapping[str, Any] | None = None,
+        force: bool = False,
+    ) -> SurgicalPlan:
+        """A plan on ``phantom``: each segment is a RigidMotion (kept as is) or a mapping
+        in the file format whose missing ``pivot_mm`` is the phantom segment's pivot.
+        Proximal segments not given follow the distal one (about the phantom's condyles,
+        at :func:`proximal_reference_points`)."""
+        given = {"lefort": lefort, "distal": distal, "proximal_left": proximal_left, "proximal_right": proximal_right}
+        motions = {}
+        for name, spec in given.items():
+            if isinstance(spec, Mapping):
+                try:
+                    spec = RigidMotion.from_dict(spec, pivot=phantom.segments[name].pivot)
+                except ValueError as exc:
+                    raise ValueError(f"segment {name!r}: {exc}") from exc
+            if spec is not None:
+                motions[name] = spec
+        d = motions.get("distal", RigidMotion.identity())
+        reference = proximal_reference_points(phantom)
+        for side, name in enumerate(("proximal_left", "proximal_right")):
+            if name not in motions:
+                motions[name] = _following(d, phantom.condyles[side], reference[side])
+        return cls(motions, force=force)
+
+    def with_proximal_following(self, condyles, points_left, points_right) -> SurgicalPlan:
+        """A copy whose proximal segments rotate about their condyle to follow the distal one.
+
+        Parameters
+        ----------
+        condyles : (2, 3) float, mm — left (x > 0) then right condyle centre (the pivots)
+        points_left, points_right : (n, 3) float, mm — reference points of each proximal
+            segment (e.g. its bone-surface vertices), spanning a plane with the condyle
+
+        Each side gets the proper rotation R about its condyle c minimising
+        ``sum |R (p - c) - (D(p) - c)|^2`` over its points (D the distal motion), no translation.
+        """
+        c = np.asarray(condyles, dtype=float)
+        if c.shape != (2, 3):
+            raise ValueError(f"condyles has shape {c.shape}, expected (2, 3): left then right, mm")
+        d = self.motions["distal"]
+        motions = dict(self.motions)
+        motions["proximal_left"] = _following(d, c[0], points_left)
+        motions["proximal_right"] = _following(d, c[1], points_right)
+        return SurgicalPlan(motions, force=self.force)
+
+    # -------------------------------------------------------------- transforms
+    def scaled(self, factor: float) -> SurgicalPlan:
+        """Every segment's rotation angle and translation times ``factor`` (pivots kept)."""
+        return SurgicalPlan({k: m.scaled(factor) for k, m in self.motions.items()}, force=self.force)
+
+    def interpolated(self, fraction: float) -> SurgicalPlan:
+        """The plan ``fraction`` in [0, 1] of the way from pre-op (slerp + linear)."""
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"fraction = {fraction!r}; expected a number in [0, 1]")
+        return self.scaled(fraction)
+
+    def increments(self, n: int = 3) -> list[SurgicalPlan]:
+        """The cumulative plans (pre-op -> k-th position) at fractions k/n, k = 1..n;
+        the last is this plan. Seed 001 uses n = 3."""
+        if int(n) != n or n < 1:
+            raise ValueError(f"n = {n!r} increments; expected an integer >= 1")
+        n = int(n)
+        return [self.interpolated(k / n) for k in range(1, n + 1)]
+
+    # ---------------------------------------------------------------- dict/I-O
+    def as_dict(self) -> dict[str, Any]:
+        """``{"force": bool, segment: RigidMotion.as_dict(), ...}`` of plain Python values."""
+        return {"force": self.force, **{k: m.as_dict() for k, m in self.motions.items()}}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], phantom: FacePhantom | None = None) -> SurgicalPlan:
+        """Inverse of :meth:`as_dict` (optional ``force``); with a ``phantom``, missing
+        pivots come from its segments and missing proximal segments follow the distal one."""
+        force = d.get("force", False)
+        if not isinstance(force, bool):
+            raise ValueError(f"force = {force!r}; expected true or false")
+        segments = {k: v for k, v in d.items() if k != "force"}
+        _check_names(segments)
+        for name, spec in segments.items():
+            if not isinstance(spec, Mapping):
+                raise ValueError(
+                    f"segment {name!r} is a {type(spec).__name__}; expected a table of {list(_MOTION_KEYS)}"
+                )
+        if phantom is not None:
+            return cls.for_phantom(phantom, force=force, **segments)
+        motions = {}
+        for name, spec in segments.items():
+            try:
+                motions[name] = RigidMotion.from_dict(spec)
+            except ValueError as exc:
+                raise ValueError(f"segment {name!r}: {exc}") from exc
+        return cls(motions, force=force)
+
+    @classmethod
+    def read(cls, path, phantom: FacePhantom | None = None) -> SurgicalPlan:
+        """Read a ``.toml`` or ``.json`` plan (see the module docstring for the keys)."""
+        path = Path(path)
+        fmt = _format(path)
+        with open(path, "rb") as f:
+            d = tomllib.load(f) if fmt == ".toml" else json.load(f)
+        try:
+            return cls.from_dict(d, phantom)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from exc
+
+    def write(self, path) -> None:
+        """Write ``.toml`` or ``.json`` (atomically: temporary file, then rename)."""
+        path = Path(path)
+        fmt = _format(path)
+        text = _toml(self.as_dict()) if fmt == ".toml" else json.dumps(self.as_dict(), indent=2) + "\n"
+        with atomic_path(path) as tmp:
+            tmp.write_text(text, encoding="utf-8")
+
+    def summary(self) -> pd.DataFrame:
+        """One row per segment: ``segment``, ``translation_mm``, ``rotation_deg``."""
+        import pandas as pd
+
+        rows = [(k, m.translation_mm, m.angle_deg) for k, m in self.motions.items()]
+        return pd.DataFrame(rows, columns=["segment", "translation_mm", "rotation_deg"])
+
+
+def _format(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix not in PLAN_FORMATS:
+        raise ValueError(f"unknown plan format {path.suffix!r} of {str(path)!r}; expected one of {list(PLAN_FORMATS)}")
+    return suffix
+
+
+def _toml(d: Mapping[str, Any]) -> str:
+    """The dict of :meth:`SurgicalPlan.as_dict` as TOML (floats by repr: exact)."""
+    lines = [
+        "# Surgical plan (toolkit.static.plan): x' = R (x - pivot) + pivot + translation, mm.",
+        "# Axes: x patient's left, y anterior, z superior. rotation_quaternion = [w, x, y, z];",
+        "# rotation_vector_deg (axis * angle) must agree with it when both are given.",
+        f"force = {'true' if d['force'] else 'false'}",
+    ]
+    for name in SEGMENTS:
+        lines += ["", f"[{name}]"]
+        lines += [f"{k} = [{', '.join(repr(float(v)) for v in vals)}]" for k, vals in d[name].items()]
+    return "\n".join(lines) + "\n"
+
+
+def default_plan(phantom: FacePhantom, force: bool = False) -> SurgicalPlan:
+    """The packaged typical bimaxillary plan on ``phantom``.
+
+    Le Fort I: advance 4 mm (+y), impaction 2 mm (-z), 3 degrees about +x; distal
+    mandible: setback 6 mm (-y), 5 degrees about +x. Pivots are the phantom segments'
+    (Le Fort: attachment centroid, distal: midpoint of the condyles) and the proximal
+    segments follow the distal one about their condyles.
+    """
+    ref = resources.files("toolkit.static").joinpath("data", "default_plan.toml")
+    d = tomllib.loads(ref.read_text(encoding="utf-8"))
+    if force:
+        d["force"] = True
+    return SurgicalPlan.from_dict(d, phantom)
