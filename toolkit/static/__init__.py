@@ -1,0 +1,53 @@
+"""Static workflow: orthognathic surgery simulated by incremental FEM (seed 001).
+
+``simulate(phantom, plan)`` runs the increments with mucosa and lip sliding; the pieces
+(plan, boundary types, assembly, constraints, solvers, Newton/contact) are importable
+for finer control. Imports nothing from :mod:`toolkit.impact`.
+"""
+
+from toolkit.static.assembly import MaterialAssignment
+from toolkit.static.boundary import BoundaryConditions, BoundaryError, NodeType, knn_labels
+from toolkit.static.constraints import Constraints
+from toolkit.static.fem import ConvergenceError, StaticProblem, solve_with_lip_contact
+from toolkit.static.plan import (
+    PHYSIOLOGICAL_RANGES,
+    SEGMENTS,
+    PlanRangeWarning,
+    RigidMotion,
+    SurgicalPlan,
+    default_plan,
+)
+from toolkit.static.simulate import (
+    IncrementReport,
+    SimulationError,
+    SimulationOptions,
+    SimulationResult,
+    material_assignment,
+    simulate,
+)
+from toolkit.static.solvers import SolverError
+
+__all__ = [
+    "simulate",
+    "SimulationOptions",
+    "SimulationResult",
+    "IncrementReport",
+    "SimulationError",
+    "material_assignment",
+    "SurgicalPlan",
+    "RigidMotion",
+    "default_plan",
+    "SEGMENTS",
+    "PHYSIOLOGICAL_RANGES",
+    "PlanRangeWarning",
+    "BoundaryConditions",
+    "BoundaryError",
+    "NodeType",
+    "knn_labels",
+    "Constraints",
+    "MaterialAssignment",
+    "StaticProblem",
+    "solve_with_lip_contact",
+    "ConvergenceError",
+    "SolverError",
+]

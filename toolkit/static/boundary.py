@@ -21,7 +21,11 @@ from scipy.spatial import cKDTree
 from toolkit.common.mesh import Mesh
 from toolkit.common.surface_distance import closest_points
 
-__all__ = ["NodeType", "BoundaryConditions", "knn_labels", "BoundaryError"]
+__all__ = ["NodeType", "BoundaryConditions", "knn_labels", "BoundaryError", "segments_from_mesh",
+           "ATTACHMENT_SETS"]
+
+#: node set rigidly attached to each bony segment in the phantoms (and expected in real meshes)
+ATTACHMENT_SETS = {"lefort": "maxilla", "distal": "mandible", "proximal_left": None, "proximal_right": None}
 
 
 class NodeType(IntEnum):
@@ -212,3 +216,56 @@ class BoundaryConditions:
                 up_first = mesh.points[a, 2] >= mesh.points[b, 2]
                 upper, lower = np.where(up_first, a, b), np.where(up_first, b, a)
         return cls(types, segment, names, np.asarray(upper, np.int64), np.asarray(lower, np.int64))
+
+
+def segments_from_mesh(mesh: Mesh, pivots: Mapping[str, np.ndarray]) -> dict:
+    """Bony segments rebuilt from a face mesh's own bone-side surface.
+
+    For a mesh without separate bone surfaces (e.g. a phantom read back from Abaqus, or a
+    patient mesh with the phantom's node-set names), the bone side is the boundary faces
+    whose nodes all lie on bone (any attachment set ``maxilla``/``mandible``, any sliding
+    set ``mucosa_<segment>``, or the set ``bone`` when present), and a segment's surface
+    is the bone-side faces touching its own attachment or sliding nodes. Segments with
+    no such faces are left out.
+
+    Parameters
+    ----------
+    mesh : the face mesh, mm
+    pivots : segment name -> (3,) pivot, mm (e.g. the plan's)
+
+    Returns
+    -------
+    dict name -> BoneSegment
+    """
+    from toolkit.common.phantom import BoneSegment
+
+    faces = mesh.boundary_faces()
+    tris = np.vstack([faces[:, [0, 2, 1]], faces[:, [0, 3, 2]]]) if faces.shape[1] == 4 else faces[:, [0, 2, 1]]
+    own = {}
+    on_bone = np.zeros(mesh.n_points, dtype=bool)
+    if "bone" in mesh.node_sets:
+        on_bone[mesh.node_sets["bone"]] = True
+    for name, attached in ATTACHMENT_SETS.items():
+        own[name] = np.zeros(mesh.n_points, dtype=bool)
+        for set_name in (attached, f"mucosa_{name}"):
+            if set_name and set_name in mesh.node_sets:
+                own[name][mesh.node_sets[set_name]] = True
+        on_bone |= own[name]
+    tris = tris[on_bone[tris].all(axis=1)]
+    out = {}
+    for name, attached in ATTACHMENT_SETS.items():
+        sliding = f"mucosa_{name}"
+        keep = tris[own[name][tris].any(axis=1)]
+        if not keep.size:
+            continue
+        used = np.unique(keep)
+        renumber = np.full(mesh.n_points, -1)
+        renumber[used] = np.arange(used.size)
+        surface = Mesh(mesh.points[used], {"tri3": renumber[keep]})
+        out[name] = BoneSegment(name, surface, np.asarray(pivots.get(name, surface.points.mean(axis=0)), float),
+                                attached if attached in mesh.node_sets else None,
+                                sliding if sliding in mesh.node_sets else None)
+    if not out:
+        raise BoundaryError(f"no bone surface found: the mesh has none of the sets {sorted(ATTACHMENT_SETS.values())} "
+                            f"or mucosa_<segment>; it has {sorted(mesh.node_sets)}")
+    return out

@@ -4,8 +4,10 @@ Three kinds, enough for seed 001's boundary conditions:
 
 - **prescribed** nodes (fixed, moving with a bony segment, projected mucosa):
   all three components given;
-- **sliding** nodes (mucosa on the bone): the component along a unit normal is
-  given (``n . u = g``: no separation, no penetration), the two tangential ones free;
+- **sliding** nodes (mucosa on the bone, symmetry planes): the component along a unit
+  normal is given (``n . u = g``: no separation, no penetration), the tangential ones
+  free; a node may carry two sliding rows (an edge of two planes), leaving one
+  direction free;
 - **ties** (master-slave, lip contact): one component of a slave equals that of its
   master plus an offset (``u_s . e = u_m . e + c``, ``e`` the craniocaudal axis), the
   others free.
@@ -80,7 +82,11 @@ class Constraints:
                 raise ValueError(f"{name} constraint values hold NaN/inf")
         if len(self.tie_masters) != len(self.tie_slaves):
             raise ValueError(f"{len(self.tie_slaves)} tie slaves but {len(self.tie_masters)} masters")
-        owned = np.concatenate([self.prescribed_nodes, self.sliding_nodes, self.tie_slaves])
+        s_uniq, s_count = np.unique(self.sliding_nodes, return_counts=True)
+        if (s_count > 2).any():
+            raise ValueError(f"nodes {s_uniq[s_count > 2][:5].tolist()} carry more than two sliding rows; "
+                             f"prescribe them instead")
+        owned = np.concatenate([self.prescribed_nodes, s_uniq, self.tie_slaves])
         uniq, counts = np.unique(owned, return_counts=True)
         if (counts > 1).any():
             dup = uniq[counts > 1]
@@ -97,31 +103,35 @@ class Constraints:
         kind = np.zeros(n, dtype=np.int8)  # 0 free, 1 prescribed, 2 sliding
         kind[self.prescribed_nodes] = 1
         kind[self.sliding_nodes] = 2
-        rows, cols, vals = [], [], []
-        col = 0
-        free = np.flatnonzero(kind == 0)
-        for k in range(3):  # free nodes: unit columns
-            rows.append(3 * free + k)
-        ncol_free = 3 * free.size
-        cols.append(np.arange(ncol_free))
-        rows = [np.stack(rows, axis=1).ravel()]
-        vals.append(np.ones(ncol_free))
-        col = ncol_free
-        s = self.sliding_nodes
-        if s.size:
-            t1, t2 = tangent_frames(self.sliding_normals)
-            for t in (t1, t2):
-                c = col + np.arange(s.size)
-                rows.append((3 * s[:, None] + np.arange(3)).ravel())
-                cols.append(np.repeat(c, 3))
-                vals.append(t.ravel())
-                col += s.size
-        T = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, col))
+        free = np.flatnonzero(kind == 0)  # free nodes: unit columns
+        col = 3 * free.size
+        rows, cols, vals = [(3 * free[:, None] + np.arange(3)).ravel()], [np.arange(col)], [np.ones(col)]
         u0 = np.zeros(3 * n)
+        one, two = self._sliding_groups()
+        if one[0].size:  # one plane: two tangential columns
+            nodes, nrm, g = one
+            t1, t2 = tangent_frames(nrm)
+            for t in (t1, t2):
+                rows.append((3 * nodes[:, None] + np.arange(3)).ravel())
+                cols.append(np.repeat(col + np.arange(nodes.size), 3))
+                vals.append(t.ravel())
+                col += nodes.size
+            u0.reshape(-1, 3)[nodes] = g[:, None] * nrm
+        if two[0].size:  # two planes: the direction along their intersection stays free
+            nodes, n1, n2, g1, g2 = two
+            t = np.cross(n1, n2)
+            t /= np.linalg.norm(t, axis=1, keepdims=True)
+            rows.append((3 * nodes[:, None] + np.arange(3)).ravel())
+            cols.append(np.repeat(col + np.arange(nodes.size), 3))
+            vals.append(t.ravel())
+            col += nodes.size
+            c12 = np.einsum("ij,ij->i", n1, n2)
+            det = 1.0 - c12**2
+            a_, b_ = (g1 - c12 * g2) / det, (g2 - c12 * g1) / det
+            u0.reshape(-1, 3)[nodes] = a_[:, None] * n1 + b_[:, None] * n2
+        T = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, col))
         if self.prescribed_nodes.size:
             u0[(3 * self.prescribed_nodes[:, None] + np.arange(3)).ravel()] = self.prescribed_values.ravel()
-        if s.size:
-            u0[(3 * s[:, None] + np.arange(3)).ravel()] = (self.sliding_values[:, None] * self.sliding_normals).ravel()
         if self.tie_slaves.size:
             a = self.tie_axis
             slave_rows = 3 * self.tie_slaves + a
@@ -134,6 +144,19 @@ class Constraints:
             used = np.diff(T.indptr) > 0  # drop the slaves' own (now empty) columns
             T = T[:, used].tocsr()
         return T.tocsr(), u0
+
+    def _sliding_groups(self):
+        """Sliding rows grouped by node: ``(nodes, normals, values)`` for nodes with one row and
+        ``(nodes, n1, n2, g1, g2)`` for nodes with two (independent normals required)."""
+        order = np.argsort(self.sliding_nodes, kind="stable")
+        nodes, nrm, g = self.sliding_nodes[order], self.sliding_normals[order], self.sliding_values[order]
+        uniq, first, count = np.unique(nodes, return_index=True, return_counts=True)
+        f1, f2 = first[count == 1], first[count == 2]
+        if f2.size:
+            c = np.abs(np.einsum("ij,ij->i", nrm[f2], nrm[f2 + 1]))
+            if (c > 1 - 1e-9).any():
+                raise ValueError(f"node {nodes[f2][c > 1 - 1e-9][0]} has two parallel sliding normals")
+        return (nodes[f1], nrm[f1], g[f1]), (nodes[f2], nrm[f2], nrm[f2 + 1], g[f2], g[f2 + 1])
 
     def forces(self, residual: np.ndarray) -> dict[str, np.ndarray]:
         """Constraint forces (N) from the full residual ``K u - f``, ``(3n,)``.
