@@ -192,11 +192,14 @@ class NeoHookean:
         return self.lam
 
     def energy(self, F: np.ndarray) -> np.ndarray:
-        """Strain energy density ``(...)`` MPa (= mJ/mm^3) for ``F (..., 3, 3)``."""
+        """Strain energy density ``(...)`` MPa (= mJ/mm^3) for ``F (..., 3, 3)``; ``inf``
+        where ``det F <= 0`` (the energy barrier of an inverted material)."""
         J = np.linalg.det(F)
         I1 = np.einsum("...ij,...ij->...", F, F)
-        lnJ = np.log(J)
-        return 0.5 * self.mu * (I1 - 3) - self.mu * lnJ + 0.5 * self.lam * lnJ**2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            lnJ = np.log(np.where(J > 0, J, np.nan))
+            W = 0.5 * self.mu * (I1 - 3) - self.mu * lnJ + 0.5 * self.lam * lnJ**2
+        return np.where(J > 0, W, np.inf)
 
     def first_piola(self, F: np.ndarray, part: str = "all") -> tuple[np.ndarray, np.ndarray]:
         """First Piola-Kirchhoff stress ``P (..., 3, 3)`` MPa and tangent ``dP/dF (..., 3, 3, 3, 3)``.

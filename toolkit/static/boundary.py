@@ -160,7 +160,7 @@ class BoundaryConditions:
             segment surface nearest to it
         lip_threshold : mm; without ``upper_lip_face``/``lower_lip_face`` sets, lip nodes are
             paired by proximity below this distance (seed 001's collision threshold), the
-            higher node of a pair being the upper lip
+            node whose elements lie higher being the upper lip
         """
         n = mesh.n_points
         types = np.zeros(n, dtype=np.int8)
@@ -213,7 +213,9 @@ class BoundaryConditions:
                 pts = mesh.points[lip]
                 pairs = cKDTree(pts).query_pairs(lip_threshold, output_type="ndarray")
                 a, b = lip[pairs[:, 0]], lip[pairs[:, 1]]
-                up_first = mesh.points[a, 2] >= mesh.points[b, 2]
+                # coincident nodes of a closed mouth tie in z: the side of their elements decides
+                side = _element_side(mesh)
+                up_first = side[a, 2] >= side[b, 2]
                 upper, lower = np.where(up_first, a, b), np.where(up_first, b, a)
         return cls(types, segment, names, np.asarray(upper, np.int64), np.asarray(lower, np.int64))
 

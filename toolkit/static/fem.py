@@ -17,7 +17,6 @@ penetrate).
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -96,6 +95,9 @@ class StaticProblem:
         self.groups = materials.groups(mesh)
         self._K = None
         self._modes = rigid_body_modes(mesh.points)
+        # force of a unit strain on a typical element face, N: the yardstick for round-off
+        moduli = [getattr(m, "E", None) or getattr(m, "E_fibre", 0.0) for _, m in self.groups]
+        self.force_scale = max(moduli) * float(np.mean(self.kin.volume)) ** (2.0 / 3.0)
 
     @property
     def stiffness(self):
@@ -176,6 +178,10 @@ class StaticProblem:
             A = (T.T @ K @ T).tocsr()
             dv, info = self._solve_reduced(T, A, -g)
             infos.append(info)
+            # a stress-free equilibrium has only round-off forces, which no relative force test
+            # can beat: stop when the Newton correction itself is negligible
+            if np.abs(dv).max() <= 1e-10 * max(np.abs(u).max(), 1e-3):
+                return v + dv, it, infos
             slope = g @ dv
             if slope >= 0:  # not a descent direction (indefinite tangent): steepest descent
                 dv = -g * (np.abs(dv).max() / max(np.abs(g).max(), 1e-30))
@@ -186,8 +192,17 @@ class StaticProblem:
                 # Armijo, with slack for round-off once the energy change nears machine precision
                 if np.isfinite(E_new) and E_new <= E + 1e-4 * alpha * slope + 1e-12 * abs(E):
                     break
+                if alpha == 1.0 and np.isfinite(E_new) and abs(E_new - E) < 1e-9 * self.force_scale * 1e-3:
+                    # energy changes below its own round-off: judge the full step by the residual
+                    f_new, _ = neo_hookean_system(self.kin, (T @ (v + dv) + u0).reshape(-1, 3), self.groups,
+                                                  self.pattern, tangent=False)
+                    if np.linalg.norm(T.T @ f_new) < gn:
+                        break
                 alpha *= 0.5
             else:
+                if gn <= 1e-5 * max(scale, self.force_scale):  # energy can't resolve the step: round-off limit
+                    log.debug("Newton stopped at the round-off limit (residual %.3e N)", gn)
+                    return v, it, infos
                 raise ConvergenceError(f"line search failed at Newton iteration {it} (residual {gn:.3e} N)", it, gn)
             log.debug("Newton %d: residual %.3e N, step %.3g, energy %.6e mJ", it, gn, alpha, E_new)
             v = v + alpha * dv
