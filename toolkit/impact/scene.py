@@ -1,0 +1,246 @@
+"""A declarative description of an impact scene (seed 002), loadable from TOML.
+
+A :class:`Scene` says *what* is simulated; :func:`toolkit.impact.simulate.simulate`
+builds only what it asks for (no ball mesh for a rigid ball, no return mapping for an
+elastic material, no contact search while the bodies are apart).
+
+Defaults reproduce seed 002: face E = 0.015 MPa, nu = 0.49, density 1e-9 tonne/mm^3
+with its yield table; rubber ball E = 0.38 MPa, nu = 0.39 with its table, radius
+110 mm and 0.43 kg; the lower face fixed; the ball driven horizontally into the face at
+30 mm/s for 1.8 s; Coulomb friction 0.2 with penalty tangential and "hard" (penalty)
+normal contact; 10-node tetrahedra.
+
+Units: mm, s, tonne, MPa.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["MaterialSpec", "FaceSpec", "BallSpec", "ContactSpec", "Fidelity", "Scene", "default_scene",
+           "FACE_YIELD", "BALL_YIELD"]
+
+#: seed 002 yield tables: (yield stress MPa, equivalent plastic strain)
+FACE_YIELD = ((0.015, 0.0), (0.020, 0.03), (0.025, 0.032), (0.028, 0.05), (0.030, 0.06), (0.031, 0.07))
+BALL_YIELD = ((0.034, 0.0), (0.035, 0.03), (0.036, 0.032), (0.037, 0.05), (0.038, 0.06), (0.039, 0.07))
+
+
+def _ball_density() -> float:
+    from toolkit.common.phantom import ball_density
+
+    return ball_density()
+
+
+@dataclass(frozen=True)
+class MaterialSpec:
+    """Elastoplastic material: ``E`` MPa, ``nu``, ``density`` tonne/mm^3, ``yield_table``
+    ((MPa, plastic strain), ...) or ``None`` for purely elastic."""
+
+    E: float
+    nu: float
+    density: float
+    yield_table: tuple | None = None
+
+    def __post_init__(self):
+        if not (self.E > 0 and -1 < self.nu < 0.5 and self.density > 0):
+            raise ValueError(f"bad material E={self.E} MPa, nu={self.nu}, density={self.density} tonne/mm^3")
+        if self.density > 1e-6:
+            raise ValueError(f"density {self.density} looks like kg/m^3 or g/cm^3; expected tonne/mm^3 "
+                             f"(1000 kg/m^3 = 1e-9)")
+        if self.yield_table is not None:
+            object.__setattr__(self, "yield_table", tuple(tuple(float(x) for x in row) for row in self.yield_table))
+
+
+@dataclass(frozen=True)
+class FaceSpec:
+    """The face: ``resolution`` (``coarse``/``paper``) or ``mesh`` (a tet file with node set
+    ``fixed_set``), its material, and the fraction of the height fixed at the bottom."""
+
+    resolution: str = "paper"
+    mesh: str | None = None
+    material: MaterialSpec = MaterialSpec(0.015, 0.49, 1e-9, FACE_YIELD)
+    fixed_set: str = "fixed"
+    lower_fixed_fraction: float = 0.1
+
+
+@dataclass(frozen=True)
+class BallSpec:
+    """The ball: rigid analytic sphere or deformable tet mesh, driven at a uniform velocity.
+
+    Attributes
+    ----------
+    radius : mm (size-5 football: 110)
+    rigid : True for an analytic rigid sphere
+    resolution : ball mesh resolution when deformable (``coarse``/``paper``/``fine``)
+    material : MaterialSpec of the rubber
+    velocity : mm/s (seed 002: 20-50)
+    direction : (3,) unit vector of the motion (into the face: -y)
+    target : (3,) mm point of the face the ball moves towards, or None for the most anterior
+        skin point at lip height
+    gap : mm between the ball and the face at t = 0
+    driven_fraction : deformable ball: nodes farther than this fraction of the radius behind
+        the centre (away from the face) are driven; the front deforms freely
+    """
+
+    radius: float = 110.0
+    rigid: bool = False
+    resolution: str = "coarse"
+    material: MaterialSpec = field(default_factory=lambda: MaterialSpec(0.38, 0.39, _ball_density(), BALL_YIELD))
+    velocity: float = 30.0
+    direction: tuple = (0.0, -1.0, 0.0)
+    target: tuple | None = None
+    gap: float = 0.5
+    driven_fraction: float = 0.5
+
+    def __post_init__(self):
+        d = np.asarray(self.direction, dtype=float)
+        if d.shape != (3,) or not np.isfinite(d).all() or np.linalg.norm(d) == 0:
+            raise ValueError(f"ball direction {self.direction} must be a non-zero 3-vector")
+        object.__setattr__(self, "direction", tuple((d / np.linalg.norm(d)).tolist()))
+        if not self.velocity > 0:
+            raise ValueError(f"ball velocity {self.velocity} mm/s must be positive")
+        if self.velocity > 1e4:
+            raise ValueError(f"ball velocity {self.velocity} mm/s looks like it is not in mm/s (seed 002: 20-50)")
+
+
+@dataclass(frozen=True)
+class ContactSpec:
+    """Ball-skin contact: Coulomb ``friction``; penalty chosen so the stable step stays above
+    ``dt_fraction`` of the structural one."""
+
+    friction: float = 0.2
+    dt_fraction: float = 0.9
+
+
+@dataclass(frozen=True)
+class Fidelity:
+    """Speed/accuracy options: element ``order`` (1 tet4, 2 tet10), ``mass_scaling`` factor on
+    every density (>= 1), time-step ``safety`` factor on the critical step, or a fixed ``dt`` (s)."""
+
+    order: int = 2
+    mass_scaling: float = 1.0
+    safety: float = 0.9
+    dt: float | None = None
+
+    def __post_init__(self):
+        if self.order not in (1, 2):
+            raise ValueError(f"order must be 1 or 2, got {self.order}")
+        if not self.mass_scaling >= 1.0:
+            raise ValueError(f"mass_scaling must be >= 1, got {self.mass_scaling}")
+        if not 0 < self.safety <= 1.0:
+            raise ValueError(f"safety must be in (0, 1], got {self.safety}")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Everything an impact run needs. ``duration`` s, ``n_frames`` output frames."""
+
+    face: FaceSpec = FaceSpec()
+    ball: BallSpec = field(default_factory=BallSpec)
+    contact: ContactSpec = ContactSpec()
+    fidelity: Fidelity = Fidelity()
+    duration: float = 1.8
+    n_frames: int = 18
+
+    def __post_init__(self):
+        if not self.duration > 0 or int(self.n_frames) < 1:
+            raise ValueError(f"duration {self.duration} s must be > 0 and n_frames {self.n_frames} >= 1")
+
+    def with_fidelity(self, **kw) -> "Scene":
+        return replace(self, fidelity=replace(self.fidelity, **kw))
+
+    def with_ball(self, **kw) -> "Scene":
+        return replace(self, ball=replace(self.ball, **kw))
+
+    def with_face(self, **kw) -> "Scene":
+        return replace(self, face=replace(self.face, **kw))
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Scene":
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown scene keys {sorted(unknown)}; expected {sorted(known)}")
+        kw = dict(d)
+
+        def mat(x):
+            return MaterialSpec(**x) if isinstance(x, dict) else x
+
+        if "face" in kw:
+            f = dict(kw["face"])
+            if "material" in f:
+                f["material"] = mat(f["material"])
+            kw["face"] = FaceSpec(**f)
+        if "ball" in kw:
+            b = dict(kw["ball"])
+            if "material" in b:
+                b["material"] = mat(b["material"])
+            for k in ("direction", "target"):
+                if b.get(k) is not None:
+                    b[k] = tuple(b[k])
+            kw["ball"] = BallSpec(**b)
+        if "contact" in kw:
+            kw["contact"] = ContactSpec(**kw["contact"])
+        if "fidelity" in kw:
+            kw["fidelity"] = Fidelity(**kw["fidelity"])
+        return cls(**kw)
+
+    @classmethod
+    def read(cls, path: str | os.PathLike) -> "Scene":
+        """A scene from TOML (tables ``[face]``, ``[face.material]``, ``[ball]``, ``[contact]``, ``[fidelity]``)."""
+        path = Path(path)
+        if path.suffix.lower() != ".toml":
+            raise ValueError(f"scenes are TOML files; got {str(path)!r}")
+        try:
+            return cls.from_dict(tomllib.loads(path.read_text()))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: {exc}") from exc
+
+    def write(self, path: str | os.PathLike) -> Path:
+        """Write as TOML (atomically)."""
+        from toolkit.common.io import atomic_path
+
+        lines = [f"duration = {self.duration!r}", f"n_frames = {self.n_frames!r}", ""]
+
+        def table(name, obj):
+            out, sub = [f"[{name}]"], []
+            for k, v in asdict(obj).items():
+                if v is None:
+                    continue
+                if isinstance(v, dict):
+                    sub.append((f"{name}.{k}", getattr(obj, k)))
+                    continue
+                out.append(f"{k} = {_toml_value(v)}")
+            lines.extend(out + [""])
+            for n, o in sub:
+                table(n, o)
+
+        for name in ("face", "ball", "contact", "fidelity"):
+            table(name, getattr(self, name))
+        with atomic_path(path) as tmp:
+            tmp.write_text("\n".join(lines))
+        return Path(path)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(float(v)) if isinstance(v, float) else repr(v)
+
+
+def default_scene(velocity: float = 30.0) -> Scene:
+    """Seed 002's scene: paper-resolution tet10 face (lower part fixed), deformable rubber ball
+    driven at ``velocity`` mm/s (default 30) for 1.8 s."""
+    return Scene().with_ball(velocity=velocity)
