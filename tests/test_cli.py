@@ -27,6 +27,7 @@ def test_demo_writes_validated_phantoms(tmp_path):
     assert all(r["min_scaled_jacobian"] > 0 for r in summary["meshes"])
     assert summary["static"]["increments"] == 3 and summary["static"]["max_penetration_mm"] <= 1e-9
     assert (out / "static" / "result.vtu").exists() and (out / "static" / "preview.png").exists()
+    assert summary["impact"]["energy_error"] < 0.02 and (out / "impact" / "face.xdmf").exists()
 
 
 @pytest.mark.parametrize("argv", [["--help"], ["demo", "--help"], ["phantom", "--help"], ["static", "--help"],

@@ -120,12 +120,14 @@ class ContactSpec:
 @dataclass(frozen=True)
 class Fidelity:
     """Speed/accuracy options: element ``order`` (1 tet4, 2 tet10), ``mass_scaling`` factor on
-    every density (>= 1), time-step ``safety`` factor on the critical step, or a fixed ``dt`` (s)."""
+    every density (>= 1), time-step ``safety`` factor on the critical step, or a fixed ``dt`` (s),
+    refused when above the stable limit unless ``allow_unstable_dt``."""
 
     order: int = 2
     mass_scaling: float = 1.0
     safety: float = 0.9
     dt: float | None = None
+    allow_unstable_dt: bool = False  # run a too-large dt anyway (the blow-up detector then stops it)
 
     def __post_init__(self):
         if self.order not in (1, 2):

@@ -105,7 +105,7 @@ def build_model(scene: Scene) -> BuiltScene:
     fraction = scene.contact.dt_fraction
     dt_stable = fraction * dt_crit  # the contact penalty keeps the step above this
     if fid.dt is not None:
-        if fid.dt > dt_stable:
+        if fid.dt > dt_stable and not fid.allow_unstable_dt:
             raise UnstableTimeStepError(
                 f"time step {fid.dt:.3g} s exceeds the stable limit {dt_stable:.3g} s ({dt_elem[0]} element "
                 f"{dt_elem[1]}, contact fraction {fraction}); use dt <= {dt_stable:.3g} s, mass scaling, or drop "
@@ -253,9 +253,13 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
         with atomic_path(out / "summary.json") as tmp:
             tmp.write_text(json.dumps(result.summary(), indent=2))
         if preview:
+            from toolkit.common.phantom import ball as ball_mesh
             from toolkit.common.plotting import render
 
+            centre = built.ball_centre + scene.ball.velocity * np.asarray(scene.ball.direction) * result.times[-1]
+            shown_ball = ball_mesh(scene.ball.radius, "coarse", 1, centre=centre) if built.ball is None else None
             render(built.face.with_point_data(von_mises=result.von_mises[-1]), out / "preview.png",
-                   scalars="von_mises", displacement=result.displacement[-1], camera="iso", cmap="inferno",
-                   scalar_label="von Mises (MPa)", title=f"t = {result.times[-1]:.2f} s")
+                   scalars="von_mises", displacement=result.displacement[-1], camera="left", cmap="inferno",
+                   scalar_label="von Mises (MPa)", title=f"t = {result.times[-1]:.2f} s",
+                   extra=[(shown_ball, {"opacity": 0.35, "show_edges": False})] if shown_ball is not None else ())
     return result

@@ -1,0 +1,151 @@
+"""Speed/accuracy ladder of the impact simulation (seed 002's scene, 30 mm/s).
+
+Each fidelity option (element order, rigid or deformable ball, mass scaling, time-step
+safety factor) runs in a fresh process that reports wall time, peak resident memory and
+steps. Every run is compared with the highest-fidelity run of its resolution that
+finished (tet10, deformable ball, no mass scaling, safety 0.9 — or the next best) by the
+difference in maximum displacement and maximum von Mises stress, and by the RMSE and
+Pearson correlation of the skin displacement time series (on the corner nodes, which
+tet4 and tet10 faces share).
+
+Rows are written atomically after each run; a rerun skips finished rows (resume).
+
+    python benchmarks/impact_ladder.py --resolutions coarse --duration 1.8
+    python benchmarks/impact_ladder.py --resolutions paper --orders 1 2 --balls rigid --mass-scaling 100
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import resource
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+RESULTS = Path(__file__).parent / "results"
+FIDELITY = ["order", "ball", "mass_scaling", "safety"]
+
+
+def _key(r) -> str:
+    return f"{r['resolution']}_tet{4 if int(r['order']) == 1 else 10}_{r['ball']}_ms{float(r['mass_scaling']):g}" \
+           f"_s{float(r['safety']):g}_{float(r['duration']):g}s"
+
+
+def run_one(resolution, order, ball, mass_scaling, safety, duration, out) -> dict:
+    from toolkit.impact import InstabilityError, default_scene, simulate
+
+    scene = default_scene().with_face(resolution=resolution).with_ball(rigid=ball == "rigid")
+    scene = replace(scene.with_fidelity(order=order, mass_scaling=mass_scaling, safety=safety), duration=duration,
+                    n_frames=18)
+    row = {"resolution": resolution, "order": order, "ball": ball, "mass_scaling": mass_scaling, "safety": safety,
+           "duration": duration}
+    t0 = time.perf_counter()
+    try:
+        r = simulate(scene, preview=False)
+    except InstabilityError as exc:
+        row.update(status="unstable", error=str(exc)[:200])
+    else:
+        s = r.summary()
+        n_corner = int(r.face.volume_cells[:, :4].max()) + 1
+        skin = r.face.node_sets["skin"]
+        skin = skin[skin < n_corner]
+        np.savez_compressed(out, times=r.times, skin_displacement=r.displacement[:, skin],
+                            von_mises=r.von_mises[:, skin])
+        row.update(status="ok", error="", steps=s["steps"], dt_s=s["dt_s"],
+                   max_displacement_mm=s["max_displacement_mm"], max_von_mises_mpa=s["max_von_mises_mpa"],
+                   energy_error=s["energy_error"], max_energy_error=s["max_energy_error"],
+                   added_mass_fraction=s["added_mass_fraction"], max_penetration_mm=s["max_penetration_mm"],
+                   kinetic_to_internal=float(r.energies.kinetic.iloc[-1] / max(r.energies.internal.iloc[-1], 1e-30)))
+    row["wall_time_s"] = time.perf_counter() - t0
+    row["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return row
+
+
+def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
+    df = df.copy()
+    for c in ("reference", "d_max_displacement_mm", "d_max_von_mises_mpa", "rmse_displacement_mm",
+              "pearson_displacement"):
+        df[c] = "" if c == "reference" else np.nan
+    order = [(2, "deformable", 1.0), (2, "deformable", 10.0), (2, "rigid", 1.0), (1, "deformable", 1.0),
+             (2, "rigid", 10.0), (2, "deformable", 100.0), (2, "rigid", 100.0)]
+    for (res, dur), g in df.groupby(["resolution", "duration"]):
+        ok = g[g.status == "ok"]
+        ref = None
+        for o, b, ms in order:
+            hit = ok[(ok.order == o) & (ok.ball == b) & (ok.mass_scaling == ms)].sort_values("safety")
+            if len(hit):
+                ref = hit.iloc[0]
+                break
+        if ref is None:
+            continue
+        R = np.load(folder / f"{_key(ref)}.npz")
+        for i, r in ok.iterrows():
+            X = np.load(folder / f"{_key(r)}.npz")
+            a, b = X["skin_displacement"], R["skin_displacement"]
+            df.loc[i, "reference"] = _key(ref)
+            df.loc[i, "d_max_displacement_mm"] = r.max_displacement_mm - ref.max_displacement_mm
+            df.loc[i, "d_max_von_mises_mpa"] = r.max_von_mises_mpa - ref.max_von_mises_mpa
+            df.loc[i, "rmse_displacement_mm"] = float(np.sqrt(np.mean((a - b) ** 2)))
+            if a.std() > 0 and b.std() > 0:
+                df.loc[i, "pearson_displacement"] = float(np.corrcoef(a.ravel(), b.ravel())[0, 1])
+    return df
+
+
+def main(argv=None) -> pd.DataFrame:
+    p = argparse.ArgumentParser(description="impact speed/accuracy ladder")
+    p.add_argument("--resolutions", nargs="+", default=["coarse"])
+    p.add_argument("--orders", nargs="+", type=int, default=[1, 2])
+    p.add_argument("--balls", nargs="+", default=["rigid", "deformable"])
+    p.add_argument("--mass-scaling", nargs="+", type=float, default=[1.0, 10.0, 100.0])
+    p.add_argument("--safety", nargs="+", type=float, default=[0.9])
+    p.add_argument("--duration", type=float, default=1.8, help="simulated time, s (seed 002: 1.8)")
+    p.add_argument("--out", type=Path, default=RESULTS / "impact_ladder.csv")
+    args = p.parse_args(argv)
+    folder = args.out.with_suffix("")
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = pd.read_csv(args.out).to_dict("records") if args.out.exists() else []
+    have = {_key(r) for r in rows}
+    combos = [dict(resolution=r, order=o, ball=b, mass_scaling=m, safety=s, duration=args.duration)
+              for r, o, b, m, s in itertools.product(args.resolutions, args.orders, args.balls, args.mass_scaling,
+                                                     args.safety)]
+    # cheapest first, so an interrupted ladder has the fast rungs
+    combos.sort(key=lambda c: (c["resolution"] != "coarse", -c["mass_scaling"], c["order"], c["ball"] != "rigid"))
+    todo = [c for c in combos if _key(c) not in have]
+    from tqdm import tqdm
+
+    from toolkit.common.io import atomic_path
+
+    with ProcessPoolExecutor(max_workers=1, max_tasks_per_child=1) as pool:
+        for c in tqdm(todo, desc="impact ladder"):
+            rows.append(pool.submit(run_one, *c.values(), str(folder / f"{_key(c)}.npz")).result())
+            with atomic_path(args.out) as tmp:
+                pd.DataFrame(rows).to_csv(tmp, index=False)
+    df = compare(pd.DataFrame(rows), folder)
+    with atomic_path(args.out) as tmp:
+        df.to_csv(tmp, index=False)
+    cols = ["resolution", "order", "ball", "mass_scaling", "safety", "status", "steps", "wall_time_s",
+            "peak_rss_mib", "max_displacement_mm", "max_von_mises_mpa", "energy_error", "d_max_displacement_mm",
+            "d_max_von_mises_mpa", "rmse_displacement_mm", "pearson_displacement"]
+    cols = [c for c in cols if c in df.columns]
+    with pd.option_context("display.width", 250, "display.max_rows", 200, "display.float_format", "{:.4g}".format):
+        print(df[cols].to_string(index=False))
+    ok = df[(df.status == "ok") & df.rmse_displacement_mm.notna()]
+    if len(ok):
+        from toolkit.common.plotting import plot_tradeoff
+
+        labels = [f"{r.resolution[0]}/tet{4 if r.order == 1 else 10}/{r.ball[0]}/ms{r.mass_scaling:g}"
+                  for r in ok.itertuples()]
+        plot_tradeoff(ok.wall_time_s.to_numpy(), np.maximum(ok.rmse_displacement_mm.to_numpy(), 1e-6), labels,
+                      ylabel="displacement RMSE to the reference (mm)", title="impact ladder",
+                      path=args.out.with_suffix(".png"))
+    print(f"wrote {args.out}")
+    return df
+
+
+if __name__ == "__main__":
+    main()
