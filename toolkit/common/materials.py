@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LinearElastic", "TransverselyIsotropic", "NeoHookean", "lame", "VOIGT", "MaterialWarning"]
+__all__ = ["LinearElastic", "TransverselyIsotropic", "NeoHookean", "IsotropicModuli", "lame", "VOIGT",
+           "MaterialWarning"]
 
 #: Voigt index pairs
 VOIGT = np.array([[0, 0], [1, 1], [2, 2], [1, 2], [0, 2], [0, 1]])
@@ -56,15 +57,8 @@ def _iso_voigt(lam: float, mu: float) -> np.ndarray:
     return D
 
 
-@dataclass(frozen=True)
-class LinearElastic:
-    """Isotropic linear elasticity. ``E`` in MPa, ``nu`` dimensionless."""
-
-    E: float = 0.003
-    nu: float = 0.47
-
-    def __post_init__(self):
-        _check("LinearElastic", self.E, self.nu)
+class IsotropicModuli:
+    """Mixin for materials with fields ``E`` (MPa) and ``nu``: the Lame parameters, MPa."""
 
     @property
     def lam(self) -> float:
@@ -73,6 +67,17 @@ class LinearElastic:
     @property
     def mu(self) -> float:
         return lame(self.E, self.nu)[1]
+
+
+@dataclass(frozen=True)
+class LinearElastic(IsotropicModuli):
+    """Isotropic linear elasticity. ``E`` in MPa, ``nu`` dimensionless."""
+
+    E: float = 0.003
+    nu: float = 0.47
+
+    def __post_init__(self):
+        _check("LinearElastic", self.E, self.nu)
 
     def stiffness(self, fibre: np.ndarray | None = None) -> np.ndarray:
         """Voigt stiffness ``(6, 6)`` MPa, or ``(n, 6, 6)`` if fibres ``(n, 3)`` are given."""
@@ -167,7 +172,7 @@ class TransverselyIsotropic:
 
 
 @dataclass(frozen=True)
-class NeoHookean:
+class NeoHookean(IsotropicModuli):
     """Compressible Neo-Hookean solid, ``W = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2``.
 
     ``E`` in MPa, ``nu`` dimensionless (``mu``, ``lam`` from :func:`lame`). Its small-strain
@@ -179,14 +184,6 @@ class NeoHookean:
 
     def __post_init__(self):
         _check("NeoHookean", self.E, self.nu)
-
-    @property
-    def lam(self) -> float:
-        return lame(self.E, self.nu)[0]
-
-    @property
-    def mu(self) -> float:
-        return lame(self.E, self.nu)[1]
 
     def volumetric_lambda(self) -> float:
         return self.lam

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from toolkit.common.materials import _check, lame
+from toolkit.common.materials import IsotropicModuli, _check
 from toolkit.common.phantom import ball_density
 
 __all__ = [
@@ -223,7 +223,7 @@ def _check_det(det: np.ndarray, what: str) -> None:
 
 
 @dataclass(frozen=True)
-class J2Plasticity:
+class J2Plasticity(IsotropicModuli):
     """Isotropic Hencky elasticity with J2 plasticity and tabulated isotropic hardening.
 
     Attributes
@@ -254,16 +254,6 @@ class J2Plasticity:
             if h.size and np.min(h) <= -3.0 * self.mu:
                 raise ValueError(f"J2Plasticity: hardening slope {np.min(h):.4g} MPa is steeper softening "
                                  f"than -3 mu = {-3.0 * self.mu:.4g} MPa; the return mapping has no unique solution")
-
-    @property
-    def lam(self) -> float:
-        """Lame's first parameter, MPa."""
-        return lame(self.E, self.nu)[0]
-
-    @property
-    def mu(self) -> float:
-        """Shear modulus, MPa."""
-        return lame(self.E, self.nu)[1]
 
     def elastic_wave_speed(self) -> float:
         """Dilatational (P-) wave speed ``sqrt((lam + 2 mu) / rho)``, mm/s (stable explicit step)."""

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common.materials import lame
 from toolkit.common.mesh import Mesh
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact, penalty_stiffness
 from toolkit.impact.elements import critical_time_step, lumped_mass, tet_kinematics
@@ -43,7 +44,7 @@ def _material(spec: MaterialSpec, mass_scaling: float) -> J2Plasticity:
 
 
 def _lame(spec: MaterialSpec):
-    return spec.E * spec.nu / ((1 + spec.nu) * (1 - 2 * spec.nu)), spec.E / (2 * (1 + spec.nu))
+    return lame(spec.E, spec.nu)
 
 
 @dataclass(eq=False)
