@@ -249,10 +249,13 @@ def solve_with_lip_contact(problem: StaticProblem, constraints: Constraints, upp
     active = gap0 <= threshold
     history = set()
     sol = None
+    solves, newton = [], 0
     for it in range(1, max_iter + 1):
         c = replace(constraints, tie_slaves=upper[active], tie_masters=lower[active], tie_offsets=-gap0[active],
                     tie_axis=axis)
         sol = problem.solve(c, u_start=u_start if sol is None else sol.displacement)
+        solves += sol.solves
+        newton += sol.newton_iterations
         u = sol.displacement
         gaps = gap0 + u[upper, axis] - u[lower, axis]
         force = c.forces(sol.residual)["tie"]
@@ -261,7 +264,7 @@ def solve_with_lip_contact(problem: StaticProblem, constraints: Constraints, upp
         release[np.flatnonzero(active)] = force < -1e-8 * fscale
         add = ~active & (gaps < -tol)
         if not release.any() and not add.any():
-            return ContactResult(sol, active, gaps, it)
+            return ContactResult(replace(sol, solves=solves, newton_iterations=newton), active, gaps, it)
         new_active = (active & ~release) | add
         key = new_active.tobytes()
         if key in history:  # cycling: keep the pairs that penetrate tied
