@@ -249,8 +249,11 @@ def run_explicit(model: ExplicitModel, duration: float, n_frames: int, on_frame:
         energies.external += float(np.sum(du.reshape(-1)[driven] * 0.5 * (reaction_prev + reaction_new))) + w_drive
         # work of contact forces on the free nodes is inside the contact energies; the part
         # acting on driven nodes is balanced by their reactions
-        v_mid = 0.5 * (v + v_new)
-        energies.kinetic = 0.5 * float(np.sum(m * v_mid**2))
+        # velocity at t(n+1) (the half-step velocity plus half a step of the new acceleration),
+        # so that the kinetic energy is taken at the same time as the internal energy
+        v_full = v_new + 0.5 * dt * (c_new - f_new) / m
+        v_full.reshape(-1)[driven] = drive_v
+        energies.kinetic = 0.5 * float(np.sum(m * v_full**2))
         ke0_scale = max(ke0_scale, abs(energies.external), energies.internal)
         if energies.kinetic > 100.0 * (ke0_scale + ke_start) + 1e-12:
             raise InstabilityError(f"kinetic energy {energies.kinetic:.3g} mJ exceeds 100x the work done",

@@ -104,8 +104,9 @@ class BallSpec:
         object.__setattr__(self, "direction", tuple((d / np.linalg.norm(d)).tolist()))
         if not self.velocity > 0:
             raise ValueError(f"ball velocity {self.velocity} mm/s must be positive")
-        if self.velocity > 1e4:
-            raise ValueError(f"ball velocity {self.velocity} mm/s looks like it is not in mm/s (seed 002: 20-50)")
+        if self.velocity > 1e4 or self.velocity < 1.0:
+            raise ValueError(f"ball velocity {self.velocity} mm/s looks like it is not in mm/s "
+                             f"(seed 002: 20-50 mm/s = 0.02-0.05 m/s)")
 
 
 @dataclass(frozen=True)
