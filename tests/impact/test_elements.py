@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from toolkit.common.mesh import Mesh
-from toolkit.common.topology import kuhn_tets, tet10_from_tet4
+from toolkit.common.phantom import block
+from toolkit.common.topology import tet10_from_tet4
 from toolkit.impact.elements import (
     _element_stiffness,
     critical_time_step,
@@ -22,21 +23,8 @@ RHO = 1e-9
 
 def _block(order, jitter=0.3, seed=0):
     """2 x 2 x 1 hexahedra of 2 mm (4 x 4 x 2 mm), 6 Kuhn tets each, nodes jittered by up to ``jitter`` mm."""
-    s = [np.linspace(0, 4, 3), np.linspace(0, 4, 3), np.linspace(0, 2, 2)]
-    n = tuple(len(a) - 1 for a in s)
-    P = np.stack(np.meshgrid(*s, indexing="ij"), -1).reshape(-1, 3)
-    P = P + np.random.default_rng(seed).uniform(-jitter, jitter, size=P.shape)
-    ids = np.arange(P.shape[0]).reshape(tuple(k + 1 for k in n))
-    c = np.empty(n + (2, 2, 2), dtype=np.int64)
-    for a in (0, 1):
-        for b in (0, 1):
-            for d in (0, 1):
-                c[..., a, b, d] = ids[a:n[0] + a, b:n[1] + b, d:n[2] + d]
-    tets = kuhn_tets(c.reshape(-1, 2, 2, 2), P)
-    if order == 2:
-        P, tets = tet10_from_tet4(P, tets)
-        return Mesh(P, {"tet10": tets})
-    return Mesh(P, {"tet4": tets})
+    axes = [np.linspace(0, 4, 3), np.linspace(0, 4, 3), np.linspace(0, 2, 2)]
+    return block(axes, "tet4" if order == 1 else "tet10", jitter=jitter, seed=seed)
 
 
 @pytest.mark.parametrize("order", [1, 2], ids=["tet4", "tet10"])

@@ -20,7 +20,8 @@ import scipy.sparse.linalg as sla
 from scipy.optimize import brentq
 
 from toolkit.common.mesh import Mesh
-from toolkit.common.topology import kuhn_tets, tet10_from_tet4
+from toolkit.common.phantom import block
+from toolkit.common.topology import tet10_from_tet4
 from toolkit.impact import (
     BallSpec,
     FaceSpec,
@@ -56,23 +57,8 @@ RHO = 1e-9  # tonne/mm^3 (1000 kg/m^3)
 def _box(axes, order=1, jitter=0.0, seed=0) -> Mesh:
     """Tensor-product grid with node coordinates ``axes`` (three 1-D arrays, mm), each hexahedron
     split into 6 Kuhn tetrahedra (conforming); ``order`` 2 adds straight mid-edge nodes.
-    ``jitter`` moves every corner node randomly by up to that many mm."""
-    axes = [np.asarray(a, dtype=float) for a in axes]
-    n = tuple(len(a) - 1 for a in axes)
-    P = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    if jitter:
-        P = P + np.random.default_rng(seed).uniform(-jitter, jitter, size=P.shape)
-    ids = np.arange(P.shape[0]).reshape(tuple(k + 1 for k in n))
-    corners = np.empty(n + (2, 2, 2), dtype=np.int64)
-    for a in (0, 1):
-        for b in (0, 1):
-            for d in (0, 1):
-                corners[..., a, b, d] = ids[a:n[0] + a, b:n[1] + b, d:n[2] + d]
-    tets = kuhn_tets(corners.reshape(-1, 2, 2, 2), P)
-    if order == 2:
-        P, tets = tet10_from_tet4(P, tets)
-        return Mesh(P, {"tet10": tets})
-    return Mesh(P, {"tet4": tets})
+    ``jitter`` moves every node randomly by up to that many mm."""
+    return block(axes, "tet4" if order == 1 else "tet10", jitter=jitter, seed=seed)
 
 
 def _lame(E, nu):

@@ -63,6 +63,7 @@ __all__ = [
     "face_tet",
     "ball",
     "ball_density",
+    "block",
     "FACE_RESOLUTIONS",
     "TET_RESOLUTIONS",
     "BALL_RESOLUTIONS",
@@ -635,6 +636,38 @@ def ball(radius: float = 110.0, resolution: str | int = "coarse", order: int = 2
         on_surface[surface] = True
     ctype = "tet10" if order == 2 else "tet4"
     return Mesh(pts + np.asarray(centre, dtype=float), {ctype: tets}, node_sets={"surface": np.flatnonzero(on_surface)})
+
+
+def block(axes, cell_type: str = "hex8", jitter: float = 0.0, seed: int | None = None) -> Mesh:
+    """A box meshed on the tensor grid ``axes`` (three 1-D coordinate arrays, mm).
+
+    ``hex8`` cells, or each hexahedron split into 6 conforming Kuhn tetrahedra (``tet4``;
+    ``tet10`` adds straight mid-edge nodes). ``jitter`` moves every node randomly by up to
+    that many mm (reproducible with ``seed``) — the distorted meshes of patch tests.
+    """
+    axes = [np.asarray(a, dtype=float) for a in axes]
+    if len(axes) != 3 or any(a.ndim != 1 or a.size < 2 or np.any(np.diff(a) <= 0) for a in axes):
+        raise ValueError("axes must be three increasing 1-D arrays of at least 2 coordinates (mm)")
+    n = tuple(a.size - 1 for a in axes)
+    P = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    if jitter:
+        P = P + np.random.default_rng(seed).uniform(-jitter, jitter, size=P.shape)
+    ids = np.arange(P.shape[0]).reshape(tuple(k + 1 for k in n))
+    corners = np.empty(n + (2, 2, 2), dtype=np.int64)
+    for a in (0, 1):
+        for b in (0, 1):
+            for d in (0, 1):
+                corners[..., a, b, d] = ids[a:n[0] + a, b:n[1] + b, d:n[2] + d]
+    corners = corners.reshape(-1, 2, 2, 2)
+    if cell_type == "hex8":
+        order = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]
+        return Mesh(P, {"hex8": np.stack([corners[:, i, j, k] for i, j, k in order], axis=1)})
+    if cell_type not in ("tet4", "tet10"):
+        raise ValueError(f"cell_type must be hex8, tet4 or tet10, got {cell_type!r}")
+    tets = kuhn_tets(corners, P)
+    if cell_type == "tet10":
+        P, tets = tet10_from_tet4(P, tets)
+    return Mesh(P, {cell_type: tets})
 
 
 def ball_density(mass: float = 0.43e-3, radius: float = 110.0) -> float:
