@@ -44,7 +44,7 @@ from toolkit.impact.elements import (
     lumped_mass,
     tet_kinematics,
 )
-from toolkit.impact.explicit import Body, ExplicitModel, InstabilityError, run_explicit
+from toolkit.impact.explicit import Body, ExplicitModel, InstabilityError, moving_sphere_contact, run_explicit
 from toolkit.impact.plasticity import FACE_TABLE, J2Plasticity
 
 RHO = 1e-9  # tonne/mm^3 (1000 kg/m^3)
@@ -518,19 +518,7 @@ def test_hertz_contact_of_a_rigid_sphere_on_an_elastic_layer():
     speed = 1.1 * deltas[-1] / duration
     top = np.flatnonzero(P[:, 2] == 0)
     pair = RigidSphereContact(R, penalty_stiffness(mass[top], dt_crit, 0.9), None, top)
-    centre0 = np.array([0.0, 0.0, R])
-    velocity = np.array([0.0, 0.0, -speed])
-    previous = {"force": np.zeros(3), "centre": centre0}
-
-    def contact(x, v, t, dt):
-        centre = centre0 + velocity * t
-        res = pair.step(x[top], v[top], centre, velocity, dt)
-        f = np.zeros_like(x)
-        f[top] = res.force
-        on_block = res.force.sum(axis=0)
-        work = float(0.5 * (on_block + previous["force"]) @ (centre - previous["centre"]))
-        previous["force"], previous["centre"] = on_block, centre
-        return f, res.elastic_energy, res.friction_dissipation, on_block, float(res.penetration.max()), work
+    contact = moving_sphere_contact(pair, top, np.array([0.0, 0.0, R]), np.array([0.0, 0.0, -speed]))
 
     body = _body("block", kin, J2Plasticity(E, nu, RHO), n, constrained)
     model = ExplicitModel(P, mass, [body], 0.81 * dt_crit, contact)

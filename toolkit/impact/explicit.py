@@ -30,7 +30,8 @@ import numpy as np
 
 from toolkit.impact.elements import TetKinematics, deformation_gradient, internal_force
 
-__all__ = ["Body", "ExplicitModel", "Frame", "InstabilityError", "EnergyBalanceWarning", "run_explicit", "Energies"]
+__all__ = ["Body", "ExplicitModel", "Frame", "InstabilityError", "EnergyBalanceWarning", "run_explicit", "Energies",
+           "moving_sphere_contact"]
 
 log = logging.getLogger(__name__)
 
@@ -141,6 +142,30 @@ class ExplicitModel:
     dt: float
     contact: Callable | None = None
     initial_velocity: np.ndarray | None = None  # (n, 3) mm/s
+
+
+def moving_sphere_contact(pair, slaves: np.ndarray, centre0: np.ndarray, velocity: np.ndarray) -> Callable:
+    """The :class:`ExplicitModel` contact callback of a rigid sphere moving at constant velocity.
+
+    ``pair`` is a :class:`toolkit.impact.contact.RigidSphereContact` on the nodes ``slaves``; the
+    sphere's centre is ``centre0 + velocity t`` (mm, mm/s). The work the imposed motion does on the
+    body (trapezoidal rule) enters the energy balance as external work.
+    """
+    centre0, velocity = np.asarray(centre0, float), np.asarray(velocity, float)
+    previous = {"force": np.zeros(3), "centre": centre0.copy()}
+
+    def contact(x, v, t, dt):
+        centre = centre0 + velocity * t
+        res = pair.step(x[slaves], v[slaves], centre, velocity, dt)
+        f = np.zeros_like(x)
+        f[slaves] = res.force
+        on_body = res.force.sum(axis=0)
+        work = float(0.5 * (on_body + previous["force"]) @ (centre - previous["centre"]))
+        previous["force"], previous["centre"] = on_body, centre
+        pen = float(res.penetration.max()) if res.penetration.size else 0.0
+        return f, res.elastic_energy, res.friction_dissipation, on_body, pen, work
+
+    return contact
 
 
 def _von_mises(sigma: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from toolkit.common.mesh import Mesh
 from toolkit.common.topology import boundary_faces
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact, penalty_stiffness
 from toolkit.impact.elements import critical_time_step, lumped_mass, tet_kinematics
-from toolkit.impact.explicit import Body, ExplicitModel, run_explicit
+from toolkit.impact.explicit import Body, ExplicitModel, moving_sphere_contact, run_explicit
 from toolkit.impact.plasticity import HardeningTable, J2Plasticity
 from toolkit.impact.scene import MaterialSpec, Scene
 
@@ -127,19 +127,7 @@ def build_model(scene: Scene) -> BuiltScene:
     k_pen = penalty_stiffness(m_contact, dt_crit, fraction)
     velocity = scene.ball.velocity * d
     if scene.ball.rigid:
-        pair = RigidSphereContact(R, k_pen, friction, skin)
-        state = {"f_prev": np.zeros(3), "c_prev": centre0.copy()}
-
-        def contact(x, v, t, dt_):
-            c = centre0 + velocity * t
-            res = pair.step(x[skin], v[skin], c, velocity, dt_)
-            f = np.zeros_like(x)
-            f[skin] = res.force
-            f_face = res.force.sum(axis=0)
-            w_drive = float(0.5 * (f_face + state["f_prev"]) @ (c - state["c_prev"]))
-            state["f_prev"], state["c_prev"] = f_face, c
-            pen = float(res.penetration.max()) if res.penetration.size else 0.0
-            return f, res.elastic_energy, res.friction_dissipation, f_face, pen, w_drive
+        contact = moving_sphere_contact(RigidSphereContact(R, k_pen, friction, skin), skin, centre0, velocity)
     else:
         tris = boundary_faces(ball.volume_type, ball.volume_cells) + face.n_points
         pair = SurfaceContact(skin, tris, k_pen, friction)
