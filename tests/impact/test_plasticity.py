@@ -3,7 +3,6 @@ tabulated hardening, elastic unloading and isotropic re-yielding, objectivity un
 rotations, the Hencky and small-strain Hooke limits, the plastic-work balance, batch versus
 one-at-a-time updates, input validation and the cost of a 40,000-point update."""
 
-import time
 
 import numpy as np
 import pytest
@@ -320,15 +319,35 @@ def test_bad_material_and_inverted_points_are_rejected():
         MAT.update(F, MAT.initial_state(4))
 
 
-def test_update_of_40000_points_is_fast():
-    """One update of 40,000 points (all flowing plastically) takes under 1.0 s (target 0.5 s;
-    margin for a loaded machine)."""
-    n = 40_000
-    F = np.eye(3) + 0.05 * RNG.standard_normal((n, 3, 3))
-    state = MAT.initial_state(n)
-    MAT.update(F, state)  # warm-up
-    t0 = time.perf_counter()
-    r = MAT.update(F, state)
-    elapsed = time.perf_counter() - t0
-    assert r.plastic.mean() > 0.99
-    assert elapsed < 1.0
+@pytest.mark.parametrize("material", [MAT, ELASTIC], ids=["j2", "elastic"])
+def test_compiled_update_matches_numpy_reference(material):
+    """The compiled kernel (Jacobi eigen-decomposition warm-started from the last principal
+    directions) and the numpy reference (LAPACK eigh) agree along a 12-step path of 3,000 points
+    (elastic, plastic, exactly undeformed and nearly-isotropic ones): stresses to 1e-9 relative
+    plus 1e-12 mu absolute (the round-off of ln(1 + 1e-8) in a nearly isotropic be), plastic strain to 1e-12, the same points flow, and the carried principal
+    directions stay orthonormal to 1e-13."""
+    from toolkit.impact.jit import HAVE_NUMBA
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba not installed: only the numpy path exists")
+    n = 3000
+    G = 0.5 * RNG.standard_normal((n, 3, 3))
+    G[:100] = 0.0  # undeformed: repeated eigenvalues of be = I
+    G[100:200] = 1e-7 * G[100:200]  # nearly isotropic be
+    sa = sb = material.initial_state(n)
+    flowed = 0
+    for k in range(1, 13):
+        F = np.eye(3) + G * k / 12
+        F[np.linalg.det(F) < 0.05] = np.eye(3)
+        a, b = material.update_numpy(F, sa), material.update(F, sb)
+        for x, y in ((a.kirchhoff, b.kirchhoff), (a.first_piola, b.first_piola), (a.cauchy, b.cauchy)):
+            err = np.linalg.norm(x - y, axis=(1, 2))
+            assert np.all(err <= 1e-9 * np.linalg.norm(x, axis=(1, 2)) + 1e-12 * material.mu)
+        np.testing.assert_allclose(b.state.eps_p, a.state.eps_p, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(b.dissipation, a.dissipation, rtol=0, atol=1e-12 * material.mu)
+        np.testing.assert_array_equal(b.plastic, a.plastic)
+        flowed += int(b.plastic.sum())
+        sa, sb = a.state, b.state
+    N = sb.directions
+    np.testing.assert_allclose(np.swapaxes(N, 1, 2) @ N, np.broadcast_to(np.eye(3), N.shape), atol=1e-13)
+    assert (flowed > 1000) == (material.table is not None)

@@ -24,6 +24,7 @@ import numpy as np
 
 from toolkit.common.mesh import InvertedElementError, Mesh
 from toolkit.common.quality import tet10_shape_gradients
+from toolkit.impact.jit import njit, use_jit
 
 __all__ = ["TetKinematics", "tet_kinematics", "lumped_mass", "critical_time_step", "HRZ_TET10",
            "deformation_gradient", "internal_force"]
@@ -98,6 +99,11 @@ def lumped_mass(kin: TetKinematics, density: np.ndarray | float, n_nodes: int) -
 
 def deformation_gradient(kin: TetKinematics, u: np.ndarray) -> np.ndarray:
     """``F (E, Q, 3, 3)`` at the Gauss points for nodal displacements ``u (n, 3)`` mm."""
+    u = np.ascontiguousarray(u, dtype=np.float64)
+    if use_jit():
+        F = np.empty(kin.weight.shape + (3, 3))
+        _deformation_gradient_loop(kin.conn, kin.grad, u, F)
+        return F
     ue = u[kin.conn]  # (E, A, 3)
     F = np.matmul(np.swapaxes(ue, 1, 2)[:, None], kin.grad)  # (E,1,3,A) @ (E,Q,A,3) -> (E,Q,3,3)
     F[..., 0, 0] += 1.0
@@ -109,10 +115,47 @@ def deformation_gradient(kin: TetKinematics, u: np.ndarray) -> np.ndarray:
 def internal_force(kin: TetKinematics, P: np.ndarray, n_nodes: int) -> np.ndarray:
     """Nodal internal forces ``(n_nodes, 3)`` N from first Piola-Kirchhoff stresses ``P (E, Q, 3, 3)`` MPa."""
     # f_a,i = sum_q w P_ij dN_a/dX_j
+    if use_jit():
+        f = np.zeros((n_nodes, 3))
+        _internal_force_loop(kin.conn, kin.grad, kin.weight, np.ascontiguousarray(P, dtype=np.float64), f)
+        return f
     fe = np.matmul(kin.grad, np.swapaxes(P, -1, -2) * kin.weight[..., None, None]).sum(axis=1)  # (E, A, 3)
     idx = kin.conn.ravel()
     fe = fe.reshape(-1, 3)
     return np.stack([np.bincount(idx, weights=fe[:, k], minlength=n_nodes) for k in range(3)], axis=1)
+
+
+@njit
+def _deformation_gradient_loop(conn, grad, u, F):  # pragma: no cover - compiled
+    """Compiled :func:`deformation_gradient`: ``F[e, q] = I + sum_a u[conn[e, a]] (x) grad[e, q, a]``."""
+    E, Q, A, _ = grad.shape
+    for e in range(E):
+        for q in range(Q):
+            for i in range(3):
+                for j in range(3):
+                    F[e, q, i, j] = 1.0 if i == j else 0.0
+            for a in range(A):
+                n = conn[e, a]
+                for i in range(3):
+                    ui = u[n, i]
+                    for j in range(3):
+                        F[e, q, i, j] += ui * grad[e, q, a, j]
+
+
+@njit
+def _internal_force_loop(conn, grad, weight, P, f):  # pragma: no cover - compiled
+    """Compiled :func:`internal_force`: ``f[conn[e, a], i] += w[e, q] P[e, q, i, j] grad[e, q, a, j]``."""
+    E, Q, A, _ = grad.shape
+    for e in range(E):
+        for q in range(Q):
+            w = weight[e, q]
+            for a in range(A):
+                n = conn[e, a]
+                for i in range(3):
+                    s = 0.0
+                    for j in range(3):
+                        s += P[e, q, i, j] * grad[e, q, a, j]
+                    f[n, i] += w * s
 
 
 def _element_stiffness(kin: TetKinematics, lam: np.ndarray, mu: np.ndarray) -> np.ndarray:

@@ -37,12 +37,14 @@ import numpy as np
 
 from toolkit.common.materials import IsotropicModuli, _check
 from toolkit.common.phantom import ball_density
+from toolkit.impact.jit import njit, use_jit
 
 __all__ = [
     "HardeningTable",
     "PlasticState",
     "StressUpdate",
     "J2Plasticity",
+    "InvertedPointError",
     "von_mises",
     "FACE_TABLE",
     "BALL_TABLE",
@@ -155,17 +157,21 @@ class PlasticState:
     F : (n, 3, 3) float, deformation gradient of the last update (dimensionless)
     be : (n, 3, 3) float, elastic left Cauchy-Green tensor ``Fe Fe^T`` (dimensionless)
     eps_p : (n,) float, equivalent (von Mises) plastic strain, logarithmic measure
+    directions : (n, 3, 3) float, principal directions of ``be`` (orthonormal columns). Not
+        history in the constitutive sense: the compiled update starts its eigen-decomposition
+        from them (one Jacobi sweep instead of three, since ``be`` changes little per step).
     """
 
     F: np.ndarray
     be: np.ndarray
     eps_p: np.ndarray
+    directions: np.ndarray
 
     @classmethod
     def initial(cls, n: int) -> PlasticState:
         """The undeformed, virgin state of ``n`` points (``F = be = I``, ``eps_p = 0``)."""
         eye = np.broadcast_to(np.eye(3), (n, 3, 3))
-        return cls(F=eye.copy(), be=eye.copy(), eps_p=np.zeros(n))
+        return cls(F=eye.copy(), be=eye.copy(), eps_p=np.zeros(n), directions=eye.copy())
 
     @property
     def n(self) -> int:
@@ -214,17 +220,230 @@ def _cofactor_det(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cof, det
 
 
+class InvertedPointError(FloatingPointError):
+    """A stress update met ``det F <= 0`` (or a non-positive-definite ``be``); ``point`` is the
+    first bad integration point (index into the update's ``n`` points)."""
+
+    def __init__(self, message: str, point: int):
+        super().__init__(message)
+        self.point = point
+
+
 def _check_det(det: np.ndarray, what: str) -> None:
     bad = np.flatnonzero(~(det > 0))
     if bad.size:
         i = bad[0]
-        raise FloatingPointError(f"{what}: det F = {det[i]:.4g} <= 0 at point {i} ({bad.size} inverted "
-                                 "point(s)); the element is inverted, reduce the time step or refine the mesh")
+        raise InvertedPointError(f"{what}: det F = {det[i]:.4g} <= 0 at point {i} ({bad.size} inverted "
+                                 "point(s)); the element is inverted, reduce the time step or refine the mesh", int(i))
+
+
+# --- compiled per-point kernel (numba); mirrors J2Plasticity.update_numpy step for step ------------
+
+
+@njit
+def _interp(x, xp, fp):  # pragma: no cover - compiled
+    """np.interp for a scalar on a short increasing table (clamped at both ends)."""
+    if x <= xp[0]:
+        return fp[0]
+    m = xp.shape[0]
+    if x >= xp[m - 1]:
+        return fp[m - 1]
+    k = 0
+    while xp[k + 1] < x:
+        k += 1
+    return fp[k] + (fp[k + 1] - fp[k]) * (x - xp[k]) / (xp[k + 1] - xp[k])
+
+
+@njit
+def _hardening_work(x, e, y, w):  # pragma: no cover - compiled
+    """HardeningTable.work for a scalar plastic strain ``x >= 0``."""
+    k = 0
+    while k + 1 < e.shape[0] and e[k + 1] <= x:
+        k += 1
+    return w[k] + 0.5 * (y[k] + _interp(x, e, y)) * (x - e[k])
+
+
+@njit
+def _jacobi_eigh3(A, V):  # pragma: no cover - compiled
+    """Cyclic Jacobi: diagonalises the symmetric ``A (3, 3)`` in place (eigenvalues on the
+    diagonal, unordered) and writes the eigenvectors as the columns of ``V (3, 3)``."""
+    for i in range(3):
+        for j in range(3):
+            V[i, j] = 1.0 if i == j else 0.0
+    for _sweep in range(50):
+        off = A[0, 1] ** 2 + A[0, 2] ** 2 + A[1, 2] ** 2
+        diag = A[0, 0] ** 2 + A[1, 1] ** 2 + A[2, 2] ** 2
+        if off <= 1e-34 * diag or off == 0.0:
+            break
+        for r in range(3):
+            p = 0 if r < 2 else 1
+            q = 1 if r == 0 else 2
+            apq = A[p, q]
+            if apq == 0.0:
+                continue
+            h = 0.5 * (A[q, q] - A[p, p])
+            if abs(apq) < 1e-8 * abs(h):  # tiny angle (the warm-started case): no square roots,
+                t = 0.5 * apq / h  # t = tan(phi) = apq / (2 h) and c = cos(phi) to O(t^4) < 1e-32
+                c = 1.0 - 0.5 * t * t
+            else:
+                t = apq / (abs(h) + np.sqrt(h * h + apq * apq))
+                if h < 0.0:
+                    t = -t
+                c = 1.0 / np.sqrt(t * t + 1.0)
+            s = t * c
+            for k in range(3):  # A <- A G
+                akp, akq = A[k, p], A[k, q]
+                A[k, p] = c * akp - s * akq
+                A[k, q] = s * akp + c * akq
+            for k in range(3):  # A <- G^T A
+                apk, aqk = A[p, k], A[q, k]
+                A[p, k] = c * apk - s * aqk
+                A[q, k] = s * apk + c * aqk
+            A[p, q] = 0.0
+            A[q, p] = 0.0
+            for k in range(3):  # V <- V G
+                vkp, vkq = V[k, p], V[k, q]
+                V[k, p] = c * vkp - s * vkq
+                V[k, q] = s * vkp + c * vkq
+
+
+@njit
+def _cofactor3(F, C):  # pragma: no cover - compiled
+    """Cofactor ``det(F) F^-T`` of ``F (3, 3)`` into ``C``; returns ``det F``."""
+    C[0, 0] = F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1]
+    C[0, 1] = F[1, 2] * F[2, 0] - F[1, 0] * F[2, 2]
+    C[0, 2] = F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]
+    C[1, 0] = F[0, 2] * F[2, 1] - F[0, 1] * F[2, 2]
+    C[1, 1] = F[0, 0] * F[2, 2] - F[0, 2] * F[2, 0]
+    C[1, 2] = F[0, 1] * F[2, 0] - F[0, 0] * F[2, 1]
+    C[2, 0] = F[0, 1] * F[1, 2] - F[0, 2] * F[1, 1]
+    C[2, 1] = F[0, 2] * F[1, 0] - F[0, 0] * F[1, 2]
+    C[2, 2] = F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]
+    return F[0, 0] * C[0, 0] + F[0, 1] * C[0, 1] + F[0, 2] * C[0, 2]
+
+
+@njit
+def _j2_points(F_new, F_old, be_old, eps_p_old, N_old, lam, mu, e_k, y_k, w_k, hardening, rtol,
+               cauchy, tau, P, be_new, eps_p_new, diss, plastic, N_new, status):  # pragma: no cover - compiled
+    """Hencky-J2 update of every point (see the module docstring), writing into the output
+    arrays; ``status = (kind, point)`` with kind 0 ok, 1 det F <= 0, 2 det F_old <= 0,
+    3 be not positive definite (the first bad point; the loop stops there).
+
+    The eigen-decomposition of the trial ``be`` starts from the previous principal directions
+    ``N_old``: ``A = N_old^T be N_old`` is nearly diagonal, Jacobi finishes it (usually in
+    one sweep) and the directions are ``N_old V``."""
+    n = F_new.shape[0]
+    C = np.empty((3, 3))
+    Co = np.empty((3, 3))
+    f = np.empty((3, 3))
+    fB = np.empty((3, 3))
+    A = np.empty((3, 3))
+    V = np.empty((3, 3))
+    W = np.empty((3, 3))
+    eps = np.empty(3)
+    dev = np.empty(3)
+    mu2 = 2.0 * mu
+    mu3 = 3.0 * mu
+    m = e_k.shape[0]
+    h_k = y_k + mu3 * e_k
+    for i in range(n):
+        F = F_new[i]
+        J = _cofactor3(F, C)
+        if not (J > 0.0):
+            status[0], status[1] = 1, i
+            return
+        if hardening:
+            Jo = _cofactor3(F_old[i], Co)
+            if not (Jo > 0.0):
+                status[0], status[1] = 2, i
+                return
+            for a in range(3):  # f = F F_old^-1 = F Co^T / Jo
+                for b in range(3):
+                    f[a, b] = (F[a, 0] * Co[b, 0] + F[a, 1] * Co[b, 1] + F[a, 2] * Co[b, 2]) / Jo
+            B = be_old[i]
+            for a in range(3):
+                for b in range(3):
+                    fB[a, b] = f[a, 0] * B[0, b] + f[a, 1] * B[1, b] + f[a, 2] * B[2, b]
+            for a in range(3):
+                for b in range(3):
+                    A[a, b] = fB[a, 0] * f[b, 0] + fB[a, 1] * f[b, 1] + fB[a, 2] * f[b, 2]
+        else:
+            for a in range(3):
+                for b in range(3):
+                    A[a, b] = F[a, 0] * F[b, 0] + F[a, 1] * F[b, 1] + F[a, 2] * F[b, 2]
+        No = N_old[i]
+        for a in range(3):
+            for b in range(3):
+                be_new[i, a, b] = A[a, b]
+        for a in range(3):  # W = A N_old, A <- N_old^T W
+            for b in range(3):
+                W[a, b] = A[a, 0] * No[0, b] + A[a, 1] * No[1, b] + A[a, 2] * No[2, b]
+        for a in range(3):
+            for b in range(3):
+                A[a, b] = No[0, a] * W[0, b] + No[1, a] * W[1, b] + No[2, a] * W[2, b]
+        for a in range(3):  # symmetrise the round-off of the transform
+            for b in range(a + 1, 3):
+                A[a, b] = A[b, a] = 0.5 * (A[a, b] + A[b, a])
+        _jacobi_eigh3(A, W)
+        for a in range(3):  # V = N_old W: principal directions of be_trial (columns)
+            for b in range(3):
+                V[a, b] = No[a, 0] * W[0, b] + No[a, 1] * W[1, b] + No[a, 2] * W[2, b]
+                N_new[i, a, b] = V[a, b]
+        if not (A[0, 0] > 0.0 and A[1, 1] > 0.0 and A[2, 2] > 0.0):
+            status[0], status[1] = 3, i
+            return
+        vol = 0.0
+        for k in range(3):
+            eps[k] = 0.5 * np.log(A[k, k])
+            vol += eps[k]
+        ss = 0.0
+        for k in range(3):
+            dev[k] = eps[k] - vol / 3.0
+            ss += dev[k] * dev[k]
+        eps_p_new[i] = eps_p_old[i]
+        diss[i] = 0.0
+        if hardening:
+            q = np.sqrt(1.5) * mu2 * np.sqrt(ss)
+            ep = eps_p_old[i]
+            if q > _interp(ep, e_k, y_k) * (1.0 + rtol):
+                r = q + mu3 * ep
+                if r <= h_k[m - 1]:
+                    x = _interp(r, h_k, e_k)
+                else:
+                    x = e_k[m - 1] + (r - h_k[m - 1]) / mu3
+                d = max(x - ep, 0.0)
+                scale = 1.0 - mu3 * d / q
+                for k in range(3):
+                    dev[k] *= scale
+                eps_p_new[i] = ep + d
+                diss[i] = _hardening_work(ep + d, e_k, y_k, w_k) - _hardening_work(ep, e_k, y_k, w_k)
+                plastic[i] = True
+                for a in range(3):  # exponential map be = sum_k exp(2 eps_k) n_k n_k
+                    for b in range(3):
+                        s = 0.0
+                        for k in range(3):
+                            s += V[a, k] * np.exp(2.0 * (dev[k] + vol / 3.0)) * V[b, k]
+                        be_new[i, a, b] = s
+        for k in range(3):
+            eps[k] = lam * vol + mu2 * (dev[k] + vol / 3.0)  # principal Kirchhoff stress, MPa
+        for a in range(3):
+            for b in range(3):
+                s = V[a, 0] * eps[0] * V[b, 0] + V[a, 1] * eps[1] * V[b, 1] + V[a, 2] * eps[2] * V[b, 2]
+                tau[i, a, b] = s
+                cauchy[i, a, b] = s / J
+        for a in range(3):  # P = tau F^-T = tau C / J
+            for b in range(3):
+                P[i, a, b] = (tau[i, a, 0] * C[0, b] + tau[i, a, 1] * C[1, b] + tau[i, a, 2] * C[2, b]) / J
 
 
 @dataclass(frozen=True)
 class J2Plasticity(IsotropicModuli):
     """Isotropic Hencky elasticity with J2 plasticity and tabulated isotropic hardening.
+
+    :meth:`update` runs a compiled per-point kernel (:func:`_j2_points`, a Jacobi
+    eigen-decomposition instead of LAPACK's batched ``eigh``; ~20x faster) when numba is
+    available, and the vectorized numpy reference (:meth:`update_numpy`) otherwise; the two
+    agree to round-off (tested).
 
     Attributes
     ----------
@@ -278,10 +497,52 @@ class J2Plasticity(IsotropicModuli):
 
         Raises
         ------
-        FloatingPointError
-            if ``det F_new <= 0`` (or ``det F_old <= 0``) at some point; the message names it.
+        InvertedPointError (a FloatingPointError)
+            if ``det F_new <= 0`` (or ``det F_old <= 0``, or NaN) at some point; the message and
+            ``.point`` name the first one.
         """
-        F_new = np.array(F_new, dtype=np.float64)  # a copy: the state must not alias the caller's buffer
+        F_new = np.array(F_new, dtype=np.float64, order="C")  # a copy: the state must not alias the caller's buffer
+        if F_new.ndim != 3 or F_new.shape[1:] != (3, 3) or F_new.shape[0] != state.n:
+            raise ValueError(f"F_new has shape {F_new.shape}; expected ({state.n}, 3, 3) to match the state")
+        if use_jit():
+            return self._update_compiled(F_new, state)
+        return self.update_numpy(F_new, state)
+
+    def _table_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self.table is None:  # unused by the kernel; read-only like a table's (one compiled signature)
+            z = np.zeros(1)
+            z.flags.writeable = False
+            return z, z, z
+        return self.table.plastic_strain, self.table.yield_stress, self.table._work
+
+    def _update_compiled(self, F_new: np.ndarray, state: PlasticState) -> StressUpdate:
+        n = state.n
+        cauchy, tau, P, be_new, N = (np.empty((n, 3, 3)) for _ in range(5))
+        eps_p, diss = np.empty(n), np.empty(n)
+        plastic = np.zeros(n, dtype=np.bool_)
+        status = np.zeros(2, dtype=np.int64)
+        e_k, y_k, w_k = self._table_arrays()
+        _j2_points(F_new, np.ascontiguousarray(state.F), np.ascontiguousarray(state.be),
+                   np.ascontiguousarray(state.eps_p, dtype=np.float64), np.ascontiguousarray(state.directions),
+                   float(self.lam), float(self.mu), e_k, y_k, w_k, self.table is not None, _YIELD_RTOL,
+                   cauchy, tau, P, be_new, eps_p, diss, plastic, N, status)
+        kind, i = int(status[0]), int(status[1])
+        if kind == 1:
+            raise InvertedPointError(f"J2Plasticity.update: det F = {np.linalg.det(F_new[i]):.4g} <= 0 at point "
+                                     f"{i}; the element is inverted, reduce the time step or refine the mesh", i)
+        if kind == 2:
+            raise InvertedPointError(f"J2Plasticity.update (state.F): det F = {np.linalg.det(state.F[i]):.4g} "
+                                     f"<= 0 at point {i}", i)
+        if kind == 3:
+            raise InvertedPointError(f"J2Plasticity.update: elastic left Cauchy-Green tensor not positive "
+                                     f"definite at point {i}", i)
+        return StressUpdate(cauchy=cauchy, kirchhoff=tau, first_piola=P,
+                            state=PlasticState(F=F_new, be=be_new, eps_p=eps_p, directions=N),
+                            dissipation=diss, plastic=plastic)
+
+    def update_numpy(self, F_new: np.ndarray, state: PlasticState) -> StressUpdate:
+        """:meth:`update` in vectorized numpy (LAPACK ``eigh``): the reference implementation."""
+        F_new = np.array(F_new, dtype=np.float64)
         if F_new.ndim != 3 or F_new.shape[1:] != (3, 3) or F_new.shape[0] != state.n:
             raise ValueError(f"F_new has shape {F_new.shape}; expected ({state.n}, 3, 3) to match the state")
         cof, J = _cofactor_det(F_new)
@@ -300,8 +561,8 @@ class J2Plasticity(IsotropicModuli):
         bad = np.flatnonzero(~(lam2[:, 0] > 0))
         if bad.size:
             i = bad[0]
-            raise FloatingPointError(f"J2Plasticity.update: elastic left Cauchy-Green tensor not positive "
-                                     f"definite at point {i} (eigenvalue {lam2[i, 0]:.4g})")
+            raise InvertedPointError(f"J2Plasticity.update: elastic left Cauchy-Green tensor not positive "
+                                     f"definite at point {i} (eigenvalue {lam2[i, 0]:.4g})", int(i))
         eps = 0.5 * np.log(lam2)  # (n, 3) principal Hencky strains
         vol = eps.sum(axis=1)
         dev = eps - vol[:, None] / 3.0
@@ -341,7 +602,7 @@ class J2Plasticity(IsotropicModuli):
         tau = (N * tau_i[:, None, :]) @ np.swapaxes(N, 1, 2)
         cauchy = tau / J[:, None, None]
         first_piola = tau @ cof / J[:, None, None]  # tau F^-T
-        new_state = PlasticState(F=F_new, be=be_new, eps_p=eps_p)
+        new_state = PlasticState(F=F_new, be=be_new, eps_p=eps_p, directions=N)
         return StressUpdate(cauchy=cauchy, kirchhoff=tau, first_piola=first_piola, state=new_state,
                             dissipation=dissipation, plastic=plastic)
 
