@@ -12,10 +12,12 @@ from toolkit.impact import (
     Fidelity,
     MaterialSpec,
     Scene,
+    SceneGeometryWarning,
     build_model,
     default_scene,
     simulate,
 )
+from toolkit.impact.simulate import sweep_travel
 
 #: seed 002 (SPEC "Impact"): yield tables (MPa, plastic strain)
 FACE_YIELD = [(0.015, 0.0), (0.020, 0.03), (0.025, 0.032), (0.028, 0.05), (0.030, 0.06), (0.031, 0.07)]
@@ -33,7 +35,8 @@ def test_toml_round_trip(tmp_path):
     scene = Scene(
         face=FaceSpec(resolution="coarse", material=MaterialSpec(0.02, 0.45, 1.1e-9, ((0.01, 0.0), (0.02, 0.1))),
                       lower_fixed_fraction=0.2),
-        ball=BallSpec(rigid=True, velocity=45.0, direction=(0.0, -3.0, 4.0), target=(1.0, 2.0, 3.0), gap=1.5),
+        ball=BallSpec(rigid=True, velocity=45.0, direction=(0.0, -3.0, 4.0), target=(1.0, 2.0, 3.0), gap=1.5,
+                      target_offset=(0.0, 1.0, -2.0)),
         contact=ContactSpec(friction=0.3, dt_fraction=0.8),
         fidelity=Fidelity(order=1, mass_scaling=25.0, safety=0.7, dt=1e-4, allow_unstable_dt=True),
         duration=0.25,
@@ -85,9 +88,9 @@ def test_default_scene_is_seed_002():
 @pytest.mark.parametrize("rigid", [True, False], ids=["rigid", "deformable"])
 def test_built_ball_starts_outside_the_face(rigid):
     """A rigid ball is an analytic sphere (no mesh); a deformable one is a tet mesh inside the
-    sphere of radius R about the start centre. The centre is placed R + gap beyond the most
-    upstream skin point along the motion, so the closest skin node is exactly gap = 0.5 mm from
-    the sphere (1e-9 mm) and no skin node is inside it at t = 0."""
+    sphere of radius R about the start centre. The centre is advanced along the motion until the
+    closest skin node is exactly gap = 0.5 mm from the sphere (1e-9 mm), so no skin node is
+    inside it at t = 0."""
     scene = _coarse(rigid, order=2)
     built = build_model(scene)
     assert (built.ball is None) == rigid
@@ -124,3 +127,29 @@ def test_coarse_rigid_impact_smoke():
     travel = scene.ball.velocity * scene.duration - scene.ball.gap
     assert summary["max_displacement_mm"] == pytest.approx(travel, rel=0.3)
     assert summary["steps"] * summary["dt_s"] == pytest.approx(scene.duration, rel=1e-9)
+
+
+def test_sweep_travel_is_the_first_touch_of_a_moving_sphere():
+    """A sphere of radius 10 mm starting at the origin and moving along +x touches the point
+    (20, 6, 0) after 20 - sqrt(100 - 36) = 12 mm, the point (5, 0, 0) (already inside) at -5 mm,
+    and never the point (0, 11, 0) off its path; an oblique direction gives the same travel as
+    the rotated problem."""
+    pts = np.array([[20.0, 6.0, 0.0], [5.0, 0.0, 0.0], [0.0, 11.0, 0.0]])
+    np.testing.assert_allclose(sweep_travel(pts, np.zeros(3), np.array([1.0, 0, 0]), 10.0), [12.0, -5.0, np.inf])
+    d = np.array([1.0, 1.0, 0.0]) / np.sqrt(2)
+    R = np.array([[d[0], -d[1], 0], [d[1], d[0], 0], [0, 0, 1]])  # rotates +x onto d
+    np.testing.assert_allclose(sweep_travel(pts @ R.T + 3.0, np.full(3, 3.0), d, 10.0), [12.0, -5.0, np.inf])
+
+
+def test_a_path_into_the_fixed_region_warns_before_running():
+    """Aimed at the nose tip (no offset) with the lowest 10% fixed, the 110 mm ball's path meets
+    the fixed chin band after ~58 mm (the 1.8 s of a 50 mm/s ball travel 90 mm): build_model warns
+    with the travel and a remedy. The default aim (30 mm above the nose) never meets the fixed
+    nodes, even at 50 mm/s, and the summary reports that as clearance None."""
+    scene = Scene(face=FaceSpec(resolution="coarse", lower_fixed_fraction=0.1),
+                  ball=BallSpec(rigid=True, velocity=50.0, target_offset=(0.0, 0.0, 0.0)), duration=1.8)
+    with pytest.warns(SceneGeometryWarning, match=r"reaches the fixed region after \d+\.\d mm of its 90.0 mm"):
+        built = build_model(scene)
+    assert -60.0 < built.fixed_clearance_mm < 0.0
+    ok = Scene(face=FaceSpec(resolution="coarse"), ball=BallSpec(rigid=True, velocity=50.0), duration=1.8)
+    assert build_model(ok).fixed_clearance_mm == np.inf

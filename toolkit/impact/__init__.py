@@ -6,7 +6,7 @@ plasticity, contact, integrator) are importable. Imports nothing from :mod:`tool
 
 from toolkit.impact.explicit import InstabilityError
 from toolkit.impact.scene import BallSpec, ContactSpec, FaceSpec, Fidelity, MaterialSpec, Scene, default_scene
-from toolkit.impact.simulate import ImpactResult, UnstableTimeStepError, build_model, simulate
+from toolkit.impact.simulate import ImpactResult, SceneGeometryWarning, UnstableTimeStepError, build_model, simulate
 
 __all__ = [
     "Scene",
@@ -21,4 +21,5 @@ __all__ = [
     "ImpactResult",
     "InstabilityError",
     "UnstableTimeStepError",
+    "SceneGeometryWarning",
 ]

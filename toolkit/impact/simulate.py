@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,11 +30,15 @@ from toolkit.impact.explicit import Body, ExplicitModel, moving_sphere_contact, 
 from toolkit.impact.plasticity import HardeningTable, J2Plasticity
 from toolkit.impact.scene import MaterialSpec, Scene
 
-__all__ = ["simulate", "ImpactResult", "build_model", "UnstableTimeStepError"]
+__all__ = ["simulate", "ImpactResult", "build_model", "UnstableTimeStepError", "SceneGeometryWarning", "sweep_travel"]
 
 
 class UnstableTimeStepError(ValueError):
     """A requested time step exceeds the stable limit."""
+
+
+class SceneGeometryWarning(UserWarning):
+    """The ball's path over the scene's duration reaches fixed nodes (tissue would be crushed)."""
 
 
 def _material(spec: MaterialSpec, mass_scaling: float) -> J2Plasticity:
@@ -59,6 +64,7 @@ class BuiltScene:
     dt_critical: float
     dt_element: tuple
     added_mass_fraction: float
+    fixed_clearance_mm: float = float("inf")  # travel left between the ball's path and the fixed nodes
 
 
 def build_model(scene: Scene) -> BuiltScene:
@@ -81,10 +87,26 @@ def build_model(scene: Scene) -> BuiltScene:
         target = face.points[skin[np.argmax(face.points[skin] @ -d)]]
     else:
         target = np.asarray(scene.ball.target, dtype=float)
+    target = target + np.asarray(scene.ball.target_offset, dtype=float)
     R = scene.ball.radius
-    # the plane through the most upstream skin point separates the face from the ball
+    # start behind the plane through the most upstream skin point, then advance until the
+    # closest skin node is `gap` mm from the sphere (first touch of a sphere of radius R + gap)
     lead = float(np.max(face.points[skin] @ -d))
     centre0 = target - d * (R + scene.ball.gap + (lead - target @ -d))
+    first_touch = float(sweep_travel(face.points[skin], centre0, d, R + scene.ball.gap).min())
+    if not np.isfinite(first_touch):
+        raise ValueError(f"the ball (radius {R} mm) aimed at {np.round(target, 1).tolist()} mm along "
+                         f"{list(scene.ball.direction)} misses the face; change ball.target or target_offset")
+    centre0 = centre0 + d * first_touch
+    travel = scene.ball.velocity * scene.duration
+    fixed_ids = face.node_set(scene.face.fixed_set)
+    clearance = float(sweep_travel(face.points[fixed_ids], centre0, d, R).min(initial=np.inf)) - travel
+    if clearance < 0:
+        warnings.warn(f"the ball's path reaches the fixed region after {travel + clearance:.1f} mm of its "
+                      f"{travel:.1f} mm travel (t = {(travel + clearance) / scene.ball.velocity:.2f} s): tissue "
+                      "will be crushed against fixed nodes and elements may invert; aim higher "
+                      "(ball.target_offset), shorten the duration or fix less of the face",
+                      SceneGeometryWarning, stacklevel=2)
     bodies = [Body("face", face_kin, face_mat, 0, face.n_points, fixed=face.node_set(scene.face.fixed_set))]
     masses = [lumped_mass(face_kin, scene.face.material.density * ms, face.n_points)]
     lam, mu = _lame(scene.face.material)
@@ -139,7 +161,20 @@ def build_model(scene: Scene) -> BuiltScene:
             pen = float(res.penetration.max()) if res.penetration.size else 0.0
             return f, res.elastic_energy, res.friction_dissipation, res.force.sum(axis=0), pen, 0.0
     model = ExplicitModel(points, mass, bodies, dt, contact)
-    return BuiltScene(model, face, ball, centre0, dt_crit, dt_elem, ms - 1.0)
+    return BuiltScene(model, face, ball, centre0, dt_crit, dt_elem, ms - 1.0, clearance)
+
+
+def sweep_travel(points: np.ndarray, centre0: np.ndarray, direction: np.ndarray, radius: float) -> np.ndarray:
+    """Travel (mm) after which a sphere of ``radius`` mm starting at ``centre0`` and moving along
+    the unit ``direction`` first touches each of the fixed ``points (n, 3)`` mm; ``inf`` for points
+    off its path and negative for points already inside. Shape ``(n,)``."""
+    rel = np.asarray(points, dtype=float) - centre0
+    along = rel @ direction
+    perp2 = np.einsum("ij,ij->i", rel, rel) - along**2
+    out = np.full(along.shape, np.inf)
+    hit = perp2 < radius**2
+    out[hit] = along[hit] - np.sqrt(radius**2 - perp2[hit])
+    return out
 
 
 def _dense(res, shape):
@@ -195,6 +230,9 @@ class ImpactResult:
             "added_mass_fraction": float(self.stats["added_mass_fraction"]),
             "max_contact_force_n": float(self.stats["max_contact_force_n"]),
             "max_penetration_mm": float(self.stats["max_penetration_mm"]),
+            # travel (mm) left between the ball's path and the fixed nodes; None: the path never meets them
+            "fixed_clearance_mm": (None if not np.isfinite(self.stats.get("fixed_clearance_mm", np.inf))
+                                   else float(self.stats["fixed_clearance_mm"])),
         }
 
 
@@ -228,6 +266,7 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
             w.close()
     stats["dt_critical_s"] = built.dt_critical
     stats["added_mass_fraction"] = built.added_mass_fraction
+    stats["fixed_clearance_mm"] = built.fixed_clearance_mm
     stats["wall_time_s"] = time.perf_counter() - t0
     energies = pd.DataFrame([{"time_s": f.time, **f.energies.__dict__, "balance_error": f.energies.balance_error}
                              for f in frames])
