@@ -153,3 +153,21 @@ def test_a_path_into_the_fixed_region_warns_before_running():
     assert -60.0 < built.fixed_clearance_mm < 0.0
     ok = Scene(face=FaceSpec(resolution="coarse"), ball=BallSpec(rigid=True, velocity=50.0), duration=1.8)
     assert build_model(ok).fixed_clearance_mm == np.inf
+
+
+@pytest.mark.parametrize("velocity", [20.0, 50.0])
+def test_seed_velocity_extremes_run_the_full_duration(velocity):
+    """Seed 002's slowest and fastest balls (20 and 50 mm/s) run the whole 1.8 s on the coarse
+    face (tet4, rigid ball, mass scaling 100) without inverting an element: 36 and 90 mm of travel
+    with the default aim. The skin the ball first touches is carried with it, so the largest
+    displacement is at least the ball's travel after touching (v * 1.8 s - 0.5 mm, less 5 % for
+    penalty penetration and sliding), and not more than 30 % above it (the tissue flap also
+    rotates about the fixed band, moving its upper edge down: +18 % at 50 mm/s); the energy
+    balance closes to 2 %."""
+    scene = Scene(face=FaceSpec(resolution="coarse"), ball=BallSpec(rigid=True, velocity=velocity),
+                  fidelity=Fidelity(order=1, mass_scaling=100.0), duration=1.8, n_frames=6)
+    summary = simulate(scene, preview=False).summary()
+    assert summary["fixed_clearance_mm"] is None
+    travel = velocity * 1.8 - scene.ball.gap
+    assert 0.95 * travel <= summary["max_displacement_mm"] <= 1.3 * travel
+    assert summary["energy_error"] < 0.02

@@ -165,7 +165,11 @@ class PlasticState:
     F: np.ndarray
     be: np.ndarray
     eps_p: np.ndarray
-    directions: np.ndarray
+    directions: np.ndarray | None = None  # None: the identity (a cold start)
+
+    def __post_init__(self):
+        if self.directions is None:
+            object.__setattr__(self, "directions", np.broadcast_to(np.eye(3), (self.n, 3, 3)).copy())
 
     @classmethod
     def initial(cls, n: int) -> PlasticState:
