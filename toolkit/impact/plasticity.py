@@ -22,6 +22,12 @@ plastic). The update is objective (a superposed rotation ``F -> Q F`` rotates ``
 stresses and leaves ``eps_p`` unchanged) and, for proportional loading in fixed principal
 axes, exact whatever the step size.
 
+Two implementations of the same update: :meth:`J2Plasticity.update_numpy` (batched numpy and
+LAPACK ``eigh``, the readable reference) and the compiled per-point kernel :func:`_j2_points`
+(numba; a cyclic Jacobi eigen-decomposition started from the previous step's principal
+directions), which :meth:`J2Plasticity.update` runs when numba is installed: ~0.4 us instead
+of ~2.5 us per point. The tests hold them equal to round-off.
+
 The seed-002 materials (:data:`SEED002_FACE`, :data:`SEED002_BALL`) use SPEC's reading of the
 paper's yield tables as MPa. The face's initial yield stress (0.015 MPa) equals its Young's
 modulus, so in uniaxial tension it first yields at a Hencky strain ``ln(l) = sigma_y / E = 1``
