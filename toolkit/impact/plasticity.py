@@ -230,6 +230,15 @@ def _cofactor_det(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cof, det
 
 
+def _batch_copy(F_new, state: PlasticState) -> np.ndarray:
+    """``F_new`` as a new C-contiguous ``(n, 3, 3)`` float64 array (the state keeps it, so it must
+    not alias the caller's buffer); raises ValueError unless ``n`` matches the state."""
+    F_new = np.array(F_new, dtype=np.float64, order="C")
+    if F_new.ndim != 3 or F_new.shape[1:] != (3, 3) or F_new.shape[0] != state.n:
+        raise ValueError(f"F_new has shape {F_new.shape}; expected ({state.n}, 3, 3) to match the state")
+    return F_new
+
+
 class InvertedPointError(FloatingPointError):
     """A stress update met ``det F <= 0`` (or a non-positive-definite ``be``); ``point`` is the
     first bad integration point (index into the update's ``n`` points)."""
@@ -511,12 +520,10 @@ class J2Plasticity(IsotropicModuli):
             if ``det F_new <= 0`` (or ``det F_old <= 0``, or NaN) at some point; the message and
             ``.point`` name the first one.
         """
-        F_new = np.array(F_new, dtype=np.float64, order="C")  # a copy: the state must not alias the caller's buffer
-        if F_new.ndim != 3 or F_new.shape[1:] != (3, 3) or F_new.shape[0] != state.n:
-            raise ValueError(f"F_new has shape {F_new.shape}; expected ({state.n}, 3, 3) to match the state")
+        F_new = _batch_copy(F_new, state)
         if use_jit():
             return self._update_compiled(F_new, state)
-        return self.update_numpy(F_new, state)
+        return self._update_numpy(F_new, state)
 
     def _table_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if self.table is None:  # unused by the kernel; read-only like a table's (one compiled signature)
@@ -552,9 +559,9 @@ class J2Plasticity(IsotropicModuli):
 
     def update_numpy(self, F_new: np.ndarray, state: PlasticState) -> StressUpdate:
         """:meth:`update` in vectorized numpy (LAPACK ``eigh``): the reference implementation."""
-        F_new = np.array(F_new, dtype=np.float64)
-        if F_new.ndim != 3 or F_new.shape[1:] != (3, 3) or F_new.shape[0] != state.n:
-            raise ValueError(f"F_new has shape {F_new.shape}; expected ({state.n}, 3, 3) to match the state")
+        return self._update_numpy(_batch_copy(F_new, state), state)
+
+    def _update_numpy(self, F_new: np.ndarray, state: PlasticState) -> StressUpdate:
         cof, J = _cofactor_det(F_new)
         _check_det(J, "J2Plasticity.update")
         F_T = np.swapaxes(F_new, 1, 2)

@@ -107,7 +107,7 @@ def build_model(scene: Scene) -> BuiltScene:
                       "will be crushed against fixed nodes and elements may invert; aim higher "
                       "(ball.target_offset), shorten the duration or fix less of the face",
                       SceneGeometryWarning, stacklevel=2)
-    bodies = [Body("face", face_kin, face_mat, 0, face.n_points, fixed=face.node_set(scene.face.fixed_set))]
+    bodies = [Body("face", face_kin, face_mat, 0, face.n_points, fixed=fixed_ids)]
     masses = [lumped_mass(face_kin, scene.face.material.density * ms, face.n_points)]
     lam, mu = _lame(scene.face.material)
     dt_face, el_face, _ = critical_time_step(face_kin, lam, mu, scene.face.material.density * ms)
