@@ -229,14 +229,15 @@ def test_default_plan_within_ranges(phantom):
     table = plan.summary()
     assert list(table.columns) == ["segment", "translation_mm", "rotation_deg"]
     assert table.set_index("segment").loc["lefort", "translation_mm"] == pytest.approx(math.sqrt(20.0))
-    for name, (mm, deg) in PHYSIOLOGICAL_RANGES.items():
+    for name, rg in PHYSIOLOGICAL_RANGES.items():
+        mm, deg = rg.translation_mm[1], rg.rotation_deg[1]
         assert plan.motions[name].translation_mm <= mm and plan.motions[name].angle_deg <= deg
 
 
 def test_range_warning_error_and_force():
     """1.5x the Le Fort range warns; 2.5x raises unless forced, and a forced plan warns
     naming the segment, the value and the range."""
-    max_mm, max_deg = PHYSIOLOGICAL_RANGES["lefort"]
+    max_mm, max_deg = PHYSIOLOGICAL_RANGES["lefort"].translation_mm[1], PHYSIOLOGICAL_RANGES["lefort"].rotation_deg[1]
     with pytest.warns(PlanRangeWarning, match=r"'lefort': translation 9.45 mm .*0-6.3 mm"):
         SurgicalPlan({"lefort": RigidMotion(translation=(0.0, 1.5 * max_mm, 0.0))})
     big = RigidMotion.from_rotation_vector([2.5 * max_deg, 0.0, 0.0], pivot=(0.0, 30.0, 10.0))

@@ -85,6 +85,7 @@ BOUNDARY_SETS = ("fixed", "maxilla", "mandible", "mucosa_sliding", "lip_sliding"
 
 _THETA_MAX = np.deg2rad(80.0)  # half-angle of the arch covered by the face
 _MOUTH_FRACTION = 0.6  # fraction of the height below the occlusal plane
+_MANDIBLE_ATTACHED_FRACTION = 0.3  # inferior part of the mandible height whose tissue is attached
 
 
 @dataclass(frozen=True)
@@ -196,9 +197,13 @@ class _Geometry:
         h = shape.face_height
         self.z_bot = -_MOUTH_FRACTION * h
         self.z_top = (1.0 - _MOUTH_FRACTION) * h
-        self.z_lefort = 0.6 * self.z_top  # Le Fort I cut (above: fixed skull)
+        self.z_lefort = 0.6 * self.z_top  # Le Fort I cut (above: the immobile skull)
+        self.z_condyle = 0.6 * self.z_top  # condyles (the proximal segments' pivots)
         self.z_vest_up = 10.0 * h / 90.0  # upper vestibule depth
         self.z_vest_low = -12.0 * h / 90.0
+        # degloved anterior mandible: the tissue slides on the distal segment from here up
+        # (seed 001 extends its sliding region the same way); only the inferior part is attached
+        self.z_mandible_attached = self.z_bot + _MANDIBLE_ATTACHED_FRACTION * -self.z_bot
         self.theta_osteo = np.deg2rad(50.0)  # sagittal split, molar region
         self.theta_maxilla = np.deg2rad(55.0)  # posterior end of the Le Fort I segment
         t_cheek = shape.tissue_thickness + 3.0
@@ -438,25 +443,32 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
     theta, z = g.theta[i], g.z[j]
     inner = k == 0
 
-    fixed = (j == nv1 - 1) | (i == 0) | (i == nu1 - 1) | (inner & (z > geom.z_lefort + 1e-9))
+    # the model is cut at the infraorbital line (top row) and behind the ramus (posterior
+    # edges); the posterior cut is held only above the condyles, below which the ramus moves
+    posterior = ((i == 0) | (i == nu1 - 1)) & (z >= geom.z_condyle - 1e-9)
+    fixed = (j == nv1 - 1) | posterior
+    # Le Fort I degloving: the mucoperiosteum over the maxilla is elevated up to the
+    # infraorbital rim, so above the cut the tissue slides on the immobile skull
+    skull = inner & ~fixed & (z > geom.z_lefort + 1e-9)
     in_slit = (j == g.j_mouth) & np.isin(i, g.slit_cols)
     is_upper_copy = np.zeros(n_points, dtype=bool)
     is_upper_copy[g.upper_slit[g.slit_cols].reshape(-1)] = True
-    vestibule = (z >= geom.z_vest_low - 1e-9) & (z <= geom.z_vest_up + 1e-9)
+    vestibule = (z >= geom.z_vest_low - 1e-9) & (z <= geom.z_vest_up + 1e-9) | (z < 0) & (z > geom.z_mandible_attached)
     over_proximal = np.abs(theta) > geom.theta_osteo
     # the tissue over the ramus slides on the proximal segments: behind the sagittal split the
     # distal and proximal bones move apart by millimetres, which an attachment would tear
-    mucosa = inner & ~fixed & ((z < 0) & over_proximal | vestibule)
+    mucosa = inner & ~fixed & ((z < 0) & over_proximal | vestibule) | skull
     # the Le Fort I segment ends at the pterygomaxillary junction: laterally the tissue lies
     # on the zygoma and ramus and is left free
     maxilla = inner & ~fixed & ~mucosa & (z > 0) & (np.abs(theta) <= geom.theta_maxilla)
     distal = inner & ~fixed & ~mucosa & (z < 0)
     upper_side = (z > 0) | is_upper_copy
     mucosa_on = {
-        "lefort": mucosa & upper_side,
+        "lefort": mucosa & upper_side & ~skull,
         "distal": mucosa & ~upper_side & ~over_proximal,
         "proximal_left": mucosa & ~upper_side & over_proximal & (theta > 0),
         "proximal_right": mucosa & ~upper_side & over_proximal & (theta < 0),
+        "skull": skull,
     }
     lip = in_slit & ~inner
 
@@ -508,6 +520,8 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
         "proximal_right": BoneSegment(
             "proximal_right", _segment_surface(geom, _extend(g.theta, g.theta[0], -geom.theta_osteo), z_mand),
             condyles[1], None, "mucosa_proximal_right"),
+        "skull": BoneSegment("skull", _segment_surface(geom, th_all, _extend(g.z, geom.z_lefort, g.z[-1])),
+                             np.zeros(3), None, "mucosa_skull"),
     }
     return FacePhantom(mesh, MappingProxyType(segments), condyles, shape, resolution)
 

@@ -14,6 +14,8 @@ __all__ = [
     "FACES",
     "TET_EDGES",
     "boundary_faces",
+    "boundary_face_blocks",
+    "triangulated_boundary",
     "unique_edges",
     "tet10_from_tet4",
     "kuhn_tets",
@@ -28,6 +30,8 @@ FACES = {
     "tet4": np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]]),
 }
 FACES["tet10"] = FACES["tet4"]
+#: outward faces of each volume type grouped by face size (a wedge has both triangles and quads)
+FACE_SETS = {"hex8": (FACES["hex8"],), "tet4": (FACES["tet4"],), "tet10": (FACES["tet4"],)}
 
 #: corner pairs of the tetrahedron edges, in the order of the tet10 mid-edge nodes
 TET_EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
@@ -52,6 +56,44 @@ def boundary_faces(ctype: str, cells: np.ndarray) -> np.ndarray:
     key = np.sort(faces, axis=1)
     _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     return faces[counts[inverse.ravel()] == 1]
+
+
+def boundary_face_blocks(cells) -> dict[str, np.ndarray]:
+    """Boundary faces of all volume blocks of a (possibly mixed) mesh, by face type.
+
+    Parameters
+    ----------
+    cells : mapping cell type -> (n_cells, nodes_per_cell) int (surface blocks are ignored)
+
+    Returns
+    -------
+    ``{"tri3": (k, 3), "quad4": (m, 4)}`` int64 (types with no face left out), outward
+    oriented; a face shared by two cells of different types is interior.
+    """
+    faces = {3: [], 4: []}
+    for ctype, conn in cells.items():
+        for local in FACE_SETS.get(ctype, ()):
+            faces[local.shape[1]].append(conn[:, local].reshape(-1, local.shape[1]))
+    out = {}
+    for k, name in ((3, "tri3"), (4, "quad4")):
+        if not faces[k]:
+            continue
+        f = np.concatenate(faces[k])
+        _, inverse, counts = np.unique(np.sort(f, axis=1), axis=0, return_inverse=True, return_counts=True)
+        f = f[counts[inverse.ravel()] == 1]
+        if f.size:
+            out[name] = f
+    return out
+
+
+def triangulated_boundary(cells) -> np.ndarray:
+    """Outward boundary triangles ``(k, 3)`` of all volume blocks (quads split in two)."""
+    blocks = boundary_face_blocks(cells)
+    tris = [blocks["tri3"]] if "tri3" in blocks else []
+    if "quad4" in blocks:
+        q = blocks["quad4"]
+        tris += [q[:, [0, 1, 2]], q[:, [0, 2, 3]]]
+    return np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
 
 
 def unique_edges(cells: np.ndarray, local_edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -11,21 +11,26 @@ mesh's types onto a down-sampled one, as seed 000 did (:func:`knn_labels`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Mapping
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from toolkit.common.mesh import Mesh
+from toolkit.common.mesh import VOLUME_TYPES, Mesh
 from toolkit.common.surface_distance import closest_points
 
 __all__ = ["NodeType", "BoundaryConditions", "knn_labels", "BoundaryError", "segments_from_mesh",
-           "ATTACHMENT_SETS"]
+           "ATTACHMENT_SETS", "tissue_distance", "DEFAULT_RELEASE_WIDTH"]
+
+#: mm, default width of the bands released around the borders between differently driven
+#: regions (see :meth:`BoundaryConditions.with_release_bands`)
+DEFAULT_RELEASE_WIDTH = 10.0
 
 #: node set rigidly attached to each bony segment in the phantoms (and expected in real meshes)
-ATTACHMENT_SETS = {"lefort": "maxilla", "distal": "mandible", "proximal_left": None, "proximal_right": None}
+ATTACHMENT_SETS = {"lefort": "maxilla", "distal": "mandible", "proximal_left": None, "proximal_right": None,
+                   "skull": None}
 
 
 class NodeType(IntEnum):
@@ -44,6 +49,44 @@ def _element_side(mesh: Mesh) -> np.ndarray:
     np.add.at(acc, cells.ravel(), np.repeat(centroids, cells.shape[1], axis=0))
     count = np.bincount(cells.ravel(), minlength=mesh.n_points)[:, None]
     return np.divide(acc, count, out=mesh.points.copy(), where=count > 0)
+
+
+def tissue_distance(mesh: Mesh, sources: np.ndarray, limit: float = np.inf) -> np.ndarray:
+    """Shortest distance through the tissue from any of ``sources`` to every node, mm.
+
+    Paths run along straight segments between nodes of a common volume element (so
+    across element diagonals too, a close upper bound of the straight-line distance inside
+    the tissue) and never jump gaps that no element bridges, such as the mouth slit.
+
+    Parameters
+    ----------
+    mesh : volume mesh (any volume cell types), mm
+    sources : (k,) int node indices
+    limit : mm; nodes farther than this get ``inf`` (and cost nothing to explore)
+
+    Returns
+    -------
+    (n_points,) float, mm
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    sources = np.unique(np.asarray(sources, dtype=np.int64))
+    if not sources.size:
+        return np.full(mesh.n_points, np.inf)
+    rows, cols = [], []
+    for ctype, conn in mesh.cells.items():
+        if ctype not in VOLUME_TYPES:
+            continue
+        a, b = np.triu_indices(conn.shape[1], k=1)
+        rows.append(conn[:, a].ravel())
+        cols.append(conn[:, b].ravel())
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    key = np.unique(np.minimum(r, c) * mesh.n_points + np.maximum(r, c))
+    r, c = key // mesh.n_points, key % mesh.n_points
+    w = np.linalg.norm(mesh.points[r] - mesh.points[c], axis=1)
+    graph = coo_matrix((w, (r, c)), shape=(mesh.n_points,) * 2).tocsr()
+    return dijkstra(graph, directed=False, indices=sources, min_only=True, limit=limit)
 
 
 class BoundaryError(ValueError):
@@ -88,6 +131,7 @@ class BoundaryConditions:
     segment : (n,) int8 — index into ``segment_names`` for moving and mucosa nodes, else -1
     segment_names : tuple of str
     upper_lip, lower_lip : (k,) int64 — lip-sliding nodes on the upper and lower slit faces
+    released : (r,) int64 — nodes freed by :meth:`with_release_bands` (empty otherwise)
     """
 
     types: np.ndarray
@@ -95,6 +139,7 @@ class BoundaryConditions:
     segment_names: tuple[str, ...]
     upper_lip: np.ndarray
     lower_lip: np.ndarray
+    released: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def __post_init__(self):
         types = np.asarray(self.types, dtype=np.int8)
@@ -102,6 +147,7 @@ class BoundaryConditions:
             raise BoundaryError(f"node types must be 0..4 ({[t.name for t in NodeType]}), got {np.unique(types)}")
         object.__setattr__(self, "types", types)
         object.__setattr__(self, "segment", np.asarray(self.segment, dtype=np.int8))
+        object.__setattr__(self, "released", np.asarray(self.released, dtype=np.int64).reshape(-1))
         needs = np.isin(types, (NodeType.MOVING, NodeType.MUCOSA_SLIDING)) & (self.segment < 0)
         if needs.any():
             raise BoundaryError(f"{needs.sum()} moving/mucosa nodes have no bony segment (first: "
@@ -145,7 +191,72 @@ class BoundaryConditions:
         lips = sliding == "mucosa+lip"
         empty = np.zeros(0, np.int64)
         return BoundaryConditions(types, self.segment, self.segment_names,
-                                  self.upper_lip if lips else empty, self.lower_lip if lips else empty)
+                                  self.upper_lip if lips else empty, self.lower_lip if lips else empty,
+                                  self.released)
+
+    def drivers(self) -> np.ndarray:
+        """What moves each node, ``(n,)`` int: -1 nothing (free, lip), 0 fixed (the skull),
+        ``1 + s`` bony segment ``s`` (attached or sliding on it)."""
+        from toolkit.static.plan import SEGMENTS
+
+        d = np.full(self.n_nodes, -1, dtype=np.int64)
+        d[self.types == NodeType.FIXED] = 0
+        on_bone = np.isin(self.types, (NodeType.MOVING, NodeType.MUCOSA_SLIDING))
+        d[on_bone] = 1 + self.segment[on_bone]
+        # a segment no plan moves (the skull) is as immobile as the fixed nodes
+        immobile = [1 + k for k, name in enumerate(self.segment_names) if name not in SEGMENTS]
+        d[np.isin(d, immobile)] = 0
+        return d
+
+    def with_release_bands(self, mesh: Mesh, width: float = DEFAULT_RELEASE_WIDTH,
+                           candidates: np.ndarray | None = None) -> "BoundaryConditions":
+        """Copy in which the tissue along every border between differently driven regions is
+        bound to neither side.
+
+        Where two bony segments, or a segment and the fixed skull, drive neighbouring nodes
+        (along an osteotomy line, at the occlusal level between the jaws, where the ramus
+        mucosa meets the fixed posterior border), the boundary displacement jumps. Surgically
+        the periosteum there is stripped (degloving) and the cheek mucosa between the jaws
+        belongs to neither, so a node is released (made free) when a node with another
+        driver lies within ``width / 2`` of it through the tissue (:func:`tissue_distance`):
+        a band about ``width`` wide, whatever the mesh size, centred on each border. Without
+        it the jump sits across one element and inverts it as the mesh is refined.
+
+        Parameters
+        ----------
+        mesh : the face mesh these conditions belong to, mm
+        width : mm, band width (0 releases nothing)
+        candidates : (k,) int — nodes that may be released; default the ``bone`` node set
+            when the mesh has one (the bone-side surface), else every constrained node
+
+        Returns
+        -------
+        BoundaryConditions with the released nodes free and listed in ``released``
+        """
+        width = float(width)
+        if not np.isfinite(width) or width < 0:
+            raise ValueError(f"release width = {width!r} mm; expected a finite number >= 0")
+        if mesh.n_points != self.n_nodes:
+            raise ValueError(f"mesh has {mesh.n_points} nodes but the boundary conditions {self.n_nodes}")
+        if width == 0:
+            return self
+        drivers = self.drivers()
+        allowed = np.zeros(self.n_nodes, dtype=bool)
+        if candidates is None:
+            candidates = mesh.node_sets["bone"] if "bone" in mesh.node_sets else np.flatnonzero(drivers >= 0)
+        allowed[np.asarray(candidates, dtype=np.int64)] = True
+        release = np.zeros(self.n_nodes, dtype=bool)
+        for d in np.unique(drivers[drivers >= 0]):
+            near = tissue_distance(mesh, np.flatnonzero(drivers == d), limit=0.5 * width) < 0.5 * width
+            release |= near & (drivers >= 0) & (drivers != d) & allowed
+        if not release.any():
+            return self
+        types = self.types.copy()
+        segment = self.segment.copy()
+        types[release] = NodeType.FREE
+        segment[release] = -1
+        ids = np.union1d(self.released, np.flatnonzero(release))
+        return BoundaryConditions(types, segment, self.segment_names, self.upper_lip, self.lower_lip, ids)
 
     @classmethod
     def from_mesh(cls, mesh: Mesh, segments: Mapping, *, lip_threshold: float = 0.2) -> "BoundaryConditions":

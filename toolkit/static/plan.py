@@ -54,22 +54,55 @@ if TYPE_CHECKING:  # pragma: no cover
     from toolkit.common.phantom import FacePhantom
 
 __all__ = [
+    "MotionRange",
     "PHYSIOLOGICAL_RANGES",
+    "SAMPLING_MODES",
     "PLAN_FORMATS",
     "SEGMENTS",
     "PlanRangeWarning",
     "RigidMotion",
     "SurgicalPlan",
     "default_plan",
+    "dental_arch",
+    "jaw_closing",
     "proximal_reference_points",
+    "sample_plans",
+    "MAX_JAW_CLOSING_MM",
 ]
 
 SEGMENTS = ("lefort", "distal", "proximal_left", "proximal_right")
-#: segment -> (largest translation of the pivot in mm, largest rotation in degrees),
-#: seed 001; the proximal segments have no stated range and take the distal one
-PHYSIOLOGICAL_RANGES: Mapping[str, tuple[float, float]] = MappingProxyType(
-    {"lefort": (6.3, 9.8), "distal": (11.5, 13.3), "proximal_left": (11.5, 13.3), "proximal_right": (11.5, 13.3)}
+
+
+@dataclass(frozen=True)
+class MotionRange:
+    """Range of one segment's movement: ``translation_mm`` (lo, hi) of the pivot's
+    displacement in mm and ``rotation_deg`` (lo, hi) of the rotation angle in degrees."""
+
+    translation_mm: tuple[float, float]
+    rotation_deg: tuple[float, float]
+
+    def __post_init__(self):
+        for name in ("translation_mm", "rotation_deg"):
+            lo, hi = (float(v) for v in getattr(self, name))
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi):
+                raise ValueError(f"MotionRange.{name} = {(lo, hi)}; expected 0 <= lo <= hi, finite")
+            object.__setattr__(self, name, (lo, hi))
+
+
+#: segment -> MotionRange of seed 001 (section 2.3.2.2, measured on its patients): Le Fort I
+#: 0-6.3 mm and 0-9.8 degrees, distal mandible 2.1-11.5 mm and 0.5-13.3 degrees.
+#: Validation (:meth:`SurgicalPlan.validate`) checks the upper bounds; :func:`sample_plans`
+#: draws uniformly between the bounds. The proximal segments have no stated range: they
+#: rotate about their condyle to follow the distal one, which at the edge of the distal
+#: range takes up to ~20 degrees (400 sampled plans), so their bound is twice the distal angle.
+PHYSIOLOGICAL_RANGES: Mapping[str, MotionRange] = MappingProxyType(
+    {"lefort": MotionRange((0.0, 6.3), (0.0, 9.8)), "distal": MotionRange((2.1, 11.5), (0.5, 13.3)),
+     "proximal_left": MotionRange((0.0, 11.5), (0.0, 26.6)), "proximal_right": MotionRange((0.0, 11.5), (0.0, 26.6))}
 )
+#: directions of sampled movements: ``sagittal`` translations in the y-z plane and rotations
+#: about the lateral x axis (seed 001's advancements, setbacks, impactions and pitch);
+#: ``full`` translation directions and rotation axes uniform on the sphere (yaw and roll too)
+SAMPLING_MODES = ("sagittal", "full")
 PLAN_FORMATS = (".toml", ".json")
 _ROTATION_KEYS = ("rotation_quaternion", "rotation_vector_deg", "euler_deg")
 _MOTION_KEYS = ("translation_mm", "pivot_mm") + _ROTATION_KEYS
@@ -398,7 +431,7 @@ class SurgicalPlan:
 
     def _validate(self, force: bool, stacklevel: int) -> None:
         for name, m in self.motions.items():
-            max_mm, max_deg = PHYSIOLOGICAL_RANGES[name]
+            max_mm, max_deg = PHYSIOLOGICAL_RANGES[name].translation_mm[1], PHYSIOLOGICAL_RANGES[name].rotation_deg[1]
             checks = (("translation", m.translation_mm, max_mm, "mm"), ("rotation", m.angle_deg, max_deg, "degrees"))
             for what, value, limit, unit in checks:
                 if value <= limit:
@@ -466,6 +499,11 @@ class SurgicalPlan:
         motions["proximal_left"] = _following(d, c[0], points_left)
         motions["proximal_right"] = _following(d, c[1], points_right)
         return SurgicalPlan(motions, force=self.force)
+
+    def motion(self, name: str) -> RigidMotion:
+        """The motion of segment ``name``; a bone no plan moves (the phantoms' ``skull``,
+        on which the degloved tissue above the Le Fort I cut slides) stays: the identity."""
+        return self.motions.get(name) or RigidMotion.identity()
 
     # -------------------------------------------------------------- transforms
     def scaled(self, factor: float) -> SurgicalPlan:
@@ -577,3 +615,104 @@ def default_plan(phantom: FacePhantom, force: bool = False) -> SurgicalPlan:
     if force:
         d["force"] = True
     return SurgicalPlan.from_dict(d, phantom)
+
+
+def _directions(rng: np.random.Generator, n: int, mode: str) -> np.ndarray:
+    """``n`` random unit vectors (n, 3): uniform on the y-z circle (``sagittal``) or the sphere."""
+    if mode == "sagittal":
+        phi = rng.uniform(0.0, 2.0 * math.pi, n)
+        return np.stack([np.zeros(n), np.cos(phi), np.sin(phi)], axis=1)
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+#: mm, largest craniocaudal closing of the mandibular onto the maxillary teeth that
+#: :func:`sample_plans` accepts: the crown height of an incisor (~10 mm). A plan that closes
+#: the jaws further drives the teeth through each other, which no surgery does.
+MAX_JAW_CLOSING_MM = 10.0
+
+
+def dental_arch(phantom: FacePhantom) -> np.ndarray:
+    """Bone-side points of the occlusal plane under the Le Fort I segment, ``(k, 3)`` mm:
+    where the upper and lower teeth meet (``z = 0`` in the phantoms' axes)."""
+    mesh = phantom.mesh
+    bone = mesh.node_sets["bone"]
+    pts = mesh.points[bone]
+    maxilla = mesh.points[mesh.node_sets["maxilla"]]
+    width = np.abs(maxilla[:, 0]).max()
+    return np.unique(pts[(np.abs(pts[:, 2]) < 1e-6) & (np.abs(pts[:, 0]) <= width)], axis=0)
+
+
+def jaw_closing(plan: SurgicalPlan, arch: np.ndarray) -> float:
+    """Largest craniocaudal closing of the jaws at the teeth, mm (0 when they only separate).
+
+    ``max over the arch points p of z(distal(p)) - z(lefort(p))``: how far the mandibular
+    teeth would pass through the maxillary ones. ``arch`` (k, 3) mm, e.g. :func:`dental_arch`.
+    """
+    arch = np.asarray(arch, dtype=float).reshape(-1, 3)
+    dz = plan.motions["distal"].apply(arch)[:, 2] - plan.motions["lefort"].apply(arch)[:, 2]
+    return float(max(0.0, dz.max(initial=0.0)))
+
+
+def sample_plans(n: int, seed: int | np.random.Generator, mode: str = "sagittal",
+                 ranges: Mapping[str, MotionRange] = PHYSIOLOGICAL_RANGES, *,
+                 phantom: FacePhantom, max_jaw_closing_mm: float | None = MAX_JAW_CLOSING_MM) -> list[SurgicalPlan]:
+    """Random bimaxillary plans within ``ranges`` (seed 001's physiological ranges by default).
+
+    Both the Le Fort I and the distal mandibular segment move in every plan: the
+    translation magnitude of the pivot (mm) and the rotation angle (degrees) are uniform
+    in the segment's :class:`MotionRange`; their directions follow ``mode`` (see
+    :data:`SAMPLING_MODES`: ``sagittal`` translations in the y-z plane and rotations about
+    +-x, ``full`` uniform on the sphere). Pivots are the phantom's segment pivots and the
+    proximal segments follow the distal one about their condyles.
+
+    The two movements are drawn independently, so some pairs would drive the mandibular
+    teeth through the maxillary ones (up to ~24 mm at the edges of the ranges). A plan
+    whose :func:`jaw_closing` exceeds ``max_jaw_closing_mm`` is drawn again (rejection;
+    about a fifth of the sagittal draws at 10 mm); ``None`` keeps every draw.
+
+    Parameters
+    ----------
+    n : number of plans
+    seed : int or numpy Generator (the only source of randomness)
+    mode : ``sagittal`` or ``full``
+    ranges : segment -> MotionRange for ``lefort`` and ``distal``
+    phantom : FacePhantom whose pivots, condyles and dental arch the plans use
+    max_jaw_closing_mm : mm, or None (see above; default :data:`MAX_JAW_CLOSING_MM`)
+
+    Returns
+    -------
+    list of n SurgicalPlan; plan ``i`` depends only on ``seed`` and ``i`` (drawing more plans
+    with the same seed extends the list)
+    """
+    if int(n) != n or n < 0:
+        raise ValueError(f"n = {n!r} plans; expected an integer >= 0")
+    if mode not in SAMPLING_MODES:
+        raise ValueError(f"unknown sampling mode {mode!r}; expected one of {SAMPLING_MODES}")
+    missing = [k for k in ("lefort", "distal") if k not in ranges]
+    if missing:
+        raise ValueError(f"ranges lacks {missing}; expected a MotionRange for 'lefort' and 'distal'")
+    if max_jaw_closing_mm is not None and not (np.isfinite(max_jaw_closing_mm) and max_jaw_closing_mm >= 0):
+        raise ValueError(f"max_jaw_closing_mm = {max_jaw_closing_mm!r}; expected a number >= 0 mm or None")
+    arch = dental_arch(phantom) if max_jaw_closing_mm is not None else None
+    # one independent stream per plan, spawned from the seed: plan i is the same whatever n is
+    streams = np.random.default_rng(seed).spawn(int(n))
+    plans = []
+    for r in streams:
+        for _ in range(1000):
+            motions = {}
+            for name in ("lefort", "distal"):
+                rg = ranges[name]
+                t = r.uniform(*rg.translation_mm) * _directions(r, 1, mode)[0]
+                axis = np.array([r.choice([-1.0, 1.0]), 0.0, 0.0]) if mode == "sagittal" \
+                    else _directions(r, 1, mode)[0]
+                angle = r.uniform(*rg.rotation_deg)
+                motions[name] = RigidMotion.from_rotation_vector(angle * axis, t, phantom.segments[name].pivot)
+            plan = SurgicalPlan.for_phantom(phantom, **motions)
+            if arch is None or jaw_closing(plan, arch) <= max_jaw_closing_mm:
+                break
+        else:
+            raise ValueError(f"no plan in 1000 draws closes the jaws by at most {max_jaw_closing_mm} mm; "
+                             f"the ranges force larger closings")
+        plans.append(plan)
+    return plans

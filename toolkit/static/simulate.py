@@ -15,6 +15,23 @@ geometry left by the previous one (updated geometry, stress-free start). Neo-Hoo
 is solved total-Lagrangian from the pre-operative face, the increments acting as load
 steps. Every increment's cumulative displacement is kept: each is one learning sample
 (seed 000).
+
+Two safeguards keep the physiological plan space simulable (``benchmarks/static_robustness.py``):
+
+- **release bands** (:meth:`~toolkit.static.boundary.BoundaryConditions.with_release_bands`):
+  tissue within ``release_width / 2`` of a border between differently driven regions
+  (osteotomy lines, the occlusal level between the jaws, segment next to fixed skull)
+  is bound to neither side, as the stripped periosteum is; otherwise the boundary
+  displacement jumps across a single element, which inverts it as the mesh is refined;
+- **mesh regulation** (seed 001, linear materials): when a step leaves elements below
+  ``regulation_below`` quality, the free nodes around them that are not on the skin are
+  moved to improve them (:func:`~toolkit.static.regulation.regulate`); each linear
+  increment restarts stress-free, so nothing else changes. The skin, every constrained
+  node and the lip pairs stay where the solve put them;
+- **automatic increment cutting** (FEBio's auto time stepper): a step that inverts an
+  element (even after regulation) or does not converge is retried as two half steps,
+  down to ``2 ** max_cuts`` sub-steps per increment. Sub-steps are internal: the stored
+  increments stay at fractions ``k / increments`` of the plan.
 """
 
 from __future__ import annotations
@@ -22,7 +39,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Mapping
 
@@ -33,10 +50,12 @@ from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import FacePhantom
 from toolkit.common.surface_distance import closest_points
 from toolkit.static.assembly import MaterialAssignment, SparsePattern
-from toolkit.static.boundary import BoundaryConditions, NodeType
+from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
 from toolkit.static.constraints import Constraints
 from toolkit.static.fem import ConvergenceError, StaticProblem, solve_with_lip_contact
 from toolkit.static.plan import SurgicalPlan
+from toolkit.static.regulation import regulate
+from toolkit.static.solvers import SolverError
 
 __all__ = ["simulate", "SimulationOptions", "SimulationResult", "IncrementReport", "SimulationError",
            "material_assignment", "SLIDING_MODELS", "MATERIALS"]
@@ -48,7 +67,7 @@ MATERIALS = ("linear", "neo-hookean")
 
 
 class SimulationError(RuntimeError):
-    """An increment diverged or inverted elements.
+    """An increment diverged or inverted elements even after cutting it.
 
     Attributes: ``increment`` (1-based), ``element`` (worst element or None), ``suggestion``.
     """
@@ -56,6 +75,14 @@ class SimulationError(RuntimeError):
     def __init__(self, message: str, increment: int, element: int | None, suggestion: str):
         super().__init__(f"increment {increment}: {message}. Suggestion: {suggestion}")
         self.increment, self.element, self.suggestion = increment, element, suggestion
+
+
+class _StepFailure(RuntimeError):
+    """One (sub-)step inverted an element or did not converge; ``element`` may be None."""
+
+    def __init__(self, message: str, element: int | None = None):
+        super().__init__(message)
+        self.element = element
 
 
 @dataclass(frozen=True)
@@ -66,19 +93,34 @@ class SimulationOptions:
     ----------
     solver : linear solver (``auto``, ``superlu``, ``amg``, ``cholmod``)
     lip_threshold : mm, seed 001's collision-detection distance for lip pairs
-    min_scaled_jacobian : an increment whose deformed mesh falls below this raises
+    min_scaled_jacobian : a step whose deformed mesh has an element at or below this
+        (minimum corner scaled Jacobian) is cut, and the run fails if cutting cannot help
+    release_width : mm, width of the bands of tissue bound to neither side along the borders
+        between differently driven regions (0: none)
+    regulation_below : linear materials: a step that leaves an element below this scaled
+        Jacobian regulates the mesh around it (None: never; Neo-Hookean never regulates)
+    max_cuts : how many times a failing increment may be halved (``2 ** max_cuts`` sub-steps)
     progress : show a tqdm bar over increments
     """
 
     solver: str = "auto"
     lip_threshold: float = 0.2
     min_scaled_jacobian: float = 0.0
+    release_width: float = DEFAULT_RELEASE_WIDTH
+    regulation_below: float | None = 0.1
+    max_cuts: int = 4
     progress: bool = False
+
+    def __post_init__(self):
+        if int(self.max_cuts) != self.max_cuts or self.max_cuts < 0:
+            raise ValueError(f"max_cuts = {self.max_cuts!r}; expected an integer >= 0")
+        if not np.isfinite(self.release_width) or self.release_width < 0:
+            raise ValueError(f"release_width = {self.release_width!r} mm; expected a finite number >= 0")
 
 
 @dataclass(frozen=True)
 class IncrementReport:
-    """Diagnostics of one increment (lengths mm, times s)."""
+    """Diagnostics of one increment, summed over its sub-steps (lengths mm, times s)."""
 
     increment: int
     seconds_step1: float
@@ -92,6 +134,10 @@ class IncrementReport:
     mucosa_gap_after_projection: float
     max_penetration: float  # over the lip pairs, whether or not lip contact is modelled
     active_lip_pairs: int
+    substeps: int = 1
+    failed_attempts: int = 0
+    regulated_nodes: int = 0
+    max_regulation_shift: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,7 +149,7 @@ class SimulationResult:
     reference : Mesh — the pre-operative face
     displacements : (increments + 1, n, 3) mm — cumulative displacement after each
         increment (row 0 is zero)
-    boundary : BoundaryConditions used (after the sliding model)
+    boundary : BoundaryConditions used (after the sliding model and the release bands)
     reports : list of IncrementReport
     wall_time_s : float
     material, sliding : the options as given
@@ -123,10 +169,17 @@ class SimulationResult:
         return self.displacements[-1]
 
     @property
+    def reference_mesh(self) -> Mesh:
+        """The pre-operative face with point fields ``displacement`` (mm) and ``boundary_type``:
+        the usual convention (ParaView's Warp By Vector gives the post-operative face)."""
+        return self.reference.with_point_data(displacement=self.displacement,
+                                              boundary_type=self.boundary.types.astype(np.int32))
+
+    @property
     def final_mesh(self) -> Mesh:
-        """The predicted post-operative face (with ``displacement`` and ``boundary_type`` fields)."""
+        """The predicted post-operative face (deformed points, field ``boundary_type`` only)."""
         return self.reference.translated(self.displacement).with_point_data(
-            displacement=self.displacement, boundary_type=self.boundary.types.astype(np.int32))
+            boundary_type=self.boundary.types.astype(np.int32))
 
     def summary(self) -> dict:
         """JSON-ready summary (mm, s)."""
@@ -138,22 +191,30 @@ class SimulationResult:
             "material": self.material,
             "sliding": self.sliding,
             "wall_time_s": self.wall_time_s,
+            "seconds_per_increment": [r.seconds_step1 + r.seconds_step2 for r in self.reports],
             "max_displacement_mm": float(mag.max()),
             "mean_skin_displacement_mm": float(mag[self.reference.node_sets["skin"]].mean())
             if "skin" in self.reference.node_sets else None,
             "min_scaled_jacobian": float(min(r.min_scaled_jacobian for r in self.reports)),
             "max_penetration_mm": float(max(r.max_penetration for r in self.reports)),
             "max_mucosa_gap_mm": float(max(r.mucosa_gap_after_projection for r in self.reports)),
+            "released_nodes": int(self.boundary.released.size),
+            "substeps": int(sum(r.substeps for r in self.reports)),
+            "increments_cut": int(sum(r.substeps > 1 for r in self.reports)),
+            "regulated_nodes": int(sum(r.regulated_nodes for r in self.reports)),
+            "max_regulation_shift_mm": float(max(r.max_regulation_shift for r in self.reports)),
             "increments_report": [asdict(r) for r in self.reports],
         }
 
     def write(self, out: str | Path, preview: bool = True) -> Path:
-        """Write ``result.vtu``, ``increments.xdmf`` (+ .h5), ``summary.json`` and ``preview.png``."""
+        """Write ``result.vtu`` (pre-operative face with ``displacement``), ``postop.vtu`` (the
+        post-operative face), ``increments.xdmf`` (+ .h5), ``summary.json`` and ``preview.png``."""
         from toolkit.common.io import atomic_path, write, write_time_series
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        write(out / "result.vtu", self.final_mesh)
+        write(out / "result.vtu", self.reference_mesh)
+        write(out / "postop.vtu", self.final_mesh)
         write_time_series(out / "increments.xdmf", self.reference.without_fields(),
                           np.arange(self.displacements.shape[0], dtype=float),
                           {"displacement": self.displacements})
@@ -183,13 +244,247 @@ def material_assignment(material: str | MaterialAssignment, mesh: Mesh) -> Mater
     raise ValueError(f"unknown material {material!r}; expected one of {MATERIALS} or a MaterialAssignment")
 
 
-def _motion(plan: SurgicalPlan, name: str):
-    return plan.motions.get(name) if hasattr(plan.motions, "get") else plan.motions[name]
+# ------------------------------------------------------------------ the model
+@dataclass(eq=False)
+class _Model:
+    """What every step of one simulation shares (built once by :func:`simulate`)."""
+
+    mesh: Mesh
+    materials: MaterialAssignment
+    bc: BoundaryConditions  # after the sliding model
+    bc_all: BoundaryConditions  # lip pairs whatever the sliding model (for the penetration report)
+    surfaces: dict
+    options: SimulationOptions
+    total_lagrangian: bool
+    pattern: SparsePattern | None = None
+    reference_problem: StaticProblem | None = None
+    moving: np.ndarray = field(init=False)
+    fixed: np.ndarray = field(init=False)
+    mucosa: np.ndarray = field(init=False)
+    movable: np.ndarray = field(init=False)
+
+    def __post_init__(self):
+        self.moving = self.bc.nodes(NodeType.MOVING)
+        self.fixed = self.bc.nodes(NodeType.FIXED)
+        self.mucosa = self.bc.nodes(NodeType.MUCOSA_SLIDING)
+        # what regulation may move: free nodes off the skin (the prediction) and off the lip pairs,
+        # and mucosa nodes along their bone (they are put back on it exactly afterwards)
+        movable = np.isin(self.bc.types, (NodeType.FREE, NodeType.MUCOSA_SLIDING))
+        if "skin" in self.mesh.node_sets:
+            movable[self.mesh.node_sets["skin"]] = False
+        else:
+            from toolkit.common.topology import triangulated_boundary
+
+            movable[np.unique(triangulated_boundary(self.mesh.cells))] = False
+        movable[self.bc_all.upper_lip] = False
+        movable[self.bc_all.lower_lip] = False
+        self.movable = movable
+
+    def problem(self, x: np.ndarray) -> StaticProblem:
+        """The problem a step solves: on the current geometry ``x`` (linear, updated) or on
+        the pre-operative face (Neo-Hookean, total Lagrangian)."""
+        if self.total_lagrangian:
+            if self.reference_problem is None:
+                self.reference_problem = StaticProblem(self.mesh, self.materials, self.options.solver)
+            return self.reference_problem
+        try:
+            problem = StaticProblem(self.mesh.with_points(x), self.materials, self.options.solver, self.pattern)
+        except ConvergenceError as exc:
+            raise _StepFailure(str(exc)) from exc
+        self.pattern = problem.pattern
+        return problem
 
 
-def _apply(plan: SurgicalPlan, name: str, points: np.ndarray) -> np.ndarray:
-    m = _motion(plan, name)
-    return points if m is None else m.apply(points)
+@dataclass(frozen=True, eq=False)
+class _State:
+    """Where the simulation stands: plan fraction, total displacement ``u (n, 3)`` mm."""
+
+    fraction: float
+    plan: SurgicalPlan | None  # the plan at ``fraction`` (None before the first step)
+    u: np.ndarray
+
+
+@dataclass(frozen=True)
+class _StepDiagnostics:
+    seconds_step1: float
+    seconds_step2: float
+    linear_solves: int
+    newton_iterations: int
+    contact_iterations: int
+    min_scaled_jacobian: float
+    worst_element: int
+    gap_before: float
+    gap_after: float
+    active_lip_pairs: int
+    regulated_nodes: int = 0
+    regulation_shift: float = 0.0
+
+
+# ------------------------------------------------------------------ one step
+def _apply(plan: SurgicalPlan | None, name: str, points: np.ndarray) -> np.ndarray:
+    """Points of segment ``name`` moved by ``plan``; segments no plan moves (the skull) stay."""
+    return points if plan is None else plan.motion(name).apply(points)
+
+
+def _targets(model: _Model, plan: SurgicalPlan, base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Prescribed nodes (fixed, then moving) and their displacement from ``base``, mm."""
+    X = model.mesh.points
+    nodes = np.concatenate([model.fixed, model.moving])
+    target = X[nodes].copy()
+    seg = model.bc.segment[model.moving]
+    for s, name in enumerate(model.bc.segment_names):
+        sel = model.fixed.size + np.flatnonzero(seg == s)
+        target[sel] = _apply(plan, name, X[nodes[sel]])
+    return nodes, target - base[nodes]
+
+
+def _sliding_constraints(model: _Model, state: _State, plan: SurgicalPlan, base: np.ndarray, x: np.ndarray,
+                         nodes: np.ndarray, values: np.ndarray) -> Constraints:
+    """Step 1: each mucosa node keeps its closest point on its bone, carried rigidly from the
+    previous bone position to the new one; its normal displacement is prescribed there."""
+    n, mucosa = model.mesh.n_points, model.mucosa
+    if not mucosa.size:
+        return Constraints(n, nodes, values)
+    normals = np.empty((mucosa.size, 3))
+    on_surface = np.empty((mucosa.size, 3))
+    seg = model.bc.segment[mucosa]
+    for s, name in enumerate(model.bc.segment_names):
+        sel = np.flatnonzero(seg == s)
+        if not sel.size:
+            continue
+        surf = model.surfaces[name]
+        tris = surf.cells["tri3"]
+        prev_pts = _apply(state.plan, name, surf.points)
+        cp = closest_points(x[mucosa[sel]], prev_pts, tris)
+        new_pts = _apply(plan, name, surf.points)
+        tri = tris[cp.triangle]
+        bary = _barycentric(cp.point, prev_pts[tri])
+        on_surface[sel] = np.einsum("ij,ijk->ik", bary, new_pts[tri])
+        nrm = np.cross(new_pts[tri[:, 1]] - new_pts[tri[:, 0]], new_pts[tri[:, 2]] - new_pts[tri[:, 0]])
+        normals[sel] = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+    g = np.einsum("ij,ij->i", normals, on_surface - base[mucosa])
+    return Constraints(n, nodes, values, mucosa, normals, g)
+
+
+def _projection(model: _Model, plan: SurgicalPlan, positions: np.ndarray) -> tuple[np.ndarray, float]:
+    """Step 2: closest points ``(m, 3)`` mm of the mucosa ``positions`` on their moved bone,
+    and the largest distance to them (the gap closed by the projection), mm."""
+    mucosa = model.mucosa
+    proj = np.empty_like(positions)
+    dist = np.zeros(mucosa.size)
+    seg = model.bc.segment[mucosa]
+    for s, name in enumerate(model.bc.segment_names):
+        sel = np.flatnonzero(seg == s)
+        if sel.size:
+            surf = model.surfaces[name]
+            cp = closest_points(positions[sel], _apply(plan, name, surf.points), surf.cells["tri3"])
+            proj[sel], dist[sel] = cp.point, cp.distance
+    return proj, float(dist.max(initial=0.0))
+
+
+def _solve(model: _Model, problem: StaticProblem, constraints: Constraints, u_start):
+    """One constrained solve, with the lip-contact active set when lips slide."""
+    bc = model.bc
+    if bc.upper_lip.size:
+        res = solve_with_lip_contact(problem, constraints, bc.upper_lip, bc.lower_lip,
+                                     threshold=model.options.lip_threshold, u_start=u_start)
+        return res.solution, res
+    return problem.solve(constraints, u_start=u_start), None
+
+
+def _quality(model: _Model, u_total: np.ndarray) -> tuple[np.ndarray, int]:
+    """Per-element minimum corner scaled Jacobian of the deformed mesh and the worst element."""
+    sj = model.mesh.with_points(model.mesh.points + u_total).scaled_jacobian()
+    return sj, int(np.argmin(sj))
+
+
+def _step(model: _Model, state: _State, plan: SurgicalPlan) -> tuple[_State, _StepDiagnostics]:
+    """Advance from ``state`` to the bone positions of ``plan``: targets, sliding solve,
+    projection, re-solve, quality check. Raises :class:`_StepFailure`."""
+    X = model.mesh.points
+    x = X + state.u
+    base = X if model.total_lagrangian else x  # configuration the step's displacement is measured from
+    u_start = state.u if model.total_lagrangian else None
+    problem = model.problem(x)
+    nodes, values = _targets(model, plan, base)
+    t0 = time.perf_counter()
+    try:
+        sol1, contact1 = _solve(model, problem, _sliding_constraints(model, state, plan, base, x, nodes, values),
+                                u_start)
+        t1 = time.perf_counter()
+        sol, contact, gap_before, gap_after = sol1, contact1, 0.0, 0.0
+        if model.mucosa.size:
+            proj, gap_before = _projection(model, plan, base[model.mucosa] + sol1.displacement[model.mucosa])
+            c2 = Constraints(X.shape[0], np.concatenate([nodes, model.mucosa]),
+                             np.vstack([values, proj - base[model.mucosa]]))
+            sol, contact = _solve(model, problem, c2, sol1.displacement)
+            gap_after = float(np.abs(base[model.mucosa] + sol.displacement[model.mucosa] - proj).max())
+    except (ConvergenceError, SolverError) as exc:
+        raise _StepFailure(str(exc)) from exc
+    t2 = time.perf_counter()
+    u = sol.displacement if model.total_lagrangian else state.u + sol.displacement
+    sj, worst = _quality(model, u)
+    regulated, shift = 0, 0.0
+    below = model.options.regulation_below
+    if not model.total_lagrangian and below is not None and sj[worst] < below:
+        reg = regulate(model.mesh, X + u, model.movable, target=2.0 * below)
+        if reg.moved and reg.min_quality_after > model.options.min_scaled_jacobian:
+            x_reg = reg.points.copy()
+            if model.mucosa.size:  # back onto the bone, exactly
+                x_reg[model.mucosa] = _projection(model, plan, x_reg[model.mucosa])[0]
+            u, regulated, shift = x_reg - X, reg.moved, reg.max_shift
+            sj, worst = _quality(model, u)
+    if sj[worst] <= model.options.min_scaled_jacobian:
+        centroid = np.round((X + u)[model.mesh.volume_cells[worst]].mean(axis=0), 1).tolist()
+        raise _StepFailure(f"{int((sj <= model.options.min_scaled_jacobian).sum())} elements inverted or degenerate "
+                           f"(worst: element {worst}, scaled Jacobian {sj[worst]:.3g}, centroid {centroid} mm)", worst)
+    both = [sol1] if sol is sol1 else [sol1, sol]
+    contacts = [c for c in ((contact1,) if contact is contact1 else (contact1, contact)) if c is not None]
+    diag = _StepDiagnostics(
+        seconds_step1=t1 - t0, seconds_step2=t2 - t1, linear_solves=sum(len(s.solves) for s in both),
+        newton_iterations=sum(s.newton_iterations for s in both),
+        contact_iterations=sum(c.iterations for c in contacts), min_scaled_jacobian=float(sj[worst]),
+        worst_element=worst, gap_before=gap_before, gap_after=gap_after,
+        active_lip_pairs=int(contact.active.sum()) if contact is not None else 0,
+        regulated_nodes=regulated, regulation_shift=shift)
+    return _State(state.fraction, plan, u), diag
+
+
+# ------------------------------------------------------ increments and cutting
+def _advance(model: _Model, plan: SurgicalPlan, state: _State, fraction: float, depth: int = 0):
+    """Step from ``state`` to ``fraction`` of ``plan``, halving the step on failure.
+
+    Returns the new state, the diagnostics of every successful sub-step and the number of
+    failed attempts. Raises :class:`_StepFailure` when ``max_cuts`` halvings do not help.
+    """
+    try:
+        new, diag = _step(model, state, plan.interpolated(fraction))
+        return replace(new, fraction=fraction), [diag], 0
+    except _StepFailure as exc:
+        if depth >= model.options.max_cuts:
+            raise
+        log.info("step %.4g -> %.4g failed (%s); cutting it in two", state.fraction, fraction, exc)
+    mid = 0.5 * (state.fraction + fraction)
+    half, d1, f1 = _advance(model, plan, state, mid, depth + 1)
+    new, d2, f2 = _advance(model, plan, half, fraction, depth + 1)
+    return new, d1 + d2, 1 + f1 + f2
+
+
+def _report(k: int, diags: list, failed: int, model: _Model, u: np.ndarray) -> IncrementReport:
+    last = diags[-1]
+    worst = min(diags, key=lambda d: d.min_scaled_jacobian)
+    return IncrementReport(
+        increment=k, seconds_step1=sum(d.seconds_step1 for d in diags),
+        seconds_step2=sum(d.seconds_step2 for d in diags), linear_solves=sum(d.linear_solves for d in diags),
+        newton_iterations=sum(d.newton_iterations for d in diags),
+        contact_iterations=sum(d.contact_iterations for d in diags),
+        min_scaled_jacobian=worst.min_scaled_jacobian, worst_element=worst.worst_element,
+        mucosa_gap_before_projection=max(d.gap_before for d in diags),
+        mucosa_gap_after_projection=max(d.gap_after for d in diags),
+        max_penetration=_penetration(model.mesh.points + u, model.bc_all.upper_lip, model.bc_all.lower_lip),
+        active_lip_pairs=last.active_lip_pairs, substeps=len(diags), failed_attempts=failed,
+        regulated_nodes=sum(d.regulated_nodes for d in diags),
+        max_regulation_shift=max(d.regulation_shift for d in diags))
 
 
 def simulate(
@@ -226,6 +521,28 @@ def simulate(
 
     t_start = time.perf_counter()
     options = options or SimulationOptions()
+    model = _build_model(face, material, sliding, segments, options)
+    if int(increments) != increments or increments < 1:
+        raise ValueError(f"increments must be an integer >= 1, got {increments!r}")
+    n = int(increments)
+    state = _State(0.0, None, np.zeros((model.mesh.n_points, 3)))
+    displacements, reports = [state.u], []
+    for k in tqdm(range(1, n + 1), desc="increments", disable=not options.progress, leave=False):
+        try:
+            state, diags, failed = _advance(model, plan, state, k / n)
+        except _StepFailure as exc:
+            raise SimulationError(str(exc), k, exc.element, _remedy(model, n)) from exc
+        reports.append(_report(k, diags, failed, model, state.u))
+        displacements.append(state.u)
+        log.info("increment %d/%d: %d sub-step(s), min SJ %.3f, max |u| %.2f mm", k, n, len(diags),
+                 reports[-1].min_scaled_jacobian, np.linalg.norm(state.u, axis=1).max())
+    material_name = material if isinstance(material, str) else "custom"
+    return SimulationResult(model.mesh, np.stack(displacements), model.bc, reports, time.perf_counter() - t_start,
+                            material_name, sliding)
+
+
+def _build_model(face, material, sliding, segments, options: SimulationOptions) -> _Model:
+    """Mesh, materials, boundary conditions (sliding model, release bands) and bone surfaces."""
     if isinstance(face, FacePhantom):
         mesh, segments = face.mesh, segments or face.segments
     else:
@@ -234,133 +551,18 @@ def simulate(
         raise ValueError("a bare Mesh needs segments=... (name -> BoneSegment) for the bony surfaces")
     if sliding not in SLIDING_MODELS:
         raise ValueError(f"unknown sliding model {sliding!r}; expected one of {SLIDING_MODELS}")
-    if int(increments) < 1:
-        raise ValueError(f"increments must be >= 1, got {increments}")
     materials = material_assignment(material, mesh)
-    material_name = material if isinstance(material, str) else "custom"
     bc_all = BoundaryConditions.from_mesh(mesh, segments, lip_threshold=options.lip_threshold)
-    bc = bc_all.with_sliding(sliding)
-    names = bc.segment_names
-    X = mesh.points
-    n = mesh.n_points
-    moving = bc.nodes(NodeType.MOVING)
-    fixed = bc.nodes(NodeType.FIXED)
-    mucosa = bc.nodes(NodeType.MUCOSA_SLIDING)
-    seg_of = bc.segment
-    surfaces = {name: segments[name].surface for name in names}
-    total_lagrangian = not materials.is_linear
+    bc = bc_all.with_release_bands(mesh, options.release_width).with_sliding(sliding)
+    surfaces = {name: segments[name].surface for name in bc.segment_names}
+    return _Model(mesh, materials, bc, bc_all, surfaces, options, total_lagrangian=not materials.is_linear)
 
-    plans = plan.increments(int(increments))
-    displacements = [np.zeros((n, 3))]
-    reports = []
-    x = X.copy()  # current configuration
-    pattern: SparsePattern | None = None
-    problem = StaticProblem(mesh, materials, options.solver) if total_lagrangian else None
-    prev_plan = None
-    bar = tqdm(plans, desc="increments", disable=not options.progress, leave=False)
-    for k, plan_k in enumerate(bar, start=1):
-        base = X if total_lagrangian else x  # configuration the displacement is measured from
-        if not total_lagrangian:
-            try:
-                problem = StaticProblem(mesh.with_points(x), materials, options.solver, pattern)
-            except ConvergenceError as exc:
-                raise SimulationError(str(exc), k, None, "use more increments or a smaller movement") from exc
-            pattern = problem.pattern
-        # --- targets of this increment
-        target = np.empty((n, 3))
-        target[fixed] = X[fixed]
-        for s, name in enumerate(names):
-            ids = moving[seg_of[moving] == s]
-            target[ids] = _apply(plan_k, name, X[ids])
-        presc_nodes = np.concatenate([fixed, moving])
-        presc_vals = target[presc_nodes] - base[presc_nodes]
-        u_start = None if not total_lagrangian else displacements[-1]
 
-        def run(constraints):
-            if bc.upper_lip.size:
-                res = solve_with_lip_contact(problem, constraints, bc.upper_lip, bc.lower_lip,
-                                             threshold=options.lip_threshold, u_start=u_start)
-                return res.solution, res
-            return problem.solve(constraints, u_start=u_start), None
-
-        t0 = time.perf_counter()
-        try:
-            # --- step 1: mucosa slides on the moved bone (normal prescribed, tangents free)
-            gap_before = 0.0
-            if mucosa.size:
-                normals = np.empty((mucosa.size, 3))
-                on_surface = np.empty((mucosa.size, 3))
-                for s, name in enumerate(names):
-                    sel = np.flatnonzero(seg_of[mucosa] == s)
-                    if not sel.size:
-                        continue
-                    surf = surfaces[name]
-                    prev_pts = surf.points if prev_plan is None else _apply(prev_plan, name, surf.points)
-                    cp = closest_points(x[mucosa[sel]], prev_pts, surf.cells["tri3"])
-                    # carry the closest point and normal rigidly with the increment's motion
-                    new_pts = _apply(plan_k, name, surf.points)
-                    tri = surf.cells["tri3"][cp.triangle]
-                    bary = _barycentric(cp.point, prev_pts[tri])
-                    on_surface[sel] = np.einsum("ij,ijk->ik", bary, new_pts[tri])
-                    nrm = np.cross(new_pts[tri[:, 1]] - new_pts[tri[:, 0]], new_pts[tri[:, 2]] - new_pts[tri[:, 0]])
-                    normals[sel] = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
-                g = np.einsum("ij,ij->i", normals, on_surface - base[mucosa])
-                c1 = Constraints(n, presc_nodes, presc_vals, mucosa, normals, g)
-            else:
-                c1 = Constraints(n, presc_nodes, presc_vals)
-            sol1, contact1 = run(c1)
-            t1 = time.perf_counter()
-            sol, contact = sol1, contact1
-            gap_after = 0.0
-            if mucosa.size:
-                # --- step 2: project the mucosa nodes onto the moved bone and re-solve
-                pos = base[mucosa] + sol1.displacement[mucosa]
-                proj = np.empty_like(pos)
-                dist = np.empty(mucosa.size)
-                for s, name in enumerate(names):
-                    sel = np.flatnonzero(seg_of[mucosa] == s)
-                    if sel.size:
-                        surf = surfaces[name]
-                        cp = closest_points(pos[sel], _apply(plan_k, name, surf.points), surf.cells["tri3"])
-                        proj[sel], dist[sel] = cp.point, cp.distance
-                gap_before = float(dist.max())
-                c2 = Constraints(n, np.concatenate([presc_nodes, mucosa]),
-                                 np.vstack([presc_vals, proj - base[mucosa]]))
-                u_start = sol1.displacement
-                sol, contact = run(c2)
-                gap_after = float(np.abs(base[mucosa] + sol.displacement[mucosa] - proj).max())
-        except ConvergenceError as exc:
-            raise SimulationError(str(exc), k, None,
-                                  "use more increments, a smaller movement, or the linear material") from exc
-        t2 = time.perf_counter()
-        u_k = sol.displacement
-        total = u_k if total_lagrangian else displacements[-1] + u_k
-        deformed = mesh.with_points(X + total)
-        sj = deformed.scaled_jacobian()
-        worst = int(np.argmin(sj))
-        if sj[worst] <= options.min_scaled_jacobian:
-            raise SimulationError(
-                f"{int((sj <= options.min_scaled_jacobian).sum())} elements inverted or degenerate "
-                f"(worst: element {worst}, scaled Jacobian {sj[worst]:.3g}, centroid "
-                f"{np.round(deformed.points[deformed.volume_cells[worst]].mean(axis=0), 1).tolist()} mm)",
-                k, worst, "use more increments or a smaller movement")
-        displacements.append(total)
-        x = X + total
-        reports.append(IncrementReport(
-            increment=k, seconds_step1=t1 - t0, seconds_step2=t2 - t1,
-            linear_solves=len(sol1.solves) + (len(sol.solves) if sol is not sol1 else 0),
-            newton_iterations=sol1.newton_iterations + (sol.newton_iterations if sol is not sol1 else 0),
-            contact_iterations=(contact1.iterations if contact1 else 0) + (contact.iterations if contact and
-                                                                            contact is not contact1 else 0),
-            min_scaled_jacobian=float(sj[worst]), worst_element=worst,
-            mucosa_gap_before_projection=gap_before, mucosa_gap_after_projection=gap_after,
-            max_penetration=_penetration(X + total, bc_all.upper_lip, bc_all.lower_lip),
-            active_lip_pairs=int(contact.active.sum()) if contact else 0))
-        log.info("increment %d/%d: min SJ %.3f, max |u| %.2f mm", k, len(plans), sj[worst],
-                 np.linalg.norm(total, axis=1).max())
-        prev_plan = plan_k
-    return SimulationResult(mesh, np.stack(displacements), bc, reports, time.perf_counter() - t_start,
-                            material_name, sliding)
+def _remedy(model: _Model, increments: int) -> str:
+    cuts = model.options.max_cuts
+    return (f"the step was already cut {cuts} times ({2 ** cuts} sub-steps); use more increments than {increments}, "
+            f"a wider release band than {model.options.release_width:g} mm, a smaller movement, or check the "
+            f"boundary node sets near that element")
 
 
 def _penetration(x: np.ndarray, upper: np.ndarray, lower: np.ndarray) -> float:

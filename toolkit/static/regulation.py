@@ -1,0 +1,191 @@
+"""Mesh regulation between increments (seed 001, section 2.3.2.1).
+
+Seed 001 regulates the face mesh at the start of every increment so that distortion,
+which accumulates where differently moving regions meet, does not invert elements. Each
+linear increment starts stress-free on the current geometry, so the nodes that no
+boundary condition holds may be moved without any stress to transfer.
+
+:func:`regulate` does this locally. Around the elements whose quality (minimum corner
+scaled Jacobian) is below a target it moves the *movable* nodes (free nodes that are not
+on the skin: the skin is the prediction) to raise every corner Jacobian determinant of
+those elements above a target: gradient descent on ``sum max(0, tau - D)^2`` over the
+corners (Knupp's untangling objective), with a backtracking line search. Movable nodes on
+the mesh boundary (the bone side, a free slit face) move in their tangent plane only, so
+the boundary shape is kept. Linear cells only (``hex8``, ``wedge6``, ``tet4``); the
+nodes of other cells are left where they are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from toolkit.common.mesh import VOLUME_TYPES, Mesh
+
+__all__ = ["regulate", "Regulation", "element_quality", "CORNERS"]
+
+#: per linear cell type: (corner, three edge ends) with det[x1 - x0, x2 - x0, x3 - x0] > 0 when valid
+CORNERS = {
+    "hex8": np.array([[0, 1, 3, 4], [1, 2, 0, 5], [2, 3, 1, 6], [3, 0, 2, 7],
+                      [4, 7, 5, 0], [5, 4, 6, 1], [6, 5, 7, 2], [7, 6, 4, 3]]),
+    "wedge6": np.array([[0, 1, 2, 3], [1, 2, 0, 4], [2, 0, 1, 5], [3, 5, 4, 0], [4, 3, 5, 1], [5, 4, 3, 2]]),
+    "tet4": np.array([[0, 1, 2, 3]]),
+}
+
+
+@dataclass(frozen=True)
+class Regulation:
+    """What :func:`regulate` did.
+
+    Attributes
+    ----------
+    points : (n, 3) float, mm — the regulated node positions
+    moved : int — nodes that moved
+    max_shift : float, mm — largest node move
+    min_quality_before, min_quality_after : minimum element scaled Jacobian
+    """
+
+    points: np.ndarray
+    moved: int
+    max_shift: float
+    min_quality_before: float
+    min_quality_after: float
+
+
+def element_quality(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+    """Scaled Jacobian ``(E,)`` of every volume element of ``mesh`` at ``points (n, 3)`` mm."""
+    from toolkit.common.quality import scaled_jacobian
+
+    return np.concatenate([scaled_jacobian(ctype, points[conn]) for ctype, conn in mesh.cells.items()
+                           if ctype in VOLUME_TYPES])
+
+
+def _corner_tables(mesh: Mesh, elements: np.ndarray):
+    """Node ids ``(k, 4)`` (corner, three edge ends) of every corner of the given elements."""
+    out, offset = [], 0
+    for ctype, conn in mesh.cells.items():
+        if ctype not in VOLUME_TYPES:
+            continue
+        sel = elements[(elements >= offset) & (elements < offset + conn.shape[0])] - offset
+        if sel.size and ctype in CORNERS:
+            out.append(conn[sel][:, CORNERS[ctype]].reshape(-1, 4))
+        offset += conn.shape[0]
+    return np.concatenate(out) if out else np.zeros((0, 4), dtype=np.int64)
+
+
+def _element_adjacency(mesh: Mesh) -> sp.csr_matrix:
+    """Node-element incidence ``(n, E)`` of the volume blocks."""
+    rows, cols, offset = [], [], 0
+    for ctype, conn in mesh.cells.items():
+        if ctype not in VOLUME_TYPES:
+            continue
+        rows.append(conn.ravel())
+        cols.append(np.repeat(offset + np.arange(conn.shape[0]), conn.shape[1]))
+        offset += conn.shape[0]
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    return sp.csr_matrix((np.ones(r.size), (r, c)), shape=(mesh.n_points, offset))
+
+
+def _boundary_normals(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+    """Area-weighted outward normals ``(n, 3)`` at boundary nodes (zero inside)."""
+    from toolkit.common.topology import triangulated_boundary
+
+    tris = triangulated_boundary(mesh.cells)
+    x = points[tris]
+    nrm = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    out = np.zeros((points.shape[0], 3))
+    for k in range(3):
+        np.add.at(out, tris[:, k], nrm)
+    length = np.linalg.norm(out, axis=1, keepdims=True)
+    return np.divide(out, length, out=np.zeros_like(out), where=length > 0)
+
+
+def _objective(x: np.ndarray, corners: np.ndarray, tau: np.ndarray, gradient: bool = True):
+    """``sum max(0, tau - D)^2`` over the corners and its gradient ``(n, 3)``."""
+    x0 = x[corners[:, 0]]
+    e1, e2, e3 = (x[corners[:, k]] - x0 for k in (1, 2, 3))
+    D = np.einsum("ij,ij->i", np.cross(e1, e2), e3)
+    short = np.maximum(0.0, tau - D)
+    value = float(np.sum(short**2))
+    if not gradient:
+        return value, None
+    coef = (-2.0 * short)[:, None]  # d value / d D
+    g1, g2, g3 = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)  # dD/de1, dD/de2, dD/de3
+    grad = np.zeros_like(x)
+    for k, gk in ((1, g1), (2, g2), (3, g3)):
+        np.add.at(grad, corners[:, k], coef * gk)
+    np.add.at(grad, corners[:, 0], -coef * (g1 + g2 + g3))
+    return value, grad
+
+
+def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float = 0.2, rings: int = 2,
+             iterations: int = 200) -> Regulation:
+    """Raise the elements below ``target`` quality by moving ``movable`` nodes.
+
+    Parameters
+    ----------
+    mesh : topology (its points are not used), mm
+    points : (n, 3) float, mm — the configuration to regulate
+    movable : (n,) bool — nodes that may move (free, not on the skin)
+    target : scaled Jacobian the bad elements are raised towards
+    rings : element rings around the bad elements whose nodes may move with them
+    iterations : gradient steps at most
+
+    Returns
+    -------
+    Regulation (the input points when nothing is below ``target`` or nothing improved)
+    """
+    x0 = np.array(points, dtype=float)
+    q = element_quality(mesh, x0)
+    before = float(q.min())
+    if before >= target:
+        return Regulation(x0, 0, 0.0, before, before)
+    inc = _element_adjacency(mesh)
+    nodes = np.asarray(inc[:, q < target].sum(axis=1)).ravel() > 0
+    for _ in range(rings):
+        elems = np.asarray(inc[nodes].sum(axis=0)).ravel() > 0
+        nodes = np.asarray(inc[:, elems].sum(axis=1)).ravel() > 0
+    movable = np.asarray(movable, dtype=bool)
+    active = nodes & movable
+    elems = np.flatnonzero(np.asarray(inc[active].sum(axis=0)).ravel() > 0)
+    corners = _corner_tables(mesh, elems)
+    if not active.any() or not corners.size:
+        return Regulation(x0, 0, 0.0, before, before)
+    # target determinant per corner: ``target`` times the product of its edge lengths, with
+    # the lengths of the element as it is (a scale-free goal)
+    lengths = np.stack([np.linalg.norm(x0[corners[:, k]] - x0[corners[:, 0]], axis=1) for k in (1, 2, 3)], axis=1)
+    tau = target * np.prod(np.maximum(lengths, 1e-9), axis=1)
+    normals = _boundary_normals(mesh, x0)
+    on_boundary = active & (np.linalg.norm(normals, axis=1) > 0)
+    x = x0.copy()
+    value, grad = _objective(x, corners, tau)
+    step = 1.0 / max(float(np.abs(tau).max()), 1e-30) * float(np.median(lengths)) ** 2
+    for _ in range(iterations):
+        if value == 0.0:
+            break
+        d = -grad
+        d[~active] = 0.0
+        d[on_boundary] -= np.einsum("ij,ij->i", d[on_boundary], normals[on_boundary])[:, None] * normals[on_boundary]
+        # cap the move at a tenth of the local edge length so a step cannot fold neighbours
+        dmax = float(np.abs(d).max())
+        if dmax == 0.0:
+            break
+        alpha = min(step, 0.1 * float(np.median(lengths)) / dmax)
+        for _ in range(30):
+            trial = x + alpha * d
+            v_trial, _ = _objective(trial, corners, tau, gradient=False)
+            if v_trial < value:
+                break
+            alpha *= 0.5
+        else:
+            break
+        x = trial
+        value, grad = _objective(x, corners, tau)
+        step = 2.0 * alpha
+    after = element_quality(mesh, x)
+    if after.min() <= before:  # no better than the start: leave the mesh as it was
+        return Regulation(x0, 0, 0.0, before, before)
+    shift = np.linalg.norm(x - x0, axis=1)
+    return Regulation(x, int((shift > 0).sum()), float(shift.max()), before, float(after.min()))
