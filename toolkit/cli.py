@@ -63,6 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--resolution", default="coarse", choices=["coarse", "paper", "fine"],
                      help="built-in phantom resolution (default coarse)")
     sim.add_argument("--plan", type=Path, help="plan (.toml/.json); default: the packaged bimaxillary plan")
+    sim.add_argument("--bone", action="append", default=[], metavar="SEGMENT=FILE",
+                     help="bone surface of a segment (lefort, distal, proximal_left, proximal_right, skull) as "
+                          "STL/OBJ/PLY/VTK/VTU/OFF in mm, e.g. --bone lefort=maxilla.stl; repeatable. Without it a "
+                          "--mesh run rebuilds the surfaces from the mesh's bone-side faces")
     sim.add_argument("--increments", type=int, default=3, help="number of increments (default 3, seed 001)")
     sim.add_argument("--material", default="linear", choices=["linear", "neo-hookean"])
     sim.add_argument("--sliding", default="mucosa+lip", choices=["none", "mucosa", "mucosa+lip"])
@@ -131,37 +135,65 @@ def _cmd_impact_simulate(args) -> int:
 
 def _cmd_static_simulate(args) -> int:
     result = _run_static(args.mesh, args.resolution, args.plan, args.increments, args.material, args.sliding,
-                         args.solver, args.force, progress=True)
+                         args.solver, args.force, progress=True, bones=_bones(args.bone))
     result.write(args.out, preview=not args.no_preview)
     s = result.summary()
+    for r in s["increments_report"]:
+        print(f"increment {r['increment']}: {r['seconds_step1'] + r['seconds_step2']:.1f} s, {r['linear_solves']} "
+              f"linear solves, {r['substeps']} sub-step(s), min scaled Jacobian {r['min_scaled_jacobian']:.3f}")
     print(f"{s['nodes']} nodes, {s['increments']} increments, {s['material']}, {s['sliding']}: "
           f"max displacement {s['max_displacement_mm']:.2f} mm, min scaled Jacobian {s['min_scaled_jacobian']:.3f}, "
           f"max penetration {s['max_penetration_mm']:.2e} mm, {s['wall_time_s']:.1f} s")
-    print(f"wrote {args.out}/ (result.vtu, increments.xdmf, summary.json{'' if args.no_preview else ', preview.png'})")
+    print(f"wrote {args.out}/ (result.vtu: pre-operative face with 'displacement'; postop.vtu: post-operative face; "
+          f"increments.xdmf, summary.json{'' if args.no_preview else ', preview.png'})")
     return 0
 
 
+def _bones(specs: list[str]) -> dict:
+    """``["lefort=maxilla.stl", ...]`` -> ``{"lefort": Path("maxilla.stl"), ...}``."""
+    out = {}
+    for spec in specs:
+        name, sep, path = spec.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(f"--bone {spec!r}: expected SEGMENT=FILE, e.g. --bone lefort=maxilla.stl")
+        if name in out:
+            raise ValueError(f"--bone {name}= given twice")
+        out[name] = Path(path)
+    return out
+
+
 def _run_static(mesh_path, resolution, plan_path, increments, material, sliding, solver="auto", force=False,
-                progress=False):
+                progress=False, bones=None):
     from toolkit.common.io import read
     from toolkit.common.phantom import face_hex
     from toolkit.static import SimulationOptions, SurgicalPlan, default_plan, simulate
-    from toolkit.static.boundary import segments_from_mesh
+    from toolkit.static.bones import segments_from_files
+    from toolkit.static.boundary import BoundaryError, segments_from_mesh
 
     options = SimulationOptions(solver=solver, progress=progress)
+    bones = bones or {}
     if mesh_path is None:
         phantom = face_hex(resolution)
         plan = SurgicalPlan.read(plan_path, phantom=phantom) if plan_path else default_plan(phantom, force=force)
         if force and plan_path:
             plan = SurgicalPlan(plan.motions, force=True)
-        return simulate(phantom, plan, increments, material, sliding, options=options)
+        segments = dict(phantom.segments)
+        segments.update(segments_from_files(phantom.mesh, bones, {k: s.pivot for k, s in phantom.segments.items()}))
+        return simulate(phantom, plan, increments, material, sliding, segments=segments, options=options)
     mesh = read(mesh_path, require_node_sets=["fixed"])
     if plan_path is None:
         raise ValueError("--mesh needs --plan (with pivot_mm for every rotating segment)")
     plan = SurgicalPlan.read(plan_path)
     if force:
         plan = SurgicalPlan(plan.motions, force=True)
-    segments = segments_from_mesh(mesh, {k: m.pivot for k, m in plan.motions.items()})
+    pivots = {k: m.pivot for k, m in plan.motions.items()}
+    try:
+        segments = segments_from_mesh(mesh, pivots)
+    except BoundaryError:
+        if not bones:
+            raise
+        segments = {}
+    segments.update(segments_from_files(mesh, bones, pivots))
     return simulate(mesh, plan, increments, material, sliding, segments=segments, options=options)
 
 

@@ -181,3 +181,64 @@ def test_knn_labels_transfers_phantom_types_to_itself(phantom, bc):
     coincident lip copies share a type) gives back the types exactly."""
     P = phantom.mesh.points
     np.testing.assert_array_equal(knn_labels(P, P, bc.types, k=1), bc.types)
+
+
+# ------------------------------------------------------------- release bands
+def _two_segment_block(h: float):
+    """A 40 x 10 x 10 mm hex block whose bottom face is attached to ``lefort`` for x < 20 and to
+    ``distal`` from x = 20 on (node spacing ``h`` mm), with a fixed top face."""
+    from toolkit.common.phantom import BoneSegment, block
+
+    n = round(40 / h)
+    mesh = block([np.linspace(0, 40, n + 1), np.linspace(0, 10, round(10 / h) + 1), np.linspace(0, 10, 3)])
+    x, z = mesh.points[:, 0], mesh.points[:, 2]
+    bottom = np.flatnonzero(z == 0)
+    mesh = mesh.with_node_sets(bone=bottom, maxilla=bottom[x[bottom] < 20 - 1e-9],
+                               mandible=bottom[x[bottom] >= 20 - 1e-9], fixed=np.flatnonzero(z == 10))
+    surface = Mesh(np.zeros((3, 3)) + np.eye(3), {"tri3": np.array([[0, 1, 2]])})
+    segments = {"lefort": BoneSegment("lefort", surface, np.zeros(3), "maxilla"),
+                "distal": BoneSegment("distal", surface, np.zeros(3), "mandible")}
+    return mesh, segments
+
+
+@pytest.mark.parametrize("h", [2.0, 1.0, 0.5])
+def test_release_band_has_the_same_width_at_every_mesh_size(h):
+    """Nodes closer than width/2 (through the tissue) to a node with another driver are
+    freed: along the bottom face, every node less than 5 mm from the other side's nearest
+    node. With spacing h the freed nodes span between 10 - 3h and 10 - h mm (grid rounding
+    at both ends), centred on the border between the last lefort node (20 - h) and the
+    first distal one (20) within h: the band is 10 mm wide whatever the mesh size. The
+    fixed top face keeps its nodes; width 0 frees nothing."""
+    mesh, segments = _two_segment_block(h)
+    bc = BoundaryConditions.from_mesh(mesh, segments)
+    assert bc.with_release_bands(mesh, 0.0) is bc
+    out = bc.with_release_bands(mesh, 10.0)
+    x = mesh.points[out.released, 0]
+    assert np.all(mesh.points[out.released, 2] == 0)
+    assert 10.0 - 3 * h - 1e-9 <= x.max() - x.min() <= 10.0 - h + 1e-9
+    assert abs(0.5 * (x.max() + x.min()) - (20.0 - 0.5 * h)) <= h
+    assert np.all(out.types[out.released] == NodeType.FREE) and np.all(out.segment[out.released] == -1)
+    assert out.nodes(NodeType.FIXED).size == bc.nodes(NodeType.FIXED).size
+    with pytest.raises(ValueError, match="release width = -1.0 mm"):
+        bc.with_release_bands(mesh, -1.0)
+
+
+def test_a_bone_no_plan_moves_counts_as_fixed():
+    """The skull (a segment no plan moves, on which the degloved tissue above the Le Fort I
+    cut slides) is as immobile as the fixed nodes: no band between them, but a band where
+    it meets a moving segment. On the paper phantom: released nodes lie only near the
+    osteotomy lines, the occlusal level between the jaws, the sagittal split and the
+    ramus, never deep inside the skull's sliding region."""
+    from toolkit.static.plan import SEGMENTS
+
+    ph = face_hex("paper")
+    bc = BoundaryConditions.from_mesh(ph.mesh, ph.segments)
+    drivers = bc.drivers()
+    skull = bc.segment_nodes(NodeType.MUCOSA_SLIDING, "skull")
+    assert skull.size and np.all(drivers[skull] == 0) and np.all(drivers[bc.nodes(NodeType.FIXED)] == 0)
+    assert all(1 + k in drivers for k, n in enumerate(bc.segment_names) if n in SEGMENTS)
+    out = bc.with_release_bands(ph.mesh, 10.0)
+    released_skull = np.intersect1d(out.released, skull)
+    z = ph.mesh.points[released_skull, 2]
+    lefort_cut = ph.mesh.points[ph.mesh.node_sets["maxilla"], 2].max()
+    assert released_skull.size and z.max() < lefort_cut + 10.0  # only next to the Le Fort segment

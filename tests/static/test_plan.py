@@ -309,3 +309,78 @@ def test_unknown_suffix(tmp_path):
         plan.write(tmp_path / "plan.yaml")
     with pytest.raises(ValueError, match="'.txt'"):
         SurgicalPlan.read(tmp_path / "plan.txt")
+
+
+# ------------------------------------------------------------------ sampler
+@pytest.mark.parametrize("mode", ["sagittal", "full"])
+def test_sample_plans_are_uniform_in_the_ranges(phantom, mode):
+    """sample_plans draws both segments in every plan, with the pivot's translation and the
+    rotation angle inside seed 001's ranges (Le Fort 0-6.3 mm / 0-9.8 deg, distal
+    2.1-11.5 mm / 0.5-13.3 deg) and spread over them: 300 draws reach within 10% of both
+    ends of each range. Sagittal plans translate in the y-z plane and rotate about x;
+    full plans have a lateral component too. No plan warns (all within range), and every
+    plan closes the jaws by at most MAX_JAW_CLOSING_MM."""
+    from toolkit.static.plan import MAX_JAW_CLOSING_MM, dental_arch, jaw_closing, sample_plans
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PlanRangeWarning)
+        plans = sample_plans(300, 7, mode, phantom=phantom)
+    arch = dental_arch(phantom)
+    for name in ("lefort", "distal"):
+        rg = PHYSIOLOGICAL_RANGES[name]
+        t = np.array([p.motions[name].translation_mm for p in plans])
+        a = np.array([p.motions[name].angle_deg for p in plans])
+        for values, (lo, hi) in ((t, rg.translation_mm), (a, rg.rotation_deg)):
+            assert lo - 1e-9 <= values.min() and values.max() <= hi + 1e-9
+            assert values.min() < lo + 0.1 * (hi - lo) and values.max() > hi - 0.1 * (hi - lo)
+        tr = np.array([p.motions[name].translation for p in plans])
+        axis = np.array([p.motions[name].rotation_vector_deg for p in plans])
+        if mode == "sagittal":
+            assert np.abs(tr[:, 0]).max() < 1e-12 and np.abs(axis[:, 1:]).max() < 1e-12
+        else:
+            assert np.abs(tr[:, 0]).max() > 1.0 and np.abs(axis[:, 1:]).max() > 1.0
+        np.testing.assert_allclose([p.motions[name].pivot for p in plans],
+                                   np.tile(phantom.segments[name].pivot, (len(plans), 1)))
+    assert max(jaw_closing(p, arch) for p in plans) <= MAX_JAW_CLOSING_MM
+
+
+def test_sample_plans_are_reproducible_and_extend(phantom):
+    """Plan i depends only on the seed and i: the first 5 of 8 equal 5 drawn alone, another
+    seed differs, and the proximal segments follow the distal one about the condyles."""
+    from toolkit.static.plan import sample_plans
+
+    a, b = sample_plans(8, 3, phantom=phantom), sample_plans(5, 3, phantom=phantom)
+    for p, q in zip(a, b):
+        for name in SEGMENTS:
+            np.testing.assert_array_equal(p.motions[name].rotation, q.motions[name].rotation)
+            np.testing.assert_array_equal(p.motions[name].translation, q.motions[name].translation)
+    c = sample_plans(1, 4, phantom=phantom)[0]
+    assert not np.allclose(c.motions["distal"].translation, a[0].motions["distal"].translation)
+    for side, name in enumerate(("proximal_left", "proximal_right")):
+        np.testing.assert_allclose(a[0].motions[name].pivot, phantom.condyles[side])
+        assert a[0].motions[name].translation_mm == 0.0
+
+
+def test_jaw_closing_rejection_and_bad_arguments(phantom):
+    """Without the closing bound some uniform draws drive the mandibular teeth through the
+    maxillary ones by more than 10 mm (a closed-form check: a pure 12 mm upward distal
+    translation closes by exactly 11 mm); the bound rejects them, and bad arguments are
+    refused naming the value."""
+    from toolkit.static.plan import dental_arch, jaw_closing, sample_plans
+
+    arch = dental_arch(phantom)
+    up = SurgicalPlan({"distal": RigidMotion(translation=(0.0, 0.0, 11.0))})
+    assert jaw_closing(up, arch) == pytest.approx(11.0)
+    assert jaw_closing(up.scaled(-1.0), arch) == 0.0  # separating jaws do not close
+    raw = sample_plans(100, 0, phantom=phantom, max_jaw_closing_mm=None)
+    assert max(jaw_closing(p, arch) for p in raw) > 10.0
+    with pytest.raises(ValueError, match="mode 'lateral'"):
+        sample_plans(1, 0, "lateral", phantom=phantom)
+    with pytest.raises(ValueError, match="n = -1"):
+        sample_plans(-1, 0, phantom=phantom)
+    with pytest.raises(ValueError, match="max_jaw_closing_mm = -1"):
+        sample_plans(1, 0, phantom=phantom, max_jaw_closing_mm=-1.0)
+    with pytest.raises(ValueError, match="MotionRange.translation_mm"):
+        from toolkit.static.plan import MotionRange
+
+        MotionRange((3.0, 1.0), (0.0, 1.0))

@@ -16,7 +16,8 @@ from scipy.spatial import cKDTree
 
 from toolkit.common._validate import _as_points, _as_triangles, _region_indices
 
-__all__ = ["vertex_normals", "SurfaceDeviation", "surface_deviation", "ClosestPoints", "closest_points"]
+__all__ = ["vertex_normals", "SurfaceDeviation", "surface_deviation", "ClosestPoints", "closest_points",
+           "barycentric", "interpolate_on_surface"]
 
 
 def vertex_normals(points, triangles) -> np.ndarray:
@@ -296,3 +297,47 @@ def closest_points(points, surface_points, triangles, k: int = 16, tree: cKDTree
     n = np.cross(v1[t_best] - v0[t_best], v2[t_best] - v0[t_best])
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     return ClosestPoints(cp[rows, best], d[rows, best], t_best.astype(np.int64), n)
+
+
+def barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates ``(k, 3)`` of points ``p (k, 3)`` in the planes of the
+    triangles ``tri (k, 3, 3)`` (mm); they sum to 1 and are all in [0, 1] inside."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    v0, v1, v2 = b - a, c - a, p - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    return np.stack([1 - v - w, v, w], axis=1)
+
+
+def interpolate_on_surface(points, surface_points, triangles, values) -> np.ndarray:
+    """A vertex field of a triangle surface, interpolated at the closest surface point of
+    each query point (barycentric, linear on each triangle).
+
+    Used to compare fields of different meshes of one surface (e.g. the skin displacement
+    of the coarse, paper and fine faces at common points).
+
+    Parameters
+    ----------
+    points : (k, 3) float, mm
+    surface_points : (n, 3) float, mm; triangles : (t, 3) int
+    values : (n, ...) float, one per surface vertex
+
+    Returns
+    -------
+    (k, ...) float
+    """
+    sp = _as_points(surface_points, "surface_points")
+    tri = _as_triangles(triangles, sp.shape[0], "triangles")
+    vals = np.asarray(values, dtype=float)
+    if vals.shape[0] != sp.shape[0]:
+        raise ValueError(f"values has {vals.shape[0]} rows, expected one per surface point ({sp.shape[0]})")
+    cp = closest_points(points, sp, tri)
+    corners = tri[cp.triangle]
+    w = barycentric(cp.point, sp[corners])
+    return np.einsum("kc,kc...->k...", w, vals[corners])

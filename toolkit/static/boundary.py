@@ -51,6 +51,20 @@ def _element_side(mesh: Mesh) -> np.ndarray:
     return np.divide(acc, count, out=mesh.points.copy(), where=count > 0)
 
 
+def _node_pairs(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair of nodes that share a volume element, once: ``(r, c)`` with ``r < c``."""
+    rows, cols = [], []
+    for ctype, conn in mesh.cells.items():
+        if ctype not in VOLUME_TYPES:
+            continue
+        a, b = np.triu_indices(conn.shape[1], k=1)
+        rows.append(conn[:, a].ravel())
+        cols.append(conn[:, b].ravel())
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    key = np.unique(np.minimum(r, c) * mesh.n_points + np.maximum(r, c))
+    return key // mesh.n_points, key % mesh.n_points
+
+
 def tissue_distance(mesh: Mesh, sources: np.ndarray, limit: float = np.inf) -> np.ndarray:
     """Shortest distance through the tissue from any of ``sources`` to every node, mm.
 
@@ -74,16 +88,7 @@ def tissue_distance(mesh: Mesh, sources: np.ndarray, limit: float = np.inf) -> n
     sources = np.unique(np.asarray(sources, dtype=np.int64))
     if not sources.size:
         return np.full(mesh.n_points, np.inf)
-    rows, cols = [], []
-    for ctype, conn in mesh.cells.items():
-        if ctype not in VOLUME_TYPES:
-            continue
-        a, b = np.triu_indices(conn.shape[1], k=1)
-        rows.append(conn[:, a].ravel())
-        cols.append(conn[:, b].ravel())
-    r, c = np.concatenate(rows), np.concatenate(cols)
-    key = np.unique(np.minimum(r, c) * mesh.n_points + np.maximum(r, c))
-    r, c = key // mesh.n_points, key % mesh.n_points
+    r, c = _node_pairs(mesh)
     w = np.linalg.norm(mesh.points[r] - mesh.points[c], axis=1)
     graph = coo_matrix((w, (r, c)), shape=(mesh.n_points,) * 2).tocsr()
     return dijkstra(graph, directed=False, indices=sources, min_only=True, limit=limit)
@@ -220,7 +225,11 @@ class BoundaryConditions:
         belongs to neither, so a node is released (made free) when a node with another
         driver lies within ``width / 2`` of it through the tissue (:func:`tissue_distance`):
         a band about ``width`` wide, whatever the mesh size, centred on each border. Without
-        it the jump sits across one element and inverts it as the mesh is refined.
+        it the jump sits across one element and inverts it as the mesh is refined. Where the
+        mesh is coarser than the band (no node that close), the border still gets one
+        element: of two neighbours with different drivers, the one of the weaker driver is
+        freed (the immobile skull first, then the proximal segments, the distal mandible,
+        and the Le Fort I segment last), so a jump never sits across a single element.
 
         Parameters
         ----------
@@ -249,6 +258,17 @@ class BoundaryConditions:
         for d in np.unique(drivers[drivers >= 0]):
             near = tissue_distance(mesh, np.flatnonzero(drivers == d), limit=0.5 * width) < 0.5 * width
             release |= near & (drivers >= 0) & (drivers != d) & allowed
+        # neighbours still driven differently (a mesh coarser than the band): free the weaker one
+        r, c = _node_pairs(mesh)
+        dr, dc = np.where(release, -1, drivers)[r], np.where(release, -1, drivers)[c]
+        clash = (dr >= 0) & (dc >= 0) & (dr != dc)
+        if clash.any():
+            rank = self._driver_strength()
+            r, c, dr, dc = r[clash], c[clash], dr[clash], dc[clash]
+            weaker = np.where(rank[dr] < rank[dc], r, c)
+            stronger = np.where(rank[dr] < rank[dc], c, r)
+            weaker = np.where(allowed[weaker], weaker, stronger)
+            release[weaker[allowed[weaker]]] = True
         if not release.any():
             return self
         types = self.types.copy()
@@ -257,6 +277,12 @@ class BoundaryConditions:
         segment[release] = -1
         ids = np.union1d(self.released, np.flatnonzero(release))
         return BoundaryConditions(types, segment, self.segment_names, self.upper_lip, self.lower_lip, ids)
+
+    def _driver_strength(self) -> np.ndarray:
+        """Rank of each driver (index = driver) when one of two neighbours must be freed:
+        the immobile bone lowest, then proximal segments, distal mandible, Le Fort I."""
+        order = {"proximal_left": 1, "proximal_right": 1, "distal": 2, "lefort": 3}
+        return np.array([0] + [order.get(name, 0) for name in self.segment_names])
 
     @classmethod
     def from_mesh(cls, mesh: Mesh, segments: Mapping, *, lip_threshold: float = 0.2) -> "BoundaryConditions":

@@ -97,8 +97,14 @@ class Constraints:
         if owned.size and (owned.min() < 0 or owned.max() >= self.n_nodes):
             raise ValueError(f"constraint node index out of range 0..{self.n_nodes - 1}")
 
-    def reduction(self) -> tuple[sp.csr_matrix, np.ndarray]:
-        """``T (3n, m)`` and ``u0 (3n,)`` with every admissible ``u = T v + u0``."""
+    def reduction(self, compact: bool = False) -> tuple[sp.csr_matrix, np.ndarray]:
+        """``T (3n, m)`` and ``u0 (3n,)`` with every admissible ``u = T v + u0``.
+
+        A tie slave's own column along the tie axis is left in ``T`` empty unless
+        ``compact``: then every system of one set of prescribed and sliding nodes has the
+        same size whatever pairs are tied, and a solver can reuse its factorization across
+        the lip-contact iterations (the empty columns need a unit equation; their value is 0).
+        """
         n = self.n_nodes
         kind = np.zeros(n, dtype=np.int8)  # 0 free, 1 prescribed, 2 sliding
         kind[self.prescribed_nodes] = 1
@@ -141,8 +147,9 @@ class Constraints:
             E = sp.csr_matrix((np.ones(slave_rows.size), (slave_rows, master_rows)), shape=(3 * n, 3 * n))
             T = (sp.diags(keep) @ T + E @ T).tocsc()
             u0[slave_rows] = u0[master_rows] + self.tie_offsets
-            used = np.diff(T.indptr) > 0  # drop the slaves' own (now empty) columns
-            T = T[:, used].tocsr()
+            if compact:
+                used = np.diff(T.indptr) > 0  # drop the slaves' own (now empty) columns
+                T = T[:, used].tocsr()
         return T.tocsr(), u0
 
     def _sliding_groups(self):

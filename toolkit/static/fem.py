@@ -20,6 +20,7 @@ import logging
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import scipy.sparse as sp
 
 from toolkit.common.mesh import Mesh
 from toolkit.static.assembly import (
@@ -31,7 +32,7 @@ from toolkit.static.assembly import (
     neo_hookean_system,
 )
 from toolkit.static.constraints import Constraints
-from toolkit.static.solvers import SolveInfo, rigid_body_modes, solve
+from toolkit.static.solvers import LinearSolver, SolveInfo, estimate_factor_entries, rigid_body_modes
 
 __all__ = ["StaticProblem", "Solution", "ConvergenceError", "solve_with_lip_contact", "ContactResult"]
 
@@ -95,6 +96,8 @@ class StaticProblem:
         self.groups = materials.groups(mesh)
         self._K = None
         self._modes = rigid_body_modes(mesh.points)
+        entries = estimate_factor_entries(_node_graph(self.pattern)) if solver == "auto" else None
+        self.linear_solver = LinearSolver(solver, factor_entries=entries)
         # force of a unit strain on a typical element face, N: the yardstick for round-off
         moduli = [getattr(m, "E", None) or getattr(m, "E_fibre", 0.0) for _, m in self.groups]
         self.force_scale = max(moduli) * float(np.mean(self.kin.volume)) ** (2.0 / 3.0)
@@ -108,8 +111,14 @@ class StaticProblem:
         return self._K
 
     def _solve_reduced(self, T, A, b, x0=None) -> tuple[np.ndarray, SolveInfo]:
+        # columns no constraint leaves free (tie slaves kept so that every system of a step
+        # has the same size, see Constraints.reduction) get a unit equation: their value is 0
+        d = A.diagonal()
+        idle = d == 0
+        if idle.any():
+            A = A + sp.diags(np.where(idle, float(d[~idle].mean()) if (~idle).any() else 1.0, 0.0))
         modes = T.T @ self._modes if self.solver in ("amg", "auto") else None
-        return solve(A, b, method=self.solver, near_nullspace=modes, x0=x0)
+        return self.linear_solver.solve(A, b, near_nullspace=modes, x0=x0)
 
     def solve(self, constraints: Constraints, u_start: np.ndarray | None = None) -> Solution:
         """Equilibrium under ``constraints``; ``u_start (n, 3)`` seeds Newton."""
@@ -209,6 +218,14 @@ class StaticProblem:
             E = E_new
         raise ConvergenceError(f"Newton did not converge in {max_iter} iterations (residual {gn:.3e} N)",
                                max_iter, gn)
+
+
+def _node_graph(pattern: SparsePattern) -> sp.csr_matrix:
+    """Node adjacency ``(n, n)`` from a dof pattern (node-major dofs, 3 per node)."""
+    rows = np.repeat(np.arange(pattern.n_dofs), np.diff(pattern.indptr))
+    keep = rows % 3 == 0  # one dof row per node
+    n = pattern.n_dofs // 3
+    return sp.csr_matrix((np.ones(int(keep.sum())), (rows[keep] // 3, pattern.indices[keep] // 3)), shape=(n, n))
 
 
 @dataclass(frozen=True, eq=False)

@@ -48,7 +48,7 @@ import numpy as np
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import FacePhantom
-from toolkit.common.surface_distance import closest_points
+from toolkit.common.surface_distance import barycentric, closest_points
 from toolkit.static.assembly import MaterialAssignment, SparsePattern
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
 from toolkit.static.constraints import Constraints
@@ -358,7 +358,7 @@ def _sliding_constraints(model: _Model, state: _State, plan: SurgicalPlan, base:
         cp = closest_points(x[mucosa[sel]], prev_pts, tris)
         new_pts = _apply(plan, name, surf.points)
         tri = tris[cp.triangle]
-        bary = _barycentric(cp.point, prev_pts[tri])
+        bary = barycentric(cp.point, prev_pts[tri])
         on_surface[sel] = np.einsum("ij,ijk->ik", bary, new_pts[tri])
         nrm = np.cross(new_pts[tri[:, 1]] - new_pts[tri[:, 0]], new_pts[tri[:, 2]] - new_pts[tri[:, 0]])
         normals[sel] = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
@@ -573,18 +573,3 @@ def _penetration(x: np.ndarray, upper: np.ndarray, lower: np.ndarray) -> float:
     if not upper.size:
         return 0.0
     return float(max(0.0, (x[lower, 2] - x[upper, 2]).max()))
-
-
-def _barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates ``(k, 3)`` of points ``p (k, 3)`` in triangles ``tri (k, 3, 3)``."""
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    v0, v1, v2 = b - a, c - a, p - a
-    d00 = np.einsum("ij,ij->i", v0, v0)
-    d01 = np.einsum("ij,ij->i", v0, v1)
-    d11 = np.einsum("ij,ij->i", v1, v1)
-    d20 = np.einsum("ij,ij->i", v2, v0)
-    d21 = np.einsum("ij,ij->i", v2, v1)
-    den = d00 * d11 - d01 * d01
-    v = (d11 * d20 - d01 * d21) / den
-    w = (d00 * d21 - d01 * d20) / den
-    return np.stack([1 - v - w, v, w], axis=1)

@@ -2,13 +2,25 @@
 
 Options (measured in ``benchmarks/static_solvers.py``; SPEC.md has this machine's figures):
 
-- ``"superlu"``: scipy's direct solver; installs everywhere; fast up to ~50k dofs,
-  unusable at 150k dofs (> 3 min, > 5 GB).
+- ``"superlu"``: scipy's direct solver in symmetric mode (diagonal pivots on the
+  minimum-degree ordering of ``A + A^T``); installs everywhere; fast while the factor
+  stays small (the thin phantom shell up to ~10^4 dofs), hopeless when it does not
+  (the fine phantom: > 3 min, > 5 GB; a bulky 26k-dof tet mesh: 8.8 s).
 - ``"amg"``: pyamg smoothed aggregation (rigid-body near-nullspace) as a
-  preconditioner for conjugate gradients; the fine phantom's choice.
+  preconditioner for conjugate gradients.
 - ``"cholmod"``: scikit-sparse's CHOLMOD when it is installed (needs the system
   SuiteSparse); otherwise refused with a hint.
-- ``"auto"``: ``superlu`` below :data:`AUTO_DIRECT_MAX_DOFS` unknowns, else ``amg``.
+- ``"auto"``: by the **expected fill** of the factor, not the number of unknowns:
+  ``superlu`` when :func:`estimate_factor_entries` (the envelope of a reverse
+  Cuthill-McKee ordering of the mesh's node graph, times 9 for the 3x3 blocks) is below
+  :data:`AUTO_DIRECT_MAX_ENTRIES`, else ``amg``. A shell stays direct up to much larger
+  sizes than a bulky mesh of the same number of dofs.
+
+:class:`LinearSolver` remembers its last factorization or AMG hierarchy. A later
+system of the same size (the next lip-contact iteration, the next Newton iteration) is
+solved by conjugate gradients preconditioned with it, which converges in a few
+iterations when the matrix changed little (a few tied lip pairs, an updated tangent);
+when it does not converge within ``max_reuse_iterations`` the solver refactors.
 """
 
 from __future__ import annotations
@@ -20,9 +32,13 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["solve", "SolveInfo", "SolverError", "rigid_body_modes", "AUTO_DIRECT_MAX_DOFS", "METHODS"]
+__all__ = ["solve", "SolveInfo", "SolverError", "LinearSolver", "rigid_body_modes", "estimate_factor_entries",
+           "choose_method", "AUTO_DIRECT_MAX_ENTRIES", "METHODS"]
 
-AUTO_DIRECT_MAX_DOFS = 40_000
+#: entries of the factor below which ``auto`` factorizes (SuperLU): ~30 M entries ~ 0.5 GB,
+#: a few seconds here; the paper phantom is ~4 M, the fine phantom ~2 G, a 26k-dof bulky
+#: tet mesh ~40 M (``benchmarks/static_solvers.py``)
+AUTO_DIRECT_MAX_ENTRIES = 30_000_000
 METHODS = ("auto", "superlu", "amg", "cholmod")
 
 
@@ -32,12 +48,14 @@ class SolverError(RuntimeError):
 
 @dataclass(frozen=True)
 class SolveInfo:
-    """What a solve did: method, iterations (0 for direct), relative residual, seconds."""
+    """What a solve did: method, iterations (0 for a direct solve), relative residual,
+    seconds, and whether it reused an earlier factorization or hierarchy."""
 
     method: str
     iterations: int
     residual: float
     seconds: float
+    reused: bool = False
 
 
 def rigid_body_modes(points: np.ndarray) -> np.ndarray:
@@ -52,9 +70,172 @@ def rigid_body_modes(points: np.ndarray) -> np.ndarray:
     return B.reshape(3 * n, 6)
 
 
+def estimate_factor_entries(node_graph: sp.spmatrix, block: int = 3) -> int:
+    """Expected entries of the Cholesky factor of a ``block``-dof-per-node stiffness.
+
+    The envelope (profile) of the node graph after a reverse Cuthill-McKee ordering,
+    times ``block**2``: an upper bound of the fill of a profile factorization and, on mesh
+    graphs, within a small factor of a minimum-degree one. Thin shells (a face) have a
+    narrow envelope; bulky 3D meshes a wide one.
+
+    Parameters
+    ----------
+    node_graph : (n, n) sparse, nonzero where two nodes share an element
+    block : dofs per node
+    """
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    g = sp.csr_matrix(node_graph)
+    n = g.shape[0]
+    if n == 0:
+        return 0
+    perm = reverse_cuthill_mckee(g, symmetric_mode=True)
+    rank = np.empty(n, dtype=np.int64)
+    rank[perm] = np.arange(n)
+    rows = np.repeat(np.arange(n), np.diff(g.indptr))
+    first = rank.copy()  # per node: smallest rank among itself and its neighbours
+    np.minimum.at(first, rows, rank[g.indices])
+    return int((np.sum(rank - first) + n) * block * block)
+
+
+def choose_method(method: str, n_dofs: int, factor_entries: int | None) -> str:
+    """The concrete solver for ``method`` (``auto`` decides by ``factor_entries``, or by
+    size when it is unknown: direct below 40k dofs)."""
+    if method not in METHODS:
+        raise ValueError(f"unknown solver {method!r}; expected one of {METHODS}")
+    if method != "auto":
+        return method
+    if factor_entries is None:
+        return "superlu" if n_dofs <= 40_000 else "amg"
+    return "superlu" if factor_entries <= AUTO_DIRECT_MAX_ENTRIES else "amg"
+
+
+def _factorize(A: sp.csc_matrix, method: str, near_nullspace, rtol: float):
+    """A callable ``b -> x`` for ``A`` (exact for direct methods, one AMG-CG solve otherwise)."""
+    if method == "superlu":
+        try:
+            # SPD: symmetric mode with diagonal pivots keeps the minimum-degree ordering of A + A^T
+            # (4x faster than partial pivoting on the paper face, same fill)
+            lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        except RuntimeError as exc:
+            raise SolverError(f"SuperLU failed ({exc}): the system is singular — is the model under-constrained?"
+                              ) from exc
+        return lu.solve
+    if method == "cholmod":
+        try:
+            from sksparse.cholmod import cholesky
+        except ImportError as exc:
+            raise SolverError("solver 'cholmod' needs scikit-sparse (pip install 'scikit-sparse<0.5' after "
+                              "apt-get install libsuitesparse-dev); use 'amg' or 'superlu'") from exc
+        return cholesky(A)
+    import pyamg
+
+    B = near_nullspace if near_nullspace is not None else np.ones((A.shape[0], 1))
+    return pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), B=B, symmetry="symmetric", max_coarse=500,
+                                             strength=("symmetric", {"theta": 0.0}))
+
+
+class LinearSolver:
+    """An SPD solver that reuses its last factorization or AMG hierarchy.
+
+    Parameters
+    ----------
+    method : one of :data:`METHODS`
+    factor_entries : expected factor size for ``auto`` (see :func:`estimate_factor_entries`)
+    rtol : relative residual of AMG-CG solves (and of CG on a reused AMG hierarchy)
+    reuse_rtol : relative residual of CG on a reused direct factorization (tight, so that
+        reusing changes the answer only at round-off level)
+    reuse : precondition later systems of the same size with the stored factorization
+    max_reuse_iterations : CG iterations after which a reuse is abandoned for a new
+        factorization
+    timed_budget : also cap those iterations by what a new factorization costs (its measured
+        time over that of one preconditioner application), so that a failed reuse never costs
+        more than one extra factorization; False keeps the cap fixed (reproducible choices)
+    """
+
+    def __init__(self, method: str = "auto", factor_entries: int | None = None, rtol: float = 1e-9,
+                 reuse: bool = True, max_reuse_iterations: int = 40, reuse_rtol: float = 1e-13,
+                 timed_budget: bool = True):
+        if method not in METHODS:
+            raise ValueError(f"unknown solver {method!r}; expected one of {METHODS}")
+        self.method, self.factor_entries, self.rtol, self.reuse_rtol = method, factor_entries, rtol, reuse_rtol
+        self.reuse, self.max_reuse_iterations, self.timed_budget = reuse, int(max_reuse_iterations), timed_budget
+        self._A = None
+        self._factor = None
+        self._kind = None
+        self._budget = 0
+        self.factorizations = 0
+        self.reuses = 0
+
+    def solve(self, A: sp.spmatrix, b: np.ndarray, near_nullspace: np.ndarray | None = None,
+              x0: np.ndarray | None = None) -> tuple[np.ndarray, SolveInfo]:
+        """Solve ``A x = b`` (``A`` (m, m) sparse SPD, ``b`` (m,)); returns ``x`` and :class:`SolveInfo`."""
+        if not np.isfinite(b).all():
+            raise SolverError("right-hand side holds NaN/inf")
+        t0 = time.perf_counter()
+        m = A.shape[0]
+        if m == 0:
+            return np.zeros(0), SolveInfo("none", 0, 0.0, 0.0)
+        A = sp.csc_matrix(A)
+        x, iterations, reused = None, 0, False
+        if self.reuse and self._A is not None and self._A.shape == A.shape:
+            x, iterations = self._reuse(A, b, x0)
+            reused = x is not None
+        if x is None:
+            kind = choose_method(self.method, m, self.factor_entries)
+            t_factor = time.perf_counter()
+            self._factor, self._kind, self._A = _factorize(A, kind, near_nullspace, self.rtol), kind, A
+            t_apply = time.perf_counter()
+            self.factorizations += 1
+            x, iterations = self._apply(A, b, x0)
+            t_end = time.perf_counter()
+            per_application = (t_end - t_apply) / max(iterations, 1)
+            # a reuse may spend what a new factorization costs, in preconditioned CG iterations
+            cost = (t_apply - t_factor) + (t_end - t_apply)
+            self._budget = int(min(self.max_reuse_iterations, cost / max(per_application, 1e-9))) \
+                if self.timed_budget else self.max_reuse_iterations
+        else:
+            self.reuses += 1
+        bn = np.linalg.norm(b)
+        res = float(np.linalg.norm(A @ x - b) / bn) if bn > 0 else 0.0
+        if not np.isfinite(x).all() or res > max(1e-5, 1e3 * self.rtol):
+            raise SolverError(f"{self._kind} solve did not converge: relative residual {res:.2e} after {iterations} "
+                              f"iterations; the system may be singular (under-constrained model)")
+        return x, SolveInfo(self._kind, iterations, res, time.perf_counter() - t0, reused)
+
+    def _apply(self, A, b, x0) -> tuple[np.ndarray, int]:
+        """Solve with the fresh factorization of ``A``."""
+        if self._kind == "amg":
+            residuals = []
+            x = self._factor.solve(b, x0=x0, tol=self.rtol, accel="cg", maxiter=500, residuals=residuals)
+            return x, len(residuals) - 1
+        return self._factor(b), 0
+
+    def _reuse(self, A, b, x0) -> tuple[np.ndarray | None, int]:
+        """CG on ``A`` preconditioned by the stored factorization; None if it does not converge."""
+        same = (A.nnz == self._A.nnz and np.array_equal(A.indptr, self._A.indptr)
+                and np.array_equal(A.indices, self._A.indices) and np.array_equal(A.data, self._A.data))
+        if same:
+            return self._apply(A, b, x0)
+        if self._kind == "amg":
+            M = self._factor.aspreconditioner(cycle="V")
+        else:
+            M = spla.LinearOperator(A.shape, matvec=self._factor, dtype=float)
+        count = [0]
+
+        def callback(_):
+            count[0] += 1
+
+        rtol = self.rtol if self._kind == "amg" else self.reuse_rtol
+        if self._budget < 2:
+            return None, 0
+        x, info = spla.cg(A, b, x0=x0, rtol=rtol, maxiter=self._budget, M=M, callback=callback)
+        return (x, count[0]) if info == 0 else (None, 0)
+
+
 def solve(A: sp.spmatrix, b: np.ndarray, method: str = "auto", near_nullspace: np.ndarray | None = None,
           x0: np.ndarray | None = None, rtol: float = 1e-9) -> tuple[np.ndarray, SolveInfo]:
-    """Solve ``A x = b`` for SPD ``A``.
+    """Solve ``A x = b`` for SPD ``A`` once (no reuse; ``auto`` decides by size).
 
     Parameters
     ----------
@@ -69,46 +250,4 @@ def solve(A: sp.spmatrix, b: np.ndarray, method: str = "auto", near_nullspace: n
     -------
     x : (m,) and :class:`SolveInfo`
     """
-    if method not in METHODS:
-        raise ValueError(f"unknown solver {method!r}; expected one of {METHODS}")
-    if not np.isfinite(b).all():
-        raise SolverError("right-hand side holds NaN/inf")
-    m = A.shape[0]
-    if method == "auto":
-        method = "superlu" if m <= AUTO_DIRECT_MAX_DOFS else "amg"
-    t0 = time.perf_counter()
-    A = sp.csr_matrix(A)
-    iterations = 0
-    if m == 0:
-        return np.zeros(0), SolveInfo(method, 0, 0.0, 0.0)
-    if method == "superlu":
-        try:
-            # SPD: symmetric mode with diagonal pivots keeps the minimum-degree ordering of A + A^T
-            # (4x faster than partial pivoting on the paper face, same fill)
-            x = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                          options={"SymmetricMode": True}).solve(b)
-        except RuntimeError as exc:
-            raise SolverError(f"SuperLU failed ({exc}): the system is singular — is the model under-constrained?"
-                              ) from exc
-    elif method == "cholmod":
-        try:
-            from sksparse.cholmod import cholesky
-        except ImportError as exc:
-            raise SolverError("solver 'cholmod' needs scikit-sparse (pip install 'scikit-sparse<0.5' after "
-                              "apt-get install libsuitesparse-dev); use 'amg' or 'superlu'") from exc
-        x = cholesky(A.tocsc())(b)
-    else:
-        import pyamg
-
-        B = near_nullspace if near_nullspace is not None else np.ones((m, 1))
-        ml = pyamg.smoothed_aggregation_solver(A, B=B, symmetry="symmetric", max_coarse=500,
-                                               strength=("symmetric", {"theta": 0.0}))
-        residuals = []
-        x = ml.solve(b, x0=x0, tol=rtol, accel="cg", maxiter=500, residuals=residuals)
-        iterations = len(residuals) - 1
-    bn = np.linalg.norm(b)
-    res = float(np.linalg.norm(A @ x - b) / bn) if bn > 0 else 0.0
-    if not np.isfinite(x).all() or res > max(1e-5, 1e3 * rtol):
-        raise SolverError(f"{method} solve did not converge: relative residual {res:.2e} after {iterations} "
-                          f"iterations; the system may be singular (under-constrained model)")
-    return x, SolveInfo(method, iterations, res, time.perf_counter() - t0)
+    return LinearSolver(method, rtol=rtol, reuse=False).solve(A, b, near_nullspace, x0)
