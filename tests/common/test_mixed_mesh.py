@@ -129,3 +129,9 @@ def _wedge_volumes(P, wedges):
     xi, wt = ref.quadrature(2)
     J = np.einsum("eai,qak->eqik", P[wedges], ref.gradient(xi))
     return np.linalg.det(J) @ wt
+
+
+def test_skfem_conversion_refuses_wedges_by_name():
+    """scikit-fem reads no meshio wedges: the conversion says so instead of failing inside skfem."""
+    with pytest.raises(MeshError, match=r"not 'wedge6'"):
+        _wedge(PRISM).to_skfem()

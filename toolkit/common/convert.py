@@ -39,6 +39,8 @@ _FROM_MESHIO = {**{v[1]: k for k, v in CELL_TYPES.items()}, "tetra4": "tet4"}
 #: VTK cell type ids
 _VTK_IDS = {name: ref.vtk_id for name, ref in REFERENCE_ELEMENTS.items()}
 _FROM_VTK = {v: k for k, v in _VTK_IDS.items()}
+#: volume types scikit-fem reads through meshio
+_SKFEM_TYPES = ("hex8", "tet4", "tet10")
 
 
 def _block_slices(mesh: Mesh) -> dict[str, slice]:
@@ -202,6 +204,9 @@ def to_skfem(mesh: Mesh):
     import meshio
 
     ctype = mesh.volume_type
+    if ctype not in _SKFEM_TYPES:
+        raise MeshError(f"scikit-fem conversion supports {list(_SKFEM_TYPES)}, not {ctype!r} (scikit-fem reads no "
+                        "meshio wedges); the static assembly does not need it (toolkit.static.kinematics)")
     off = mesh.block_offset(ctype)
     n = mesh.cells[ctype].shape[0]
     cell_sets = {}
