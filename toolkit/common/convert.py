@@ -6,7 +6,9 @@ pyvista and scikit-fem meshes.
 - pyvista/VTK has no sets: they travel as ``uint8`` masks named ``nodeset:NAME``
   (point data) and ``elset:NAME`` (cell data); :func:`from_pyvista` decodes them.
   Wedges are permuted between our (Abaqus/meshio) node order and VTK's
-  (``[0, 2, 1, 3, 5, 4]``, the reference record's ``vtk_order``), as meshio does for VTU.
+  (``[0, 2, 1, 3, 5, 4]``, the reference record's ``vtk_order``), as meshio does for VTU:
+  VTK then extracts outward faces (VTK 9.7's volume and quality filters assume the
+  opposite wedge order and report such wedges as negative; rendering is unaffected).
 - scikit-fem meshes carry element sets as subdomains; node sets and fields stay
   on our side (pass them back to :func:`from_skfem`). The only public place where
   the ``(3, n)`` layout of scikit-fem appears is this module.
@@ -156,7 +158,14 @@ def to_pyvista(mesh: Mesh):
 
 
 def from_pyvista(grid) -> Mesh:
-    """A :class:`Mesh` from a pyvista/VTK unstructured grid (or any pyvista dataset)."""
+    """A :class:`Mesh` from a pyvista/VTK unstructured grid (or any pyvista dataset).
+
+    Cells are grouped into one block per type in order of first appearance, keeping
+    VTK's order within a type (meshers often interleave types); cell data and
+    ``elset:`` masks follow, so element ``k`` of the mesh is VTK cell ``perm[k]`` with
+    ``perm`` the stable sort of the cells by block. Wedges are permuted from VTK's node
+    order to ours.
+    """
     import pyvista as pv
 
     if not isinstance(grid, pv.UnstructuredGrid):
@@ -167,13 +176,8 @@ def from_pyvista(grid) -> Mesh:
         raise MeshError(f"VTK cell type ids {unknown} are not supported; expected {sorted(_FROM_VTK)} "
                         f"({sorted(_VTK_IDS)})")
     celltypes = np.asarray(grid.celltypes)
-    # keep VTK's global cell order: require cells of one type to be contiguous
     order = list(dict.fromkeys(celltypes.tolist()))
-    starts = {t: np.flatnonzero(celltypes == t) for t in order}
-    for t, idx in starts.items():
-        if idx.size and idx[-1] - idx[0] + 1 != idx.size:
-            raise MeshError(f"cells of VTK type {t} are interleaved with other types; expected one block per type")
-    perm = np.concatenate([starts[t] for t in order])
+    perm = np.concatenate([np.flatnonzero(celltypes == t) for t in order]) if order else np.zeros(0, dtype=np.int64)
     # VTK node order -> ours (VTK node k is our node vtk_order[k]; wedges differ)
     cells = {_FROM_VTK[t]: np.asarray(cells_dict[t])[:, np.argsort(REFERENCE_ELEMENTS[_FROM_VTK[t]].vtk_order)]
              for t in order}

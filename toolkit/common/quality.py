@@ -122,7 +122,8 @@ def scaled_jacobian(ctype: str, x: np.ndarray) -> np.ndarray:
     """
     fn = _SCALED_JACOBIAN.get(ctype)
     if fn is None:
-        raise MeshError(f"scaled Jacobian of cell type {ctype!r} is not defined; expected one of {list(_SCALED_JACOBIAN)}")
+        raise MeshError(f"scaled Jacobian of cell type {ctype!r} is not defined;"
+                        f" expected one of {list(_SCALED_JACOBIAN)}")
     x = np.asarray(x, dtype=float)
     n = REFERENCE_ELEMENTS[ctype].n_nodes
     if x.ndim != 3 or x.shape[1:] != (n, 3):
