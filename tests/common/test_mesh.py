@@ -81,7 +81,7 @@ def test_tet10_folded_by_midside_node_is_inverted():
         (dict(points=np.zeros((4, 2)), cells={}), r"expected \(n_points, 3\)"),
         (dict(points=np.full((4, 3), np.nan), cells={}), "NaN"),
         (dict(points=REG_TET, cells={"tet4": [[0, 1, 2, 7]]}), "refers to node 7"),
-        (dict(points=REG_TET, cells={"wedge6": [[0, 1, 2, 3, 0, 1]]}), "unknown cell type 'wedge6'"),
+        (dict(points=REG_TET, cells={"pyramid5": [[0, 1, 2, 3, 0]]}), "unknown cell type 'pyramid5'"),
         (dict(points=REG_TET, cells={"tet4": [[0, 1, 2]]}), r"expected \(n_cells, 4\)"),
         (dict(points=REG_TET, cells={"tet4": [[0, 1, 2, 3]]}, node_sets={"a": [9]}), "node set 'a' holds node 9"),
         (dict(points=REG_TET, cells={"tet4": [[0, 1, 2, 3]]}, element_sets={"e": [1]}), "element set 'e'"),

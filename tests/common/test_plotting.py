@@ -32,6 +32,22 @@ def test_headless_render_shows_the_field(tmp_path):
     assert len(colours) > 20  # a colour map, not a flat silhouette
 
 
+def test_render_mixed_mesh(tmp_path):
+    """A mesh with hex8, wedge6 and tet4 blocks renders off-screen, coloured by a cell
+    field over all blocks: a non-empty PNG that is not all background."""
+    pytest.importorskip("pyvista")
+    from toolkit.common.mixed_bar import mixed_bar
+    from toolkit.common.plotting import render
+
+    mesh = mixed_bar(2)
+    block_id = np.concatenate([np.full(b.n_cells, k, float) for k, b in enumerate(mesh.volume_blocks)])
+    path = render(mesh, tmp_path / "mixed.png", scalars=block_id, camera="iso", title="block")
+    assert path.stat().st_size > 0
+    rgb = _image(path)[..., :3]
+    background = np.all(rgb > 0.99, axis=-1)
+    assert 0.05 < 1 - background.mean() < 0.95
+
+
 def test_render_rejects_bad_scalars(tmp_path):
     from toolkit.common.plotting import render
 

@@ -6,11 +6,13 @@ Imports nothing from :mod:`toolkit.static` or :mod:`toolkit.impact`.
 from toolkit.common.io import TimeSeries, TimeSeriesWriter, read, read_time_series, write, write_time_series
 from toolkit.common.mesh import (
     CELL_TYPES,
+    CellBlock,
     DegenerateElementError,
     InvertedElementError,
     Mesh,
     MeshError,
 )
+from toolkit.common.mixed_bar import mixed_bar
 from toolkit.common.phantom import BoneSegment, FacePhantom, FaceShape, ball, ball_density, face_hex, face_tet
 from toolkit.common.runtime import set_threads
 
@@ -20,6 +22,7 @@ __all__ = [
     "InvertedElementError",
     "DegenerateElementError",
     "CELL_TYPES",
+    "CellBlock",
     "FaceShape",
     "FacePhantom",
     "BoneSegment",
@@ -27,6 +30,7 @@ __all__ = [
     "face_tet",
     "ball",
     "ball_density",
+    "mixed_bar",
     "read",
     "write",
     "read_time_series",

@@ -5,6 +5,10 @@ pyvista and scikit-fem meshes.
   fields are ``point_data``/``cell_data`` (cell data split per block).
 - pyvista/VTK has no sets: they travel as ``uint8`` masks named ``nodeset:NAME``
   (point data) and ``elset:NAME`` (cell data); :func:`from_pyvista` decodes them.
+  Wedges are permuted between our (Abaqus/meshio) node order and VTK's
+  (``[0, 2, 1, 3, 5, 4]``, the reference record's ``vtk_order``), as meshio does for VTU:
+  VTK then extracts outward faces (VTK 9.7's volume and quality filters assume the
+  opposite wedge order and report such wedges as negative; rendering is unaffected).
 - scikit-fem meshes carry element sets as subdomains; node sets and fields stay
   on our side (pass them back to :func:`from_skfem`). The only public place where
   the ``(3, n)`` layout of scikit-fem appears is this module.
@@ -14,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from toolkit.common.fem.reference import REFERENCE_ELEMENTS
 from toolkit.common.mesh import CELL_TYPES, Mesh, MeshError
 
 __all__ = [
@@ -31,10 +36,13 @@ __all__ = [
 NODESET_PREFIX = "nodeset:"
 ELSET_PREFIX = "elset:"
 
-_FROM_MESHIO = {v[1]: k for k, v in CELL_TYPES.items()}
+#: meshio cell type -> ours; ``tetra4`` is what meshio reads Abaqus C3D4H as
+_FROM_MESHIO = {**{v[1]: k for k, v in CELL_TYPES.items()}, "tetra4": "tet4"}
 #: VTK cell type ids
-_VTK_IDS = {"hex8": 12, "tet4": 10, "tet10": 24, "tri3": 5, "quad4": 9}
+_VTK_IDS = {name: ref.vtk_id for name, ref in REFERENCE_ELEMENTS.items()}
 _FROM_VTK = {v: k for k, v in _VTK_IDS.items()}
+#: volume types scikit-fem reads through meshio
+_SKFEM_TYPES = ("hex8", "tet4", "tet10")
 
 
 def _block_slices(mesh: Mesh) -> dict[str, slice]:
@@ -105,7 +113,7 @@ def from_meshio(m) -> Mesh:
     element_sets = {}
     for name, per_block in (m.cell_sets or {}).items():
         ids = [np.asarray(per_block[i], dtype=np.int64) + block_new_start[i]
-               for i in range(len(m.cells)) if per_block[i] is not None and len(per_block[i])]
+               for i in range(min(len(m.cells), len(per_block))) if per_block[i] is not None and len(per_block[i])]
         element_sets[name] = np.concatenate(ids) if ids else np.zeros(0, dtype=np.int64)
     return Mesh(
         pts,
@@ -126,6 +134,7 @@ def to_pyvista(mesh: Mesh):
     types = []
     for t, c in mesh.cells.items():
         k = c.shape[1]
+        c = c[:, REFERENCE_ELEMENTS[t].vtk_order]  # our node order -> VTK's (wedges differ)
         conn.append(np.hstack([np.full((c.shape[0], 1), k), c]).ravel())
         types.append(np.full(c.shape[0], _VTK_IDS[t], dtype=np.uint8))
     grid = pv.UnstructuredGrid(
@@ -149,7 +158,14 @@ def to_pyvista(mesh: Mesh):
 
 
 def from_pyvista(grid) -> Mesh:
-    """A :class:`Mesh` from a pyvista/VTK unstructured grid (or any pyvista dataset)."""
+    """A :class:`Mesh` from a pyvista/VTK unstructured grid (or any pyvista dataset).
+
+    Cells are grouped into one block per type in order of first appearance, keeping
+    VTK's order within a type (meshers often interleave types); cell data and
+    ``elset:`` masks follow, so element ``k`` of the mesh is VTK cell ``perm[k]`` with
+    ``perm`` the stable sort of the cells by block. Wedges are permuted from VTK's node
+    order to ours.
+    """
     import pyvista as pv
 
     if not isinstance(grid, pv.UnstructuredGrid):
@@ -160,14 +176,11 @@ def from_pyvista(grid) -> Mesh:
         raise MeshError(f"VTK cell type ids {unknown} are not supported; expected {sorted(_FROM_VTK)} "
                         f"({sorted(_VTK_IDS)})")
     celltypes = np.asarray(grid.celltypes)
-    # keep VTK's global cell order: require cells of one type to be contiguous
     order = list(dict.fromkeys(celltypes.tolist()))
-    starts = {t: np.flatnonzero(celltypes == t) for t in order}
-    for t, idx in starts.items():
-        if idx.size and idx[-1] - idx[0] + 1 != idx.size:
-            raise MeshError(f"cells of VTK type {t} are interleaved with other types; expected one block per type")
-    perm = np.concatenate([starts[t] for t in order])
-    cells = {_FROM_VTK[t]: np.asarray(cells_dict[t]) for t in order}
+    perm = np.concatenate([np.flatnonzero(celltypes == t) for t in order]) if order else np.zeros(0, dtype=np.int64)
+    # VTK node order -> ours (VTK node k is our node vtk_order[k]; wedges differ)
+    cells = {_FROM_VTK[t]: np.asarray(cells_dict[t])[:, np.argsort(REFERENCE_ELEMENTS[_FROM_VTK[t]].vtk_order)]
+             for t in order}
     node_sets, element_sets, pdata, cdata = {}, {}, {}, {}
     for k in grid.point_data.keys():
         v = np.asarray(grid.point_data[k])
@@ -195,6 +208,9 @@ def to_skfem(mesh: Mesh):
     import meshio
 
     ctype = mesh.volume_type
+    if ctype not in _SKFEM_TYPES:
+        raise MeshError(f"scikit-fem conversion supports {list(_SKFEM_TYPES)}, not {ctype!r} (scikit-fem reads no "
+                        "meshio wedges); the static assembly does not need it (toolkit.static.kinematics)")
     off = mesh.block_offset(ctype)
     n = mesh.cells[ctype].shape[0]
     cell_sets = {}

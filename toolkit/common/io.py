@@ -25,6 +25,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
+from toolkit.common.abaqus import write_abaqus
 from toolkit.common.convert import ELSET_PREFIX, NODESET_PREFIX, from_meshio, to_meshio
 from toolkit.common.mesh import Mesh, MeshError
 
@@ -144,13 +145,19 @@ def _decode_sets(mesh: Mesh) -> Mesh:
 def write(path: str | os.PathLike, mesh: Mesh) -> Path:
     """Write ``mesh`` to VTU, XDMF or Abaqus ``.inp`` (by suffix), atomically.
 
-    Abaqus files keep the sets but no fields (the format has none).
+    Abaqus files keep the sets but no fields (the format has none). Meshes may mix
+    volume blocks (``hex8``, ``wedge6``, ``tet4``, ``tet10``) in every format; element
+    sets may span blocks.
     """
     import meshio
 
     path = Path(path)
     fmt = _format(path)
-    m = to_meshio(mesh) if fmt == "abaqus" else _encode_sets(mesh)
+    if fmt == "abaqus":  # our writer: each set once, spanning blocks (see toolkit.common.abaqus)
+        with atomic_path(path) as tmp, open(tmp, "w") as f:
+            write_abaqus(f, mesh)
+        return path
+    m = _encode_sets(mesh)
     if fmt == "xdmf":
         # XDMF is two files (.xdmf + .h5); write both in a scratch folder, then move
         with tempfile.TemporaryDirectory(dir=path.parent if path.parent.exists() else None) as tmp:
@@ -216,7 +223,8 @@ def read(
 
 
 # ------------------------------------------------------------------ time series
-_XDMF_TOPOLOGY = {"hex8": "Hexahedron", "tet4": "Tetrahedron", "tet10": "Tetrahedron_10",
+#: XDMF topology names (wedges in meshio's XDMF node order, which is ours)
+_XDMF_TOPOLOGY = {"hex8": "Hexahedron", "wedge6": "Wedge", "tet4": "Tetrahedron", "tet10": "Tetrahedron_10",
                   "tri3": "Triangle", "quad4": "Quadrilateral"}
 
 

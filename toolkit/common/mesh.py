@@ -1,14 +1,28 @@
 """The mesh container shared by every workflow.
 
 A :class:`Mesh` holds points ``(n_points, 3)`` in mm, cell blocks by type
-(``hex8``, ``tet4``, ``tet10``, ``tri3``, ``quad4``), named node sets, named
-element sets, and point/cell fields. It is immutable: transforms return new meshes
-(``mesh.translated(u)``, ``mesh.with_node_sets(...)``).
+(``hex8``, ``wedge6``, ``tet4``, ``tet10``, ``tri3``, ``quad4``), named node sets,
+named element sets, and point/cell fields. It is immutable: transforms return new
+meshes (``mesh.translated(u)``, ``mesh.with_node_sets(...)``).
 
+A mesh may hold several volume blocks, as real face meshes do (hexahedra with wedges
+and tetrahedra where the hexahedral mesher gave up): at most one block per type.
 Element numbering is global: the elements of the cell blocks are numbered
 consecutively in block order, so element sets and cell fields index
-``range(mesh.n_cells)``. Node ordering inside a cell follows VTK/meshio (which for
-``tet10`` is also Abaqus C3D10's).
+``range(mesh.n_cells)`` and may span blocks. :attr:`Mesh.volume_blocks` lists the
+volume blocks with the global index of their first element::
+
+    for block in mesh.volume_blocks:      # CellBlock(ctype, cells, offset)
+        x = mesh.points[block.cells]      # (n_b, nodes_per_cell, 3) mm
+        ids = block.elements              # global element indices of the block
+
+Single-type meshes can use :attr:`Mesh.volume_type` and :attr:`Mesh.volume_cells`,
+which raise a :class:`MeshError` naming the types on a mixed mesh.
+
+Node ordering inside a cell is that of the cell's reference element
+(:mod:`toolkit.common.fem.reference`): VTK/meshio for ``hex8``/``tet4``/``tet10``
+(which for ``tet10`` is also Abaqus C3D10's) and meshio/Abaqus C3D6/gmsh for
+``wedge6`` (the (0, 1, 2) triangle's normal points into the element).
 
 Conversions (lossless, sets and fields kept) live in :mod:`toolkit.common.convert`;
 element quality in :mod:`toolkit.common.quality`.
@@ -19,12 +33,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from types import MappingProxyType
-from typing import Mapping
+from typing import Mapping, NamedTuple
 
 import numpy as np
 
+from toolkit.common.fem.reference import REFERENCE_ELEMENTS
+
 __all__ = [
     "Mesh",
+    "CellBlock",
     "CELL_TYPES",
     "VOLUME_TYPES",
     "SURFACE_TYPES",
@@ -33,18 +50,41 @@ __all__ = [
     "DegenerateElementError",
 ]
 
-#: nodes per cell, meshio name, spatial dimension of the reference cell
+#: nodes per cell, meshio name, spatial dimension of the reference cell (from the reference records)
 CELL_TYPES: Mapping[str, tuple[int, str, int]] = MappingProxyType(
-    {
-        "hex8": (8, "hexahedron", 3),
-        "tet4": (4, "tetra", 3),
-        "tet10": (10, "tetra10", 3),
-        "tri3": (3, "triangle", 2),
-        "quad4": (4, "quad", 2),
-    }
+    {name: (ref.n_nodes, ref.meshio, ref.dim) for name, ref in REFERENCE_ELEMENTS.items()}
 )
-VOLUME_TYPES = ("hex8", "tet4", "tet10")
-SURFACE_TYPES = ("tri3", "quad4")
+VOLUME_TYPES = tuple(name for name, ref in REFERENCE_ELEMENTS.items() if ref.dim == 3)
+SURFACE_TYPES = tuple(name for name, ref in REFERENCE_ELEMENTS.items() if ref.dim == 2)
+
+
+class CellBlock(NamedTuple):
+    """One cell block of a mesh.
+
+    Attributes
+    ----------
+    ctype : cell type (a key of :data:`CELL_TYPES`)
+    cells : (n_b, nodes_per_cell) int64 connectivity
+    offset : global index of the block's first element
+    """
+
+    ctype: str
+    cells: np.ndarray
+    offset: int
+
+    @property
+    def n_cells(self) -> int:
+        return self.cells.shape[0]
+
+    @property
+    def elements(self) -> np.ndarray:
+        """Global element indices ``(n_b,)`` int64 of the block."""
+        return np.arange(self.offset, self.offset + self.cells.shape[0], dtype=np.int64)
+
+    def local(self, ids: np.ndarray) -> np.ndarray:
+        """The global element ``ids`` that lie in this block, as indices into :attr:`cells`."""
+        ids = np.asarray(ids, dtype=np.int64)
+        return ids[(ids >= self.offset) & (ids < self.offset + self.cells.shape[0])] - self.offset
 
 
 class MeshError(ValueError):
@@ -177,25 +217,52 @@ class Mesh:
         return sum(c.shape[0] for c in self.cells.values())
 
     @property
+    def blocks(self) -> tuple[CellBlock, ...]:
+        """Every cell block (volume and surface) in global element order."""
+        out, offset = [], 0
+        for ctype, conn in self.cells.items():
+            out.append(CellBlock(ctype, conn, offset))
+            offset += conn.shape[0]
+        return tuple(out)
+
+    @property
+    def volume_blocks(self) -> tuple[CellBlock, ...]:
+        """The volume blocks (``hex8``, ``wedge6``, ``tet4``, ``tet10``) in global element order."""
+        return tuple(b for b in self.blocks if b.ctype in VOLUME_TYPES)
+
+    @property
+    def volume_types(self) -> tuple[str, ...]:
+        """The volume cell types present, in block order."""
+        return tuple(t for t in self.cells if t in VOLUME_TYPES)
+
+    @property
+    def n_volume_cells(self) -> int:
+        """Number of volume elements over all volume blocks."""
+        return sum(b.n_cells for b in self.volume_blocks)
+
+    @property
     def volume_type(self) -> str:
-        """The one volume cell type of the mesh (``hex8``, ``tet4`` or ``tet10``)."""
-        types = [t for t in self.cells if t in VOLUME_TYPES]
+        """The one volume cell type of a single-type mesh (``hex8``, ``wedge6``, ``tet4`` or ``tet10``).
+
+        Raises :class:`MeshError` naming the types when the mesh has none or several
+        (mixed meshes: iterate :attr:`volume_blocks`).
+        """
+        types = self.volume_types
         if len(types) != 1:
-            raise MeshError(f"mesh has volume cell types {types}; expected exactly one")
+            hint = " (a mixed mesh: iterate mesh.volume_blocks instead)" if types else ""
+            raise MeshError(f"mesh has volume cell types {list(types)}; expected exactly one here{hint}")
         return types[0]
 
     @property
     def volume_cells(self) -> np.ndarray:
-        """Connectivity of the volume block, ``(n_elements, nodes_per_cell)`` int64."""
+        """Connectivity of the single volume block, ``(n_elements, nodes_per_cell)`` int64."""
         return self.cells[self.volume_type]
 
     def block_offset(self, ctype: str) -> int:
         """Global index of the first element of block ``ctype``."""
-        offset = 0
-        for t, c in self.cells.items():
-            if t == ctype:
-                return offset
-            offset += c.shape[0]
+        for b in self.blocks:
+            if b.ctype == ctype:
+                return b.offset
         raise KeyError(f"no cell block {ctype!r}; the mesh has {list(self.cells)}")
 
     @cached_property
@@ -252,51 +319,82 @@ class Mesh:
         return replace(self, point_data={}, cell_data={})
 
     # ------------------------------------------------------------- geometry
+    def boundary_face_blocks(self) -> dict[str, np.ndarray]:
+        """Boundary faces of all volume blocks by face type, outward-oriented.
+
+        Returns
+        -------
+        ``{"tri3": (k, 3), "quad4": (m, 4)}`` int64 (types with no face left out), in the
+        mesh's node numbering (corner nodes only for ``tet10``), counter-clockwise seen
+        from outside. A face shared by two cells, of the same type or not, is interior.
+        """
+        from toolkit.common.topology import boundary_face_blocks
+
+        return boundary_face_blocks(self.cells)
+
     def boundary_faces(self) -> np.ndarray:
-        """Faces on the boundary of the volume block, outward-oriented.
+        """Faces on the boundary of the volume blocks, outward-oriented, as one array.
 
         Returns
         -------
         (n_faces, 3) or (n_faces, 4) int64
             Triangles for tetrahedra (corner nodes only for ``tet10``), quads for
-            hexahedra, in the mesh's node numbering, ordered counter-clockwise when
-            seen from outside.
+            hexahedra, counter-clockwise seen from outside. A boundary with both
+            triangles and quads (wedges, mixed meshes) raises :class:`MeshError`: use
+            :meth:`boundary_face_blocks` or
+            :func:`toolkit.common.topology.triangulated_boundary` there.
         """
-        from toolkit.common.topology import boundary_faces
-
-        return boundary_faces(self.volume_type, self.volume_cells)
+        blocks = self.boundary_face_blocks()
+        if len(blocks) > 1:
+            raise MeshError(f"the boundary has {', '.join(f'{len(v)} {k}' for k, v in blocks.items())} faces"
+                            f" (volume types {list(self.volume_types)}); one array needs one face type:"
+                            " use mesh.boundary_face_blocks() or topology.triangulated_boundary(mesh.cells)")
+        if not blocks:
+            if not self.volume_types:
+                raise MeshError(f"mesh has no volume block (cell types {list(self.cells)}); no boundary faces")
+            size = 4 if self.volume_types == ("hex8",) else 3
+            return np.zeros((0, size), dtype=np.int64)
+        return next(iter(blocks.values()))
 
     def surface(self) -> "Mesh":
         """The boundary surface as a ``tri3``/``quad4`` mesh with compacted points.
 
-        Point data ``parent_node`` (int64) maps each surface point to its node in
-        this mesh; node sets are restricted to the surface and renumbered.
+        A mixed boundary gives both blocks (``tri3`` first). Point data ``parent_node``
+        (int64) maps each surface point to its node in this mesh; node sets are
+        restricted to the surface and renumbered.
         """
-        faces = self.boundary_faces()
-        used = np.unique(faces)
+        faces = self.boundary_face_blocks()
+        used = np.unique(np.concatenate([f.ravel() for f in faces.values()])) if faces else \
+            np.zeros(0, dtype=np.int64)
         renumber = np.full(self.n_points, -1, dtype=np.int64)
         renumber[used] = np.arange(used.size)
-        ctype = "quad4" if faces.shape[1] == 4 else "tri3"
         sets = {}
         for name, ids in self.node_sets.items():
             keep = renumber[ids]
             sets[name] = keep[keep >= 0]
         pdata = {k: v[used] for k, v in self.point_data.items()}
         pdata["parent_node"] = used
-        return Mesh(self.points[used], {ctype: renumber[faces]}, node_sets=sets, point_data=pdata)
+        cells = {ctype: renumber[f] for ctype, f in faces.items()}
+        return Mesh(self.points[used], cells, node_sets=sets, point_data=pdata)
 
     def scaled_jacobian(self) -> np.ndarray:
-        """Per-element scaled Jacobian of the volume block, ``(n_elements,)``.
+        """Per-element scaled Jacobian of all volume blocks, ``(n_volume_cells,)``.
 
-        1 for an ideal cube/regular tetrahedron, <= 0 for inverted elements. See
+        Blocks are concatenated in global element order (so the index is the global
+        element index when the volume blocks come first, as in the phantoms and in
+        files read here). 1 for an ideal cube / regular tetrahedron / right prism on an
+        equilateral triangle, <= 0 for inverted elements. See
         :func:`toolkit.common.quality.scaled_jacobian` for the definitions.
         """
         from toolkit.common.quality import scaled_jacobian
 
-        return scaled_jacobian(self.volume_type, self.points[self.volume_cells])
+        parts = [scaled_jacobian(b.ctype, self.points[b.cells]) for b in self.volume_blocks]
+        return np.concatenate(parts) if parts else np.zeros(0)
 
     def check(self, min_scaled_jacobian: float = 1e-3) -> "Mesh":
         """Raise if any volume element is inverted or degenerate; return ``self``.
+
+        All volume blocks are checked; messages give global element indices.
 
         Raises
         ------
@@ -305,10 +403,9 @@ class Mesh:
         DegenerateElementError
             0 < scaled Jacobian < ``min_scaled_jacobian``.
         """
-        from toolkit.common.quality import check_elements
+        from toolkit.common.quality import check_blocks
 
-        check_elements(self.volume_type, self.points[self.volume_cells], min_scaled_jacobian,
-                       offset=self.block_offset(self.volume_type))
+        check_blocks(self.points, self.volume_blocks, min_scaled_jacobian)
         return self
 
     # ----------------------------------------------------------- conversion
@@ -337,7 +434,7 @@ class Mesh:
         return from_pyvista(grid)
 
     def to_skfem(self):
-        """scikit-fem mesh of the volume block (``MeshHex1``, ``MeshTet1``, ``MeshTet2``).
+        """scikit-fem mesh of the single volume block (``MeshHex1``, ``MeshTet1``, ``MeshTet2``).
 
         Element sets become skfem subdomains. scikit-fem may renumber nodes (it puts
         the vertices of quadratic meshes first); :func:`toolkit.common.convert.skfem_node_map`

@@ -86,7 +86,7 @@ def render(
 
     Parameters
     ----------
-    mesh : Mesh (volume or surface), mm
+    mesh : Mesh (volume or surface, any mix of cell blocks), mm
     path : PNG file to write (atomically)
     scalars : name of a point/cell field, or ``(n_points,)``/``(n_cells,)`` values;
         ``(n, 3)`` vectors are shown by magnitude (e.g. displacement in mm, von
@@ -115,7 +115,7 @@ def render(
     grid = shown.to_pyvista()
     if values is not None:
         (grid.point_data if on_points else grid.cell_data)["_scalars"] = values
-    surface = grid.extract_surface(algorithm="dataset_surface") if any(t in ("hex8", "tet4", "tet10") for t in mesh.cells) else grid
+    surface = grid.extract_surface(algorithm="dataset_surface") if mesh.volume_types else grid
     plotter = pv.Plotter(off_screen=True, window_size=list(window_size))
     try:
         plotter.set_background("white")

@@ -1,17 +1,23 @@
 """Mesh topology: element faces, edges, boundary extraction, hex-to-tet splitting.
 
-Local node orderings follow VTK/meshio. For ``hex8`` the corners are
-``0:(0,0,0) 1:(1,0,0) 2:(1,1,0) 3:(0,1,0) 4:(0,0,1) 5:(1,0,1) 6:(1,1,1) 7:(0,1,1)``;
-for ``tet10`` the mid-edge nodes 4..9 sit on edges (0,1) (1,2) (0,2) (0,3) (1,3) (2,3),
-which is also Abaqus C3D10's order.
+Local node orderings and faces come from the reference-element records
+(:mod:`toolkit.common.fem.reference`): VTK/meshio for ``hex8``/``tet4``/``tet10``
+(``hex8`` corners ``0:(0,0,0) 1:(1,0,0) 2:(1,1,0) 3:(0,1,0) 4:(0,0,1) 5:(1,0,1)
+6:(1,1,1) 7:(0,1,1)``; ``tet10`` mid-edge nodes 4..9 on edges (0,1) (1,2) (0,2) (0,3)
+(1,3) (2,3), also Abaqus C3D10's order) and Abaqus C3D6/meshio for ``wedge6``.
 """
 
 from __future__ import annotations
 
+from types import MappingProxyType
+
 import numpy as np
+
+from toolkit.common.fem.reference import REFERENCE_ELEMENTS, TET_EDGES
 
 __all__ = [
     "FACES",
+    "FACE_SETS",
     "TET_EDGES",
     "boundary_faces",
     "boundary_face_blocks",
@@ -20,42 +26,38 @@ __all__ = [
     "tet10_from_tet4",
     "kuhn_tets",
     "orient_tets",
+    "wedges_from_hexes",
 ]
 
-#: outward faces (counter-clockwise seen from outside) of positively oriented cells
-FACES = {
-    "hex8": np.array(
-        [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]
-    ),
-    "tet4": np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]]),
-}
-FACES["tet10"] = FACES["tet4"]
-#: outward faces of each volume type grouped by face size (a wedge has both triangles and quads)
-FACE_SETS = {"hex8": (FACES["hex8"],), "tet4": (FACES["tet4"],), "tet10": (FACES["tet4"],)}
-
-#: corner pairs of the tetrahedron edges, in the order of the tet10 mid-edge nodes
-TET_EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+_VOLUME = {name: ref for name, ref in REFERENCE_ELEMENTS.items() if ref.dim == 3}
+#: outward faces of each volume type grouped by face size (a wedge has 2 triangles and 3 quads),
+#: counter-clockwise seen from outside for positively oriented cells; corner nodes only
+FACE_SETS = MappingProxyType({name: ref.faces for name, ref in _VOLUME.items()})
+#: the faces of the volume types whose faces all have one size, as one ``(n_faces, size)`` array
+FACES = MappingProxyType({name: ref.faces[0] for name, ref in _VOLUME.items() if len(ref.faces) == 1})
+_FACE_TYPES = {3: "tri3", 4: "quad4"}
 
 
 def boundary_faces(ctype: str, cells: np.ndarray) -> np.ndarray:
-    """Faces that belong to exactly one cell.
+    """Faces of one cell block that belong to exactly one cell.
 
     Parameters
     ----------
-    ctype : ``hex8``, ``tet4`` or ``tet10``
+    ctype : ``hex8``, ``tet4`` or ``tet10`` (faces of one size; for ``wedge6`` and mixed
+        meshes use :func:`boundary_face_blocks`)
     cells : (n_cells, nodes_per_cell) int
 
     Returns
     -------
     (n_faces, 4) or (n_faces, 3) int64, outward oriented (corner nodes only for tet10).
     """
+    if ctype not in FACE_SETS:
+        raise ValueError(f"boundary faces of cell type {ctype!r} are not defined; expected one of {sorted(FACE_SETS)}")
     if ctype not in FACES:
-        raise ValueError(f"boundary faces of cell type {ctype!r} are not defined; expected one of {sorted(FACES)}")
-    local = FACES[ctype]
-    faces = cells[:, local].reshape(-1, local.shape[1])
-    key = np.sort(faces, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return faces[counts[inverse.ravel()] == 1]
+        raise ValueError(f"{ctype} cells have faces of several sizes; use boundary_face_blocks({{{ctype!r}: cells}})")
+    blocks = boundary_face_blocks({ctype: cells})
+    size = FACES[ctype].shape[1]
+    return blocks.get(_FACE_TYPES[size], np.zeros((0, size), dtype=np.int64))
 
 
 def boundary_face_blocks(cells) -> dict[str, np.ndarray]:
@@ -72,10 +74,11 @@ def boundary_face_blocks(cells) -> dict[str, np.ndarray]:
     """
     faces = {3: [], 4: []}
     for ctype, conn in cells.items():
+        conn = np.asarray(conn, dtype=np.int64)
         for local in FACE_SETS.get(ctype, ()):
             faces[local.shape[1]].append(conn[:, local].reshape(-1, local.shape[1]))
     out = {}
-    for k, name in ((3, "tri3"), (4, "quad4")):
+    for k, name in _FACE_TYPES.items():
         if not faces[k]:
             continue
         f = np.concatenate(faces[k])
@@ -167,3 +170,36 @@ def kuhn_tets(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
         p2 = bit[a] + bit[b]
         tets.append(np.stack([c[:, 0], c[:, p1], c[:, p2], c[:, 7]], axis=1))
     return orient_tets(points, np.concatenate(tets, axis=0))
+
+
+def wedges_from_hexes(corners: np.ndarray, points: np.ndarray | None = None) -> np.ndarray:
+    """Split hexahedra into 2 wedges each, prism axis along the third local direction.
+
+    The cut runs through the local corners ``(0,0,*)`` and ``(1,1,*)``: the triangles at
+    ``k = 0`` and ``k = 1`` are the ones :func:`kuhn_tets` puts on those faces, so wedges
+    stacked on Kuhn tetrahedra (or on each other) conform, and the quad faces are the
+    hexahedra's own side faces, so wedges beside hexahedra conform.
+
+    Parameters
+    ----------
+    corners : (n_cells, 2, 2, 2) int
+        Node of each cell at local corner ``[i, j, k]``.
+    points : (n_points, 3) float, optional
+        When given, wedges with a negative Jacobian (a left-handed local frame) are
+        flipped to a positive orientation.
+
+    Returns
+    -------
+    (2 * n_cells, 6) int64 in the ``wedge6`` (Abaqus C3D6) node order: the first
+    wedge of every cell, then the second.
+    """
+    c = np.asarray(corners, dtype=np.int64).reshape(-1, 2, 2, 2)
+    bottoms = ([(0, 0), (1, 0), (1, 1)], [(0, 0), (1, 1), (0, 1)])
+    wedges = [np.stack([c[:, i, j, k] for k in (0, 1) for i, j in tri], axis=1) for tri in bottoms]
+    wedges = np.concatenate(wedges, axis=0)
+    if points is not None:
+        x = np.asarray(points, dtype=float)[wedges]
+        e1, e2, e3 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]
+        flip = np.einsum("ij,ij->i", np.cross(e1, e2), e3) < 0
+        wedges[flip] = wedges[flip][:, [0, 2, 1, 3, 5, 4]]
+    return wedges

@@ -1,92 +1,65 @@
-"""Vectorized finite-element assembly for solid elements (hex8, tet4, tet10).
+"""Vectorized finite-element assembly for solid elements (hex8, wedge6, tet4, tet10),
+on meshes that mix them.
 
-Shape-function gradients and quadrature weights come from scikit-fem (the only
-place where its ``(3, n)`` layout is read); element matrices are built with batched
-``numpy.matmul`` over elements and scattered into a CSR matrix through a
+Shape-function gradients and quadrature weights come from the reference-element records
+(:mod:`toolkit.common.fem`, through :func:`toolkit.static.kinematics.kinematics`), one
+volume block at a time; element matrices are built with batched ``numpy.matmul`` over the
+elements of a block and scattered into one CSR matrix for all blocks through a
 precomputed pattern (``numpy.bincount``), with no Python loop over elements.
 
-Volumetric locking (nu -> 0.5) is avoided on hexahedra by the **mean-dilatation
-(B-bar) split**: the ``lam (tr eps)^2`` part of the energy (the ``lam (ln J)^2`` part for
-Neo-Hookean) is evaluated once per element with the volume-averaged shape-function
-gradients, the rest with 2x2x2 Gauss points. Averaging the gradients over the element
-(rather than taking them at the centre, i.e. plain selective reduced integration)
-keeps the patch test exact on distorted hexahedra.
+Volumetric locking (nu -> 0.5) is avoided on hexahedra and wedges by the
+**mean-dilatation (B-bar) split**: the ``lam (tr eps)^2`` part of the energy (the
+``lam (ln J)^2`` part for Neo-Hookean) is evaluated once per element with the
+volume-averaged shape-function gradients, the rest at the Gauss points. Averaging the
+gradients over the element (rather than taking them at the centre, i.e. plain selective
+reduced integration) keeps the patch test exact on distorted elements.
 
-Degrees of freedom are node-major: dof ``3 * node + component``. Units: mm, MPa,
-N (forces), mJ (energies).
+Materials are assigned by global element sets (:class:`MaterialAssignment`), which may
+span blocks. Degrees of freedom are node-major: dof ``3 * node + component``. Units: mm,
+MPa, N (forces), mJ (energies).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 import scipy.sparse as sp
 
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.mesh import Mesh
+from toolkit.static.kinematics import BlockKinematics, Kinematics, kinematics
 
-__all__ = ["Kinematics", "kinematics", "SparsePattern", "MaterialAssignment", "linear_stiffness",
-           "neo_hookean_system", "neo_hookean_energy", "small_strain"]
-
-_SRI_TYPES = ("hex8",)
-
-
-@dataclass(frozen=True, eq=False)
-class Kinematics:
-    """Geometry of every element at its quadrature points.
-
-    Attributes
-    ----------
-    conn : (E, A) int64 — element nodes in the local order of the gradients
-    grad : (E, Q, A, 3) float, 1/mm — shape-function gradients
-    weight : (E, Q) float, mm^3 — quadrature weights times det J
-    grad_c : (E, A, 3) float, 1/mm — volume-averaged gradients (mean dilatation)
-    volume : (E,) float, mm^3
-    sri : bool — whether the volumetric part uses the averaged gradients
-    """
-
-    conn: np.ndarray
-    grad: np.ndarray
-    weight: np.ndarray
-    grad_c: np.ndarray
-    volume: np.ndarray
-    sri: bool
+__all__ = ["Kinematics", "BlockKinematics", "kinematics", "SparsePattern", "MaterialAssignment",
+           "linear_stiffness", "neo_hookean_system", "neo_hookean_energy", "small_strain"]
 
 
-def kinematics(mesh: Mesh, points: np.ndarray | None = None) -> Kinematics:
-    """Gradients and weights of the volume block of ``mesh`` (optionally at other ``points``)."""
-    import skfem
-
-    m = mesh if points is None else mesh.with_points(points)
-    ctype = m.volume_type
-    sk = m.to_skfem()
-    elem = {"hex8": skfem.ElementHex1, "tet4": skfem.ElementTetP1, "tet10": skfem.ElementTetP2}[ctype]()
-    order = {"hex8": 2, "tet4": 1, "tet10": 2}[ctype]
-    basis = skfem.Basis(sk, elem, intorder=order)
-    n_local = elem.doflocs.shape[0]
-    grad = np.stack([basis.basis[i][0].grad for i in range(n_local)]).transpose(2, 3, 0, 1)  # (E,Q,A,3)
-    conn = np.asarray(sk.dofs.element_dofs if ctype == "tet10" else sk.t).T.astype(np.int64)
-    weight = np.asarray(basis.dx)
-    volume = weight.sum(axis=1)
-    grad_bar = np.einsum("eqaj,eq->eaj", grad, weight) / volume[:, None, None]
-    return Kinematics(conn, np.ascontiguousarray(grad), weight, grad_bar, volume, ctype in _SRI_TYPES)
+def _as_blocks(a) -> list[np.ndarray]:
+    """One array, or a sequence of per-block arrays, as a list."""
+    return [a] if isinstance(a, np.ndarray) else list(a)
 
 
 class SparsePattern:
     """CSR sparsity pattern of a mesh's vector stiffness, built once per topology.
 
-    ``assemble(Ke)`` sums element matrices ``(E, 3A, 3A)`` into CSR with one
-    ``bincount``; the pattern is reused for every increment and Newton iteration.
+    Parameters
+    ----------
+    conn : (E, A) int array, or a sequence of them (one per volume block, e.g.
+        ``kin.conns``): the element nodes
+    n_nodes : number of mesh nodes
+
+    ``assemble(Ke)`` sums element matrices (``(E, 3A, 3A)``, or one such array per block
+    in the same order) into CSR with one ``bincount``; the pattern is reused for every
+    increment and Newton iteration.
     """
 
-    def __init__(self, conn: np.ndarray, n_nodes: int):
-        E, A = conn.shape
+    def __init__(self, conn: np.ndarray | Sequence[np.ndarray], n_nodes: int):
         self.n_dofs = 3 * n_nodes
-        self.dofs = (3 * conn[:, :, None] + np.arange(3)).reshape(E, 3 * A)
-        rows = np.repeat(self.dofs, 3 * A, axis=1).ravel()
-        cols = np.tile(self.dofs, (1, 3 * A)).ravel()
+        self.block_dofs = [(3 * c[:, :, None] + np.arange(3)).reshape(c.shape[0], 3 * c.shape[1])
+                           for c in _as_blocks(conn)]
+        rows = np.concatenate([np.repeat(d, d.shape[1], axis=1).ravel() for d in self.block_dofs])
+        cols = np.concatenate([np.tile(d, (1, d.shape[1])).ravel() for d in self.block_dofs])
         key = rows * self.n_dofs + cols
         uniq, self.slot = np.unique(key, return_inverse=True)
         self.slot = self.slot.ravel()
@@ -94,14 +67,25 @@ class SparsePattern:
         counts = np.bincount(uniq // self.n_dofs, minlength=self.n_dofs)
         self.indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
         self.nnz = uniq.size
+        self._vector_dofs = np.concatenate([d.ravel() for d in self.block_dofs])
 
-    def assemble(self, Ke: np.ndarray) -> sp.csr_matrix:
-        data = np.bincount(self.slot, weights=Ke.reshape(-1), minlength=self.nnz)
+    @property
+    def dofs(self) -> np.ndarray:
+        """``(E, 3A)`` element dofs of a single-block pattern."""
+        if len(self.block_dofs) != 1:
+            raise ValueError(f"the pattern has {len(self.block_dofs)} blocks; use block_dofs")
+        return self.block_dofs[0]
+
+    def assemble(self, Ke: np.ndarray | Sequence[np.ndarray]) -> sp.csr_matrix:
+        """Sum element matrices ``(E, 3A, 3A)`` N/mm (one array per block) into CSR."""
+        data = np.concatenate([k.reshape(-1) for k in _as_blocks(Ke)])
+        data = np.bincount(self.slot, weights=data, minlength=self.nnz)
         return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_dofs, self.n_dofs))
 
-    def assemble_vector(self, fe: np.ndarray) -> np.ndarray:
-        """Sum element vectors ``(E, 3A)`` into a global ``(3 n_nodes,)`` vector."""
-        return np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self.n_dofs)
+    def assemble_vector(self, fe: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
+        """Sum element vectors ``(E, 3A)`` (one array per block) into a global ``(3 n_nodes,)`` vector."""
+        data = np.concatenate([f.reshape(-1) for f in _as_blocks(fe)])
+        return np.bincount(self._vector_dofs, weights=data, minlength=self.n_dofs)
 
 
 @dataclass(frozen=True)
@@ -160,37 +144,57 @@ def _strain_matrix(g: np.ndarray) -> np.ndarray:
     return B
 
 
+def _block_stiffness(kb: BlockKinematics, D: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """Element stiffness matrices ``(E, 3A, 3A)`` N/mm of one block; ``D (E, 6, 6)``, ``lam (E,)`` MPa."""
+    m = np.array([1.0, 1, 1, 0, 0, 0])
+    D_full = D - lam[:, None, None] * np.outer(m, m) if kb.sri else D
+    Ke = np.zeros((kb.conn.shape[0], 3 * kb.conn.shape[1], 3 * kb.conn.shape[1]))
+    for q in range(kb.grad.shape[1]):
+        B = _strain_matrix(kb.grad[:, q])
+        Ke += kb.weight[:, q, None, None] * (np.transpose(B, (0, 2, 1)) @ (D_full @ B))
+    if kb.sri:
+        b = kb.grad_c.reshape(kb.grad_c.shape[0], -1)  # divergence row: d(u_k)/dx_k
+        Ke += (kb.volume * lam)[:, None, None] * b[:, :, None] * b[:, None, :]
+    return Ke
+
+
 def linear_stiffness(kin: Kinematics, D: np.ndarray, lam: np.ndarray, pattern: SparsePattern) -> sp.csr_matrix:
     """Global small-strain stiffness, N/mm.
 
     Parameters
     ----------
-    D : (E, 6, 6) MPa, lam : (E,) MPa — see :meth:`MaterialAssignment.voigt`
+    D : (n_cells, 6, 6) MPa, lam : (n_cells,) MPa — by global element index, see
+        :meth:`MaterialAssignment.voigt`
     """
-    m = np.array([1.0, 1, 1, 0, 0, 0])
-    if kin.sri:
-        D_full = D - lam[:, None, None] * np.outer(m, m)
-    else:
-        D_full = D
-    Ke = np.zeros((kin.conn.shape[0], 3 * kin.conn.shape[1], 3 * kin.conn.shape[1]))
-    for q in range(kin.grad.shape[1]):
-        B = _strain_matrix(kin.grad[:, q])
-        Ke += kin.weight[:, q, None, None] * (np.transpose(B, (0, 2, 1)) @ (D_full @ B))
-    if kin.sri:
-        b = kin.grad_c.reshape(kin.grad_c.shape[0], -1)  # divergence row: d(u_k)/dx_k
-        Ke += (kin.volume * lam)[:, None, None] * b[:, :, None] * b[:, None, :]
+    Ke = []
+    for kb in kin.blocks:
+        rows = slice(kb.offset, kb.offset + kb.conn.shape[0])
+        Ke.append(_block_stiffness(kb, D[rows], lam[rows]))
     return pattern.assemble(Ke)
 
 
 def small_strain(kin: Kinematics, u: np.ndarray) -> np.ndarray:
-    """Element-average small strain tensors ``(E, 3, 3)`` for displacements ``u (n, 3)`` mm."""
-    H = np.einsum("eai,eqaj->eqij", u[kin.conn], kin.grad)
-    eps = 0.5 * (H + np.swapaxes(H, -1, -2))
-    return np.einsum("eqij,eq->eij", eps, kin.weight) / kin.volume[:, None, None]
+    """Element-average small strain tensors ``(n_volume_elements, 3, 3)`` for ``u (n, 3)`` mm."""
+    out = []
+    for kb in kin.blocks:
+        H = np.einsum("eai,eqaj->eqij", u[kb.conn], kb.grad)
+        eps = 0.5 * (H + np.swapaxes(H, -1, -2))
+        out.append(np.einsum("eqij,eq->eij", eps, kb.weight) / kb.volume[:, None, None])
+    return np.concatenate(out)
 
 
-def _deformation_gradient(kin: Kinematics, u: np.ndarray, grad: np.ndarray) -> np.ndarray:
-    return np.eye(3) + np.einsum("eai,e...aj->e...ij", u[kin.conn], grad)
+def _deformation_gradient(kb: BlockKinematics, u: np.ndarray, grad: np.ndarray) -> np.ndarray:
+    return np.eye(3) + np.einsum("eai,e...aj->e...ij", u[kb.conn], grad)
+
+
+def _block_groups(kb: BlockKinematics, groups) -> list[tuple[np.ndarray, object]]:
+    """``(local element indices, material)`` of the groups that have elements in block ``kb``."""
+    out = []
+    for ids, mat in groups:
+        local = kb.local(ids)
+        if local.size:
+            out.append((local, mat))
+    return out
 
 
 def neo_hookean_energy(kin: Kinematics, u: np.ndarray, groups) -> float:
@@ -199,41 +203,36 @@ def neo_hookean_energy(kin: Kinematics, u: np.ndarray, groups) -> float:
     Returns ``inf`` if any element is inverted at a quadrature point.
     """
     total = 0.0
-    for ids, mat in groups:
-        F = _deformation_gradient(kin, u, kin.grad)[ids]
-        J = np.linalg.det(F)
-        Fc = _deformation_gradient(kin, u, kin.grad_c[:, None])[ids, 0]
-        Jc = np.linalg.det(Fc)
-        if np.any(J <= 0) or np.any(Jc <= 0):
-            return np.inf
-        I1 = np.einsum("eqij,eqij->eq", F, F)
-        lnJ = np.log(J)
-        if kin.sri:
-            w_shear = 0.5 * mat.mu * (I1 - 3) - mat.mu * lnJ
-            total += np.sum(kin.weight[ids] * w_shear) + np.sum(kin.volume[ids] * 0.5 * mat.lam * np.log(Jc) ** 2)
-        else:
-            total += np.sum(kin.weight[ids] * mat.energy(F))
+    for kb in kin.blocks:
+        F_all = _deformation_gradient(kb, u, kb.grad)
+        Fc_all = _deformation_gradient(kb, u, kb.grad_c[:, None])[:, 0]
+        for ids, mat in _block_groups(kb, groups):
+            F, Fc = F_all[ids], Fc_all[ids]
+            J = np.linalg.det(F)
+            Jc = np.linalg.det(Fc)
+            if np.any(J <= 0) or np.any(Jc <= 0):
+                return np.inf
+            if kb.sri:
+                I1 = np.einsum("eqij,eqij->eq", F, F)
+                w_shear = 0.5 * mat.mu * (I1 - 3) - mat.mu * np.log(J)
+                total += np.sum(kb.weight[ids] * w_shear) + np.sum(kb.volume[ids] * 0.5 * mat.lam * np.log(Jc) ** 2)
+            else:
+                total += np.sum(kb.weight[ids] * mat.energy(F))
     return float(total)
 
 
-def neo_hookean_system(kin: Kinematics, u: np.ndarray, groups, pattern: SparsePattern,
-                       tangent: bool = True) -> tuple[np.ndarray, sp.csr_matrix | None]:
-    """Internal force ``(3n,)`` N and tangent stiffness (N/mm) at displacement ``u (n, 3)`` mm.
-
-    Total Lagrangian on the configuration ``kin`` was computed for.
-    """
-    E, A = kin.conn.shape
+def _block_system(kb: BlockKinematics, u: np.ndarray, groups, tangent: bool):
+    """Element forces ``(E, 3A)`` N and tangents ``(E, 3A, 3A)`` N/mm (or None) of one block."""
+    E, A = kb.conn.shape
     fe = np.zeros((E, A, 3))
     Ke = np.zeros((E, 3 * A, 3 * A)) if tangent else None
-    parts = [("shear", kin.grad, kin.weight), ("volumetric", kin.grad_c[:, None], kin.volume[:, None])] \
-        if kin.sri else [("all", kin.grad, kin.weight)]
-    for ids, mat in groups:
-        if not isinstance(mat, NeoHookean):
-            raise TypeError(f"neo_hookean_system got {type(mat).__name__}; every element must be NeoHookean")
-        for part, grad, weight in parts:
+    parts = [("shear", kb.grad, kb.weight), ("volumetric", kb.grad_c[:, None], kb.volume[:, None])] \
+        if kb.sri else [("all", kb.grad, kb.weight)]
+    for part, grad, weight in parts:
+        F_all = _deformation_gradient(kb, u, grad)
+        for ids, mat in groups:
             g = grad[ids]
-            F = _deformation_gradient(kin, u, grad)[ids]
-            P, Atan = mat.first_piola(F, part)
+            P, Atan = mat.first_piola(F_all[ids], part)
             w = weight[ids]
             fe[ids] += np.einsum("eqij,eqaj,eq->eai", P, g, w)
             if tangent:
@@ -245,5 +244,23 @@ def neo_hookean_system(kin: Kinematics, u: np.ndarray, groups, pattern: SparsePa
                             G[:, 3 * i + j, i::3] = g[:, q, :, j]
                     A9 = Atan[:, q].reshape(ids.size, 9, 9)
                     Ke[ids] += w[:, q, None, None] * (np.transpose(G, (0, 2, 1)) @ (A9 @ G))
-    f = pattern.assemble_vector(fe.reshape(E, -1))
-    return f, (pattern.assemble(Ke) if tangent else None)
+    return fe.reshape(E, -1), Ke
+
+
+def neo_hookean_system(kin: Kinematics, u: np.ndarray, groups, pattern: SparsePattern,
+                       tangent: bool = True) -> tuple[np.ndarray, sp.csr_matrix | None]:
+    """Internal force ``(3n,)`` N and tangent stiffness (N/mm) at displacement ``u (n, 3)`` mm.
+
+    Total Lagrangian on the configuration ``kin`` was computed for; ``groups`` are
+    ``(global element indices, material)`` pairs (:meth:`MaterialAssignment.groups`).
+    """
+    for _, mat in groups:
+        if not isinstance(mat, NeoHookean):
+            raise TypeError(f"neo_hookean_system got {type(mat).__name__}; every element must be NeoHookean")
+    fes, Kes = [], []
+    for kb in kin.blocks:
+        fe, Ke = _block_system(kb, u, _block_groups(kb, groups), tangent)
+        fes.append(fe)
+        Kes.append(Ke)
+    f = pattern.assemble_vector(fes)
+    return f, (pattern.assemble(Kes) if tangent else None)

@@ -1,4 +1,4 @@
-"""Static finite-element solves of the face on scikit-fem kinematics.
+"""Static finite-element solves of the face (any mix of hex8, wedge6, tet4, tet10 blocks).
 
 :class:`StaticProblem` holds one configuration of a mesh with its materials and
 solves it under :class:`~toolkit.static.constraints.Constraints`:
@@ -72,7 +72,8 @@ class StaticProblem:
 
     Parameters
     ----------
-    mesh : Mesh (hex8 for selective reduced integration; tet4/tet10 accepted)
+    mesh : Mesh with one or several volume blocks (hex8 and wedge6 with mean dilatation;
+        tet4, tet10); element sets of ``materials`` may span blocks
     materials : MaterialAssignment (all linear, or all Neo-Hookean)
     solver : ``auto``, ``superlu``, ``amg`` or ``cholmod`` (see :mod:`toolkit.static.solvers`)
     pattern : a SparsePattern of the same topology to reuse
@@ -87,11 +88,11 @@ class StaticProblem:
         self.materials = materials
         self.solver = solver
         self.kin = kinematics(mesh)
-        if np.any(self.kin.weight <= 0):
-            bad = np.flatnonzero((self.kin.weight <= 0).any(axis=1))
+        bad = self.kin.inverted_elements()
+        if bad.size:
             raise ConvergenceError(f"{bad.size} elements have a non-positive Jacobian at a Gauss point "
                                    f"(first: {bad[:5].tolist()}); the configuration is inverted")
-        self.pattern = pattern or SparsePattern(self.kin.conn, mesh.n_points)
+        self.pattern = pattern or SparsePattern(self.kin.conns, mesh.n_points)
         self.linear = materials.is_linear
         self.groups = materials.groups(mesh)
         self._K = None

@@ -1,0 +1,88 @@
+"""Benchmark: accuracy of hex8, wedge6, tet4 and the mixed bar against a closed form, by nu.
+
+Lame's field around a pressurised spherical cavity in an infinite solid, u = B e_r / r^2
+(divergence-free, the same for every nu), is prescribed on the whole boundary of a
+20 x 10 x 10 mm box (one cell type: hexahedra; each cube cut into 2 wedges; or into 6
+Kuhn tetrahedra) and of the L-section ``mixed_bar`` (hex8 + wedge6 + tet4). The table
+gives the max nodal error relative to max |u| at cell sizes h = 5, 2.5, 1.25 mm and the
+log-log slope: 2 is the O(h^2) of linear elements, ~0 is volumetric locking.
+
+    python benchmarks/mixed_elements.py [--out benchmarks/results/mixed_elements.csv]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from toolkit.common.io import atomic_path
+from toolkit.common.materials import LinearElastic
+from toolkit.common.mesh import Mesh
+from toolkit.common.mixed_bar import mixed_bar
+from toolkit.common.phantom import block
+from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
+from toolkit.static.assembly import MaterialAssignment
+from toolkit.static.constraints import Constraints
+from toolkit.static.fem import StaticProblem
+
+CENTRE = np.array([-12.0, 5.0, 5.0])  # cavity centre, mm
+B = 20.0  # p a^3 / (4 mu), mm^3
+_VTK_BITS = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]
+
+
+def cavity(points: np.ndarray) -> np.ndarray:
+    d = points - CENTRE
+    return (B / np.linalg.norm(d, axis=1) ** 3)[:, None] * d
+
+
+def box(n: int, kind: str) -> Mesh:
+    """20 x 10 x 10 mm box of cubes of side 5 / n mm, as hex8, wedge6 or tet4."""
+    axes = [np.linspace(0, 20, 4 * n + 1), np.linspace(0, 10, 2 * n + 1), np.linspace(0, 10, 2 * n + 1)]
+    if kind == "mixed":
+        return mixed_bar(n, length=20.0)
+    if kind != "wedge6":
+        return block(axes, kind)
+    hexes = block(axes, "hex8")
+    H = hexes.cells["hex8"]
+    corners = np.empty((H.shape[0], 2, 2, 2), dtype=np.int64)
+    for a, (i, j, k) in enumerate(_VTK_BITS):
+        corners[:, i, j, k] = H[:, a]
+    return Mesh(hexes.points, {"wedge6": wedges_from_hexes(corners, hexes.points)})
+
+
+def run(kind: str, nu: float, n: int) -> dict:
+    mesh = box(n, kind)
+    U = cavity(mesh.points)
+    bnd = np.unique(triangulated_boundary(mesh.cells))
+    t0 = time.perf_counter()
+    u = StaticProblem(mesh, MaterialAssignment(LinearElastic(0.003, nu))).solve(
+        Constraints(mesh.n_points, bnd, U[bnd])).displacement
+    err = np.linalg.norm(u - U, axis=1).max() / np.linalg.norm(U, axis=1).max()
+    return {"mesh": kind, "nu": nu, "h_mm": 5.0 / n, "nodes": mesh.n_points, "elements": mesh.n_cells,
+            "max_error_rel": err, "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "mixed_elements.csv")
+    args = parser.parse_args()
+    rows = [run(kind, nu, n) for kind in ("hex8", "wedge6", "tet4", "mixed") for nu in (0.3, 0.47, 0.4999)
+            for n in (1, 2, 4)]
+    df = pd.DataFrame(rows)
+    slopes = df.groupby(["mesh", "nu"], sort=False).apply(
+        lambda g: np.polyfit(np.log(g.h_mm), np.log(g.max_error_rel), 1)[0], include_groups=False)
+    df["slope"] = [slopes[(m, nu)] for m, nu in zip(df["mesh"], df["nu"])]
+    with atomic_path(args.out) as tmp:
+        df.to_csv(tmp, index=False)
+    table = df.pivot_table(index=["mesh", "nu"], columns="h_mm", values="max_error_rel", sort=False)
+    table["slope"] = slopes
+    print(table.to_string(float_format=lambda v: f"{v:.2e}" if v < 0.5 else f"{v:.2f}"))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

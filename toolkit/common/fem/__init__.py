@@ -1,0 +1,28 @@
+"""The finite-element core shared by both workflows: one reference-element record per
+cell type (shape functions, quadrature, faces, edges, file-format names).
+
+Imports nothing from :mod:`toolkit.static` or :mod:`toolkit.impact`.
+"""
+
+from toolkit.common.fem.quadrature import gauss_hex, gauss_line, gauss_quad, tet_rule, triangle_rule, wedge_rule
+from toolkit.common.fem.reference import (
+    REFERENCE_ELEMENTS,
+    TET_EDGES,
+    WEDGE_VTK_ORDER,
+    ReferenceElement,
+    reference_element,
+)
+
+__all__ = [
+    "ReferenceElement",
+    "REFERENCE_ELEMENTS",
+    "reference_element",
+    "TET_EDGES",
+    "WEDGE_VTK_ORDER",
+    "gauss_line",
+    "gauss_quad",
+    "gauss_hex",
+    "triangle_rule",
+    "tet_rule",
+    "wedge_rule",
+]

@@ -1,0 +1,140 @@
+"""Geometry of every volume element at its quadrature points, block by block.
+
+:func:`kinematics` maps each volume block of a (possibly mixed) mesh through its
+reference element (:mod:`toolkit.common.fem`) with the static workflow's rules:
+
+========  ==============================================  ==================
+type      quadrature                                      mean dilatation
+========  ==============================================  ==================
+hex8      2x2x2 Gauss                                      yes
+wedge6    3-point triangle x 2-point Gauss                 yes
+tet4      1 point (the centroid)                           no (constant strain)
+tet10     the 4-point degree-2 rule                        no
+========  ==============================================  ==================
+
+Mean dilatation (B-bar): the volumetric part of the energy uses the volume-averaged
+gradients ``grad_c`` (see :mod:`toolkit.static.assembly`).
+
+Element indices are global (the mesh's numbering, surface blocks included): block
+``b`` holds elements ``b.offset ... b.offset + len(b.conn) - 1``. Units: mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from toolkit.common.fem.mapping import shape_gradients
+from toolkit.common.mesh import Mesh, MeshError
+
+__all__ = ["BlockKinematics", "Kinematics", "kinematics", "QUADRATURE_ORDER", "MEAN_DILATATION_TYPES"]
+
+#: quadrature order per volume type (hex8 2x2x2, wedge6 3 x 2, tet4 1 point, tet10 4 points)
+QUADRATURE_ORDER = {"hex8": 2, "wedge6": 2, "tet4": 1, "tet10": 2}
+#: types whose volumetric part uses the volume-averaged gradients
+MEAN_DILATATION_TYPES = ("hex8", "wedge6")
+
+
+@dataclass(frozen=True, eq=False)
+class BlockKinematics:
+    """Geometry of the elements of one volume block at its quadrature points.
+
+    Attributes
+    ----------
+    ctype : cell type
+    offset : global index of the block's first element
+    conn : (E, A) int64 — element nodes (the mesh's connectivity of the block)
+    grad : (E, Q, A, 3) float, 1/mm — shape-function gradients
+    weight : (E, Q) float, mm^3 — quadrature weights times det J
+    grad_c : (E, A, 3) float, 1/mm — volume-averaged gradients (mean dilatation)
+    volume : (E,) float, mm^3
+    sri : bool — whether the volumetric part uses the averaged gradients
+    """
+
+    ctype: str
+    offset: int
+    conn: np.ndarray
+    grad: np.ndarray
+    weight: np.ndarray
+    grad_c: np.ndarray
+    volume: np.ndarray
+    sri: bool
+
+    @property
+    def elements(self) -> np.ndarray:
+        """Global element indices ``(E,)`` int64 of the block."""
+        return np.arange(self.offset, self.offset + self.conn.shape[0], dtype=np.int64)
+
+    def local(self, ids: np.ndarray) -> np.ndarray:
+        """The global element ``ids`` in this block, as row indices into its arrays."""
+        ids = np.asarray(ids, dtype=np.int64)
+        return ids[(ids >= self.offset) & (ids < self.offset + self.conn.shape[0])] - self.offset
+
+
+@dataclass(frozen=True, eq=False)
+class Kinematics:
+    """Geometry of every volume element, one :class:`BlockKinematics` per volume block.
+
+    For a single-type mesh the block's arrays are also reachable directly
+    (``kin.conn``, ``kin.grad``, ``kin.weight``, ``kin.grad_c``, ``kin.sri``); on a mixed
+    mesh those raise and the caller iterates ``kin.blocks``. ``kin.volume`` is always
+    the ``(n_volume_elements,)`` concatenation in block order.
+    """
+
+    blocks: tuple[BlockKinematics, ...]
+
+    def _single(self, name: str) -> BlockKinematics:
+        if len(self.blocks) != 1:
+            raise MeshError(f"Kinematics.{name} needs a single volume block; this mesh has blocks "
+                            f"{[b.ctype for b in self.blocks]}: iterate kin.blocks")
+        return self.blocks[0]
+
+    conn = property(lambda self: self._single("conn").conn, doc="(E, A) int64, single-block meshes")
+    grad = property(lambda self: self._single("grad").grad, doc="(E, Q, A, 3) 1/mm, single-block meshes")
+    weight = property(lambda self: self._single("weight").weight, doc="(E, Q) mm^3, single-block meshes")
+    grad_c = property(lambda self: self._single("grad_c").grad_c, doc="(E, A, 3) 1/mm, single-block meshes")
+    sri = property(lambda self: self._single("sri").sri, doc="mean dilatation, single-block meshes")
+
+    @property
+    def volume(self) -> np.ndarray:
+        """Element volumes ``(n_volume_elements,)`` mm^3, blocks concatenated."""
+        return np.concatenate([b.volume for b in self.blocks])
+
+    @property
+    def conns(self) -> tuple[np.ndarray, ...]:
+        """Connectivity of every block (what :class:`~toolkit.static.assembly.SparsePattern` takes)."""
+        return tuple(b.conn for b in self.blocks)
+
+    def inverted_elements(self) -> np.ndarray:
+        """Global indices ``(k,)`` of elements with det J <= 0 at a quadrature point."""
+        bad = [b.offset + np.flatnonzero((b.weight <= 0).any(axis=1)) for b in self.blocks]
+        return np.concatenate(bad) if bad else np.zeros(0, dtype=np.int64)
+
+
+def kinematics(mesh: Mesh, points: np.ndarray | None = None, mean_dilatation: bool | None = None) -> Kinematics:
+    """Gradients and weights of every volume block of ``mesh``.
+
+    Parameters
+    ----------
+    mesh : Mesh with one or several volume blocks (``hex8``, ``wedge6``, ``tet4``, ``tet10``)
+    points : (n_points, 3) float, mm — another configuration of the same topology
+    mean_dilatation : force the mean-dilatation split on (True) or off (False) for every
+        block; default per type (:data:`MEAN_DILATATION_TYPES`)
+
+    Returns
+    -------
+    Kinematics, one block per volume block in the mesh's order
+    """
+    x = mesh.points if points is None else mesh.with_points(points).points
+    blocks = []
+    for b in mesh.volume_blocks:
+        grad, weight = shape_gradients(b.ctype, x[b.cells], QUADRATURE_ORDER[b.ctype])
+        volume = weight.sum(axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            grad_c = np.einsum("eqaj,eq->eaj", grad, weight) / volume[:, None, None]
+        sri = b.ctype in MEAN_DILATATION_TYPES if mean_dilatation is None else bool(mean_dilatation)
+        blocks.append(BlockKinematics(b.ctype, b.offset, b.cells, grad, weight, grad_c, volume, sri))
+    if not blocks:
+        raise MeshError(f"mesh has no volume block (cell types {list(mesh.cells)}); nothing to assemble")
+    return Kinematics(tuple(blocks))
