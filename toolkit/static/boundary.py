@@ -43,11 +43,14 @@ class NodeType(IntEnum):
 
 def _element_side(mesh: Mesh) -> np.ndarray:
     """Mean centroid of the elements around each node, ``(n, 3)`` mm."""
-    cells = mesh.volume_cells
-    centroids = mesh.points[cells].mean(axis=1)
     acc = np.zeros((mesh.n_points, 3))
-    np.add.at(acc, cells.ravel(), np.repeat(centroids, cells.shape[1], axis=0))
-    count = np.bincount(cells.ravel(), minlength=mesh.n_points)[:, None]
+    count = np.zeros(mesh.n_points)
+    for block in mesh.volume_blocks:
+        cells = block.cells
+        centroids = mesh.points[cells].mean(axis=1)
+        np.add.at(acc, cells.ravel(), np.repeat(centroids, cells.shape[1], axis=0))
+        count += np.bincount(cells.ravel(), minlength=mesh.n_points)
+    count = count[:, None]
     return np.divide(acc, count, out=mesh.points.copy(), where=count > 0)
 
 
@@ -378,8 +381,9 @@ def segments_from_mesh(mesh: Mesh, pivots: Mapping[str, np.ndarray]) -> dict:
     """
     from toolkit.common.phantom import BoneSegment
 
-    faces = mesh.boundary_faces()
-    tris = np.vstack([faces[:, [0, 2, 1]], faces[:, [0, 3, 2]]]) if faces.shape[1] == 4 else faces[:, [0, 2, 1]]
+    from toolkit.common.topology import triangulated_boundary
+
+    tris = triangulated_boundary(mesh.cells)[:, [0, 2, 1]]  # normals into the tissue: out of the bone
     own = {}
     on_bone = np.zeros(mesh.n_points, dtype=bool)
     if "bone" in mesh.node_sets:

@@ -62,17 +62,21 @@ def element_quality(mesh: Mesh, points: np.ndarray) -> np.ndarray:
                            if ctype in VOLUME_TYPES])
 
 
-def _corner_tables(mesh: Mesh, elements: np.ndarray):
-    """Node ids ``(k, 4)`` (corner, three edge ends) of every corner of the given elements."""
-    out, offset = [], 0
+def _corner_tables(mesh: Mesh, elements: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Node ids ``(k, 4)`` (corner, three edge ends) of every corner of the given elements,
+    and the element of each corner ``(k,)``."""
+    out, owner, offset = [], [], 0
     for ctype, conn in mesh.cells.items():
         if ctype not in VOLUME_TYPES:
             continue
         sel = elements[(elements >= offset) & (elements < offset + conn.shape[0])] - offset
         if sel.size and ctype in CORNERS:
             out.append(conn[sel][:, CORNERS[ctype]].reshape(-1, 4))
+            owner.append(np.repeat(sel + offset, len(CORNERS[ctype])))
         offset += conn.shape[0]
-    return np.concatenate(out) if out else np.zeros((0, 4), dtype=np.int64)
+    if not out:
+        return np.zeros((0, 4), dtype=np.int64), np.zeros(0, dtype=np.int64)
+    return np.concatenate(out), np.concatenate(owner)
 
 
 def _element_adjacency(mesh: Mesh) -> sp.csr_matrix:
@@ -120,8 +124,8 @@ def _objective(x: np.ndarray, corners: np.ndarray, tau: np.ndarray, gradient: bo
     return value, grad
 
 
-def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float = 0.2, rings: int = 2,
-             iterations: int = 200) -> Regulation:
+def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float | np.ndarray = 0.2,
+             rings: int = 2, iterations: int = 200) -> Regulation:
     """Raise the elements below ``target`` quality by moving ``movable`` nodes.
 
     Parameters
@@ -129,7 +133,9 @@ def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float 
     mesh : topology (its points are not used), mm
     points : (n, 3) float, mm — the configuration to regulate
     movable : (n,) bool — nodes that may move (free, not on the skin)
-    target : scaled Jacobian the bad elements are raised towards
+    target : scaled Jacobian the bad elements are raised towards: one number, or one per
+        volume element ``(E,)`` (e.g. capped by each element's quality before deformation, so
+        that a poor element of a real mesh is kept from inverting, not remeshed)
     rings : element rings around the bad elements whose nodes may move with them
     iterations : gradient steps at most
 
@@ -140,7 +146,8 @@ def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float 
     x0 = np.array(points, dtype=float)
     q = element_quality(mesh, x0)
     before = float(q.min())
-    if before >= target:
+    target = np.broadcast_to(np.asarray(target, dtype=float), q.shape)
+    if np.all(q >= target):
         return Regulation(x0, 0, 0.0, before, before)
     inc = _element_adjacency(mesh)
     nodes = np.asarray(inc[:, q < target].sum(axis=1)).ravel() > 0
@@ -150,13 +157,13 @@ def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float 
     movable = np.asarray(movable, dtype=bool)
     active = nodes & movable
     elems = np.flatnonzero(np.asarray(inc[active].sum(axis=0)).ravel() > 0)
-    corners = _corner_tables(mesh, elems)
+    corners, owner = _corner_tables(mesh, elems)
     if not active.any() or not corners.size:
         return Regulation(x0, 0, 0.0, before, before)
     # target determinant per corner: ``target`` times the product of its edge lengths, with
     # the lengths of the element as it is (a scale-free goal)
     lengths = np.stack([np.linalg.norm(x0[corners[:, k]] - x0[corners[:, 0]], axis=1) for k in (1, 2, 3)], axis=1)
-    tau = target * np.prod(np.maximum(lengths, 1e-9), axis=1)
+    tau = target[owner] * np.prod(np.maximum(lengths, 1e-9), axis=1)
     normals = _boundary_normals(mesh, x0)
     on_boundary = active & (np.linalg.norm(normals, axis=1) > 0)
     x = x0.copy()

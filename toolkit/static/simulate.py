@@ -54,7 +54,7 @@ from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, N
 from toolkit.static.constraints import Constraints
 from toolkit.static.fem import ConvergenceError, StaticProblem, solve_with_lip_contact
 from toolkit.static.plan import SurgicalPlan
-from toolkit.static.regulation import regulate
+from toolkit.static.regulation import element_quality, regulate
 from toolkit.static.solvers import SolverError
 
 __all__ = ["simulate", "SimulationOptions", "SimulationResult", "IncrementReport", "SimulationError",
@@ -98,7 +98,10 @@ class SimulationOptions:
     release_width : mm, width of the bands of tissue bound to neither side along the borders
         between differently driven regions (0: none)
     regulation_below : linear materials: a step that leaves an element below this scaled
-        Jacobian regulates the mesh around it (None: never; Neo-Hookean never regulates)
+        Jacobian, and below half its own pre-operative value, regulates the mesh around it
+        (towards twice this value, at most the element's pre-operative quality, so the poor
+        elements of a real mesh are kept from inverting rather than remeshed; None: never;
+        Neo-Hookean never regulates)
     max_cuts : how many times a failing increment may be halved (``2 ** max_cuts`` sub-steps)
     progress : show a tqdm bar over increments
     """
@@ -262,8 +265,10 @@ class _Model:
     fixed: np.ndarray = field(init=False)
     mucosa: np.ndarray = field(init=False)
     movable: np.ndarray = field(init=False)
+    quality0: np.ndarray = field(init=False)
 
     def __post_init__(self):
+        self.quality0 = element_quality(self.mesh, self.mesh.points)
         self.moving = self.bc.nodes(NodeType.MOVING)
         self.fixed = self.bc.nodes(NodeType.FIXED)
         self.mucosa = self.bc.nodes(NodeType.MUCOSA_SLIDING)
@@ -426,8 +431,8 @@ def _step(model: _Model, state: _State, plan: SurgicalPlan) -> tuple[_State, _St
     sj, worst = _quality(model, u)
     regulated, shift = 0, 0.0
     below = model.options.regulation_below
-    if not model.total_lagrangian and below is not None and sj[worst] < below:
-        reg = regulate(model.mesh, X + u, model.movable, target=2.0 * below)
+    if not model.total_lagrangian and below is not None and np.any(sj < np.minimum(below, 0.5 * model.quality0)):
+        reg = regulate(model.mesh, X + u, model.movable, target=np.minimum(2.0 * below, model.quality0))
         if reg.moved and reg.min_quality_after > model.options.min_scaled_jacobian:
             x_reg = reg.points.copy()
             if model.mucosa.size:  # back onto the bone, exactly
@@ -435,7 +440,7 @@ def _step(model: _Model, state: _State, plan: SurgicalPlan) -> tuple[_State, _St
             u, regulated, shift = x_reg - X, reg.moved, reg.max_shift
             sj, worst = _quality(model, u)
     if sj[worst] <= model.options.min_scaled_jacobian:
-        centroid = np.round((X + u)[model.mesh.volume_cells[worst]].mean(axis=0), 1).tolist()
+        centroid = np.round((X + u)[_element_nodes(model.mesh, worst)].mean(axis=0), 1).tolist()
         raise _StepFailure(f"{int((sj <= model.options.min_scaled_jacobian).sum())} elements inverted or degenerate "
                            f"(worst: element {worst}, scaled Jacobian {sj[worst]:.3g}, centroid {centroid} mm)", worst)
     both = [sol1] if sol is sol1 else [sol1, sol]
@@ -556,6 +561,15 @@ def _build_model(face, material, sliding, segments, options: SimulationOptions) 
     bc = bc_all.with_release_bands(mesh, options.release_width).with_sliding(sliding)
     surfaces = {name: segments[name].surface for name in bc.segment_names}
     return _Model(mesh, materials, bc, bc_all, surfaces, options, total_lagrangian=not materials.is_linear)
+
+
+def _element_nodes(mesh: Mesh, element: int) -> np.ndarray:
+    """Nodes of volume element ``element`` (numbered over the volume blocks in order)."""
+    for block in mesh.volume_blocks:
+        if element < block.cells.shape[0]:
+            return block.cells[element]
+        element -= block.cells.shape[0]
+    raise IndexError(f"volume element {element} out of range")
 
 
 def _remedy(model: _Model, increments: int) -> str:
