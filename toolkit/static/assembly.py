@@ -236,14 +236,14 @@ def _block_system(kb: BlockKinematics, u: np.ndarray, groups, tangent: bool):
             w = weight[ids]
             fe[ids] += np.einsum("eqij,eqaj,eq->eai", P, g, w)
             if tangent:
-                # G[(i,j),(a,k)] = delta_ik g_aj  -> Ke = sum_q w G^T A9 G
+                # K[(a,i),(b,k)] = sum_q w sum_jl g_aj A_ijkl g_bl, as two batched products:
+                # (g_aj) x (A_j,ikl) then (T_aik,l) x (g_bl)
+                n = ids.size
                 for q in range(g.shape[1]):
-                    G = np.zeros((ids.size, 9, 3 * A))
-                    for i in range(3):
-                        for j in range(3):
-                            G[:, 3 * i + j, i::3] = g[:, q, :, j]
-                    A9 = Atan[:, q].reshape(ids.size, 9, 9)
-                    Ke[ids] += w[:, q, None, None] * (np.transpose(G, (0, 2, 1)) @ (A9 @ G))
+                    Aq = Atan[:, q].reshape(n, 3, 3, 3, 3).transpose(0, 2, 1, 3, 4).reshape(n, 3, 27)  # (j, ikl)
+                    T = (g[:, q] @ Aq).reshape(n, A * 9, 3)  # (a, i, k), l
+                    Kq = (T @ np.swapaxes(g[:, q], 1, 2)).reshape(n, A, 3, 3, A)  # a, i, k, b
+                    Ke[ids] += w[:, q, None, None] * Kq.transpose(0, 1, 2, 4, 3).reshape(n, 3 * A, 3 * A)
     return fe.reshape(E, -1), Ke
 
 
