@@ -1,0 +1,154 @@
+"""Two simple surrogates a network must beat (issue: static surrogate).
+
+- :class:`InfluenceMatrix`: linear superposition. On the pre-operative mesh, the
+  stiffness is condensed on the nodes a bone drives (attached and mucosa, all moving
+  with their bone: seed 001's method without sliding) and the fixed nodes:
+  ``u_free = H u_bone`` with ``H = -K_ff^-1 K_fb`` computed once (one factorization, one
+  solve per driven dof). Exact for a linear material without sliding or lip contact on
+  the mesh it was built for, in one increment; it ignores sliding, lip contact and the
+  geometry update between increments.
+- :class:`PODRegression`: the displacements of the training samples are compressed by
+  principal components (POD), and the component weights are regressed on the plan's
+  parameters (ridge regression on quadratic features). It never sees a mesh, only plans.
+
+Both predict the displacement of one increment ``(n, 3)`` mm, like the FE and the network.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from toolkit.common.mesh import Mesh
+
+__all__ = ["InfluenceMatrix", "PODRegression", "quadratic_features"]
+
+
+@dataclass(frozen=True, eq=False)
+class InfluenceMatrix:
+    """Linear influence of the bone-driven nodes' displacement on every other node.
+
+    Attributes
+    ----------
+    driven : (m,) int64 — nodes whose displacement is an input (attached and mucosa nodes)
+    fixed : (f,) int64 — nodes held at zero
+    free : (k,) int64 — the others
+    H : (3k, 3m) float — ``u_free.ravel() = H @ u_driven.ravel()``
+    seconds : time to build, s
+    """
+
+    driven: np.ndarray
+    fixed: np.ndarray
+    free: np.ndarray
+    H: np.ndarray
+    seconds: float
+
+    @classmethod
+    def build(cls, mesh: Mesh, driven: np.ndarray, fixed: np.ndarray, materials="linear") -> "InfluenceMatrix":
+        """Condense the linear stiffness of ``mesh`` (mm, N/mm) on ``driven`` and ``fixed`` nodes.
+
+        Parameters
+        ----------
+        mesh : the pre-operative mesh
+        driven, fixed : node indices (disjoint)
+        materials : ``linear`` (seed 001: the lip muscle transversely isotropic) or a
+            MaterialAssignment of linear materials
+        """
+        import scipy.sparse.linalg as spla
+
+        from toolkit.static.fem import StaticProblem
+        from toolkit.static.simulate import material_assignment
+
+        t0 = time.perf_counter()
+        driven, fixed = np.unique(np.asarray(driven, np.int64)), np.unique(np.asarray(fixed, np.int64))
+        if np.intersect1d(driven, fixed).size:
+            raise ValueError("driven and fixed nodes overlap; a node is driven by a bone or fixed, not both")
+        assignment = material_assignment(materials, mesh)
+        if not assignment.is_linear:
+            raise ValueError("the influence matrix needs a linear material (it superposes unit responses)")
+        K = StaticProblem(mesh, assignment, "superlu").stiffness.tocsr()
+        free = np.setdiff1d(np.arange(mesh.n_points), np.concatenate([driven, fixed]))
+        dof = lambda nodes: (3 * nodes[:, None] + np.arange(3)).ravel()  # noqa: E731
+        f, b = dof(free), dof(driven)
+        Kff = K[f][:, f].tocsc()
+        Kfb = K[f][:, b].toarray()
+        lu = spla.splu(Kff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        H = -lu.solve(Kfb)
+        return cls(driven, fixed, free, H, time.perf_counter() - t0)
+
+    def predict(self, driven_displacement: np.ndarray) -> np.ndarray:
+        """Displacement ``(n, 3)`` mm from the driven nodes' displacement ``(m, 3)`` mm (or
+        ``(n, 3)`` of which the driven rows are read); fixed nodes 0."""
+        d = np.asarray(driven_displacement, dtype=float)
+        n = self.driven.size + self.fixed.size + self.free.size
+        if d.shape == (n, 3):
+            d = d[self.driven]
+        if d.shape != (self.driven.size, 3):
+            raise ValueError(f"driven displacement has shape {d.shape}; expected ({self.driven.size}, 3) or ({n}, 3)")
+        u = np.zeros((n, 3))
+        u[self.driven] = d
+        u[self.free] = (self.H @ d.ravel()).reshape(-1, 3)
+        return u
+
+
+def quadratic_features(x: np.ndarray) -> np.ndarray:
+    """``[1, x, x_i x_j (i <= j)]`` per row: ``(s, p)`` -> ``(s, 1 + p + p (p + 1) / 2)``."""
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    i, j = np.triu_indices(x.shape[1])
+    return np.hstack([np.ones((x.shape[0], 1)), x, x[:, i] * x[:, j]])
+
+
+@dataclass(frozen=True, eq=False)
+class PODRegression:
+    """Principal components of the displacements, regressed on plan parameters.
+
+    Attributes
+    ----------
+    mean : (3n,) mm — mean displacement of the training samples
+    modes : (r, 3n) — orthonormal POD modes
+    coef : (q, r) — ridge coefficients from quadratic features to mode weights
+    x_scale : (2, p) — min and range of the parameters (scaled to [0, 1] before the features)
+    energy : float — share of the training variance the modes keep
+    """
+
+    mean: np.ndarray
+    modes: np.ndarray
+    coef: np.ndarray
+    x_scale: np.ndarray
+    energy: float
+
+    @classmethod
+    def fit(cls, params: np.ndarray, displacements: np.ndarray, modes: int | None = None, energy: float = 0.9999,
+            ridge: float = 1e-6) -> "PODRegression":
+        """Fit on ``params (s, p)`` (plan parameters of each sample) and ``displacements (s, n, 3)`` mm.
+
+        ``modes``: how many to keep (default: the fewest keeping ``energy`` of the variance,
+        at most s - 1); ``ridge``: Tikhonov weight relative to the feature scale.
+        """
+        X = np.asarray(params, dtype=float)
+        Y = np.asarray(displacements, dtype=float).reshape(len(X), -1)
+        if X.ndim != 2 or len(X) < 2:
+            raise ValueError(f"params has shape {X.shape}; expected (samples >= 2, parameters)")
+        mean = Y.mean(axis=0)
+        _, s, vt = np.linalg.svd(Y - mean, full_matrices=False)
+        cum = np.cumsum(s**2) / max(np.sum(s**2), 1e-300)
+        r = int(modes) if modes is not None else int(np.searchsorted(cum, energy) + 1)
+        r = max(1, min(r, len(s)))
+        V = vt[:r]
+        W = (Y - mean) @ V.T
+        lo, span = X.min(axis=0), np.ptp(X, axis=0)
+        span[span == 0] = 1.0
+        F = quadratic_features((X - lo) / span)
+        A = F.T @ F
+        coef = np.linalg.solve(A + ridge * np.trace(A) / A.shape[0] * np.eye(A.shape[0]), F.T @ W)
+        return cls(mean, V, coef, np.stack([lo, span]), float(cum[r - 1]))
+
+    def predict(self, params: np.ndarray) -> np.ndarray:
+        """Displacements ``(s, n, 3)`` mm for ``params (s, p)``."""
+        X = np.atleast_2d(np.asarray(params, dtype=float))
+        if X.shape[1] != self.x_scale.shape[1]:
+            raise ValueError(f"params have {X.shape[1]} columns; this model was fit on {self.x_scale.shape[1]}")
+        W = quadratic_features((X - self.x_scale[0]) / self.x_scale[1]) @ self.coef
+        return (self.mean + W @ self.modes).reshape(len(X), -1, 3)
