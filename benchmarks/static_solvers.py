@@ -1,14 +1,21 @@
-"""Linear solvers for the static face system: time and peak memory per solve.
+"""Linear solvers for the static face system: time and peak memory per solve, the
+fill-aware automatic choice, and the reuse of a factorization.
 
 Assembles the constrained system of the first increment (default plan, mucosa sliding
-normal constraints, fixed and moving nodes) on each resolution and solves it with every
-available method, each in a fresh process (peak resident memory is per process). CHOLMOD
-needs ``scikit-sparse`` and the system SuiteSparse and is skipped when missing;
-SuperLU is skipped above ``--superlu-max-dofs`` (SPEC: > 3 min and > 5 GB at 150k dofs).
+normal constraints, fixed and moving nodes) on each phantom resolution, on the paper face
+split into tetrahedra (``paper-tet4``), and on a bulky tetrahedral block of ~8,800 nodes
+(``bulk-tet4``: 26k dofs like a real volumetric tet mesh, bottom fixed, top pushed), and
+solves it with every available method, each in a fresh process (peak resident memory is
+per process). Each row also gives the factor size ``auto`` expects
+(:func:`~toolkit.static.solvers.estimate_factor_entries`) and its choice, and the time of
+a second solve after tying 5 more pairs (the next lip-contact iteration) by CG preconditioned
+with the first factorization (``reuse_s``, ``reuse_iterations``). CHOLMOD needs
+``scikit-sparse`` and the system SuiteSparse and is skipped when missing; SuperLU is
+skipped above ``--superlu-max-dofs`` (SPEC: > 3 min and > 5 GB at 150k dofs).
 
 Writes ``benchmarks/results/static_solvers.csv`` and prints a table.
 
-    python benchmarks/static_solvers.py [--resolutions paper fine]
+    python benchmarks/static_solvers.py [--meshes paper fine bulk-tet4]
 """
 
 from __future__ import annotations
@@ -21,48 +28,86 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import scipy.sparse as sp
 
 RESULTS = Path(__file__).parent / "results"
 
 
-def _system(resolution: str):
+MESHES = ("coarse", "paper", "fine", "paper-tet4", "bulk-tet4")
+
+
+def _system(name: str):
+    """Problem, reduction, reduced matrix and right-hand side, and 20 tie pairs for ``name``."""
     from toolkit.common import face_hex
+    from toolkit.common.face_variants import remeshed
+    from toolkit.common.phantom import block
     from toolkit.static import Constraints, StaticProblem, default_plan, material_assignment
     from toolkit.static.boundary import BoundaryConditions, NodeType
 
-    ph = face_hex(resolution)
-    plan = default_plan(ph).increments(3)[0]
-    bc = BoundaryConditions.from_mesh(ph.mesh, ph.segments)
-    X = ph.mesh.points
-    fixed, moving = bc.nodes(NodeType.FIXED), bc.nodes(NodeType.MOVING)
-    target = X.copy()
-    for s, name in enumerate(bc.segment_names):
-        ids = moving[bc.segment[moving] == s]
-        target[ids] = plan.motions[name].apply(X[ids])
-    nodes = np.concatenate([fixed, moving])
-    mucosa = bc.nodes(NodeType.MUCOSA_SLIDING)
-    normals = np.tile([0.0, 1.0, 0.0], (mucosa.size, 1))  # any valid sliding rows: the solver sees their shape
-    c = Constraints(ph.mesh.n_points, nodes, target[nodes] - X[nodes], mucosa, normals, np.zeros(mucosa.size))
-    problem = StaticProblem(ph.mesh, material_assignment("linear", ph.mesh))
+    if name == "bulk-tet4":
+        mesh = block([np.linspace(0, 60, 21), np.linspace(0, 60, 21), np.linspace(0, 57, 20)], "tet4")
+        x = mesh.points
+        bottom, top = np.flatnonzero(x[:, 2] == 0), np.flatnonzero(x[:, 2] == x[:, 2].max())
+        c = Constraints(mesh.n_points, np.concatenate([bottom, top]),
+                        np.vstack([np.zeros((bottom.size, 3)), np.tile([1.0, 0.0, -2.0], (top.size, 1))]))
+        free = np.setdiff1d(np.arange(mesh.n_points), np.concatenate([bottom, top]))
+    else:
+        ph = face_hex(name.split("-")[0])
+        if name.endswith("tet4"):
+            ph = remeshed(ph, "tet4")
+        mesh = ph.mesh
+        plan = default_plan(ph).increments(3)[0]
+        bc = BoundaryConditions.from_mesh(mesh, ph.segments)
+        X = mesh.points
+        fixed, moving = bc.nodes(NodeType.FIXED), bc.nodes(NodeType.MOVING)
+        target = X.copy()
+        for s, seg in enumerate(bc.segment_names):
+            ids = moving[bc.segment[moving] == s]
+            target[ids] = plan.motion(seg).apply(X[ids])
+        nodes = np.concatenate([fixed, moving])
+        mucosa = bc.nodes(NodeType.MUCOSA_SLIDING)
+        normals = np.tile([0.0, 1.0, 0.0], (mucosa.size, 1))  # any valid sliding rows: the solver sees their shape
+        c = Constraints(mesh.n_points, nodes, target[nodes] - X[nodes], mucosa, normals, np.zeros(mucosa.size))
+        free = bc.nodes(NodeType.FREE)
+    problem = StaticProblem(mesh, material_assignment("linear", mesh))
+    ties = free[:10]
+    return problem, c, ties
+
+
+def _reduced(problem, c):
     T, u0 = c.reduction()
     K = problem.stiffness
     A = (T.T @ K @ T).tocsr()
-    b = -(T.T @ (K @ u0))
-    return problem, T, A, b
+    d = A.diagonal()
+    A = A + sp.diags(np.where(d == 0, d[d > 0].mean(), 0.0))  # tie slaves' idle columns, as StaticProblem
+    return T, A, -(T.T @ (K @ u0))
 
 
-def run_one(resolution: str, method: str) -> dict:
-    from toolkit.static.solvers import SolverError, solve
+def run_one(name: str, method: str) -> dict:
+    from dataclasses import replace
+
+    from toolkit.static.fem import _node_graph
+    from toolkit.static.solvers import LinearSolver, SolverError, choose_method, estimate_factor_entries
 
     t0 = time.perf_counter()
-    problem, T, A, b = _system(resolution)
+    problem, c, ties = _system(name)
+    T, A, b = _reduced(problem, c)
     t_build = time.perf_counter() - t0
+    entries = estimate_factor_entries(_node_graph(problem.pattern))
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    row = {"resolution": resolution, "method": method, "dofs": A.shape[0], "nnz": A.nnz, "build_s": t_build}
+    row = {"mesh": name, "method": method, "dofs": A.shape[0], "nnz": A.nnz, "build_s": t_build,
+           "expected_factor_entries": entries, "auto_choice": choose_method("auto", A.shape[0], entries)}
     try:
-        modes = T.T @ problem._modes if method == "amg" else None
-        x, info = solve(A, b, method=method, near_nullspace=modes)
-        row.update(status="ok", solve_s=info.seconds, iterations=info.iterations, residual=info.residual)
+        solver = LinearSolver(method, factor_entries=entries, timed_budget=False)
+        modes = T.T @ problem._modes if method in ("amg", "auto") else None
+        x, info = solver.solve(A, b, near_nullspace=modes)
+        row.update(status="ok", solve_s=info.seconds, iterations=info.iterations, residual=info.residual,
+                   used=info.method)
+        # the next lip-contact iteration: 5 more pairs tied (same size: tie slaves keep their columns)
+        c2 = replace(c, tie_slaves=ties[:5], tie_masters=ties[5:10], tie_offsets=np.zeros(5))
+        T2, A2, b2 = _reduced(problem, c2)
+        x2, info2 = solver.solve(A2, b2, near_nullspace=T2.T @ problem._modes if modes is not None else None)
+        row.update(reuse_s=info2.seconds, reuse_iterations=info2.iterations, reused=info2.reused)
     except SolverError as exc:
         row.update(status=f"unavailable: {str(exc)[:80]}")
     row["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -72,7 +117,7 @@ def run_one(resolution: str, method: str) -> dict:
 
 def main(argv=None) -> pd.DataFrame:
     parser = argparse.ArgumentParser(description="static linear solver comparison")
-    parser.add_argument("--resolutions", nargs="+", default=["coarse", "paper", "fine"])
+    parser.add_argument("--meshes", nargs="+", default=list(MESHES), choices=MESHES)
     parser.add_argument("--methods", nargs="+", default=["superlu", "amg", "cholmod"])
     parser.add_argument("--superlu-max-dofs", type=int, default=60_000)
     parser.add_argument("--out", type=Path, default=RESULTS / "static_solvers.csv")
@@ -82,14 +127,14 @@ def main(argv=None) -> pd.DataFrame:
 
     rows = []
     with ProcessPoolExecutor(max_workers=1, max_tasks_per_child=1) as pool:
-        for res in args.resolutions:
-            n_dofs = 3 * face_hex(res).mesh.n_points
+        for name in args.meshes:
+            n_dofs = 3 * face_hex(name.split("-")[0]).mesh.n_points if name != "bulk-tet4" else 3 * 21 * 21 * 20
             for method in args.methods:
                 if method == "superlu" and n_dofs > args.superlu_max_dofs:
-                    rows.append({"resolution": res, "method": method, "dofs": n_dofs,
+                    rows.append({"mesh": name, "method": method, "dofs": n_dofs,
                                  "status": f"skipped (> {args.superlu_max_dofs} dofs)"})
                     continue
-                rows.append(pool.submit(run_one, res, method).result())
+                rows.append(pool.submit(run_one, name, method).result())
                 with atomic_path(args.out) as tmp:
                     pd.DataFrame(rows).to_csv(tmp, index=False)
     df = pd.DataFrame(rows)

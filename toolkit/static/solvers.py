@@ -154,7 +154,7 @@ class LinearSolver:
     """
 
     def __init__(self, method: str = "auto", factor_entries: int | None = None, rtol: float = 1e-9,
-                 reuse: bool = True, max_reuse_iterations: int = 40, reuse_rtol: float = 1e-13,
+                 reuse: bool = True, max_reuse_iterations: int = 60, reuse_rtol: float = 1e-13,
                  timed_budget: bool = True):
         if method not in METHODS:
             raise ValueError(f"unknown solver {method!r}; expected one of {METHODS}")
