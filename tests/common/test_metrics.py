@@ -16,6 +16,7 @@ from toolkit.common.metrics import (
     mean_euclidean_error,
     midline_profile,
     nodal_errors,
+    nrmse,
     pearson,
     procrustes_displacement,
     region_errors,
@@ -94,6 +95,21 @@ def test_rmse_hand_value_any_shape():
     assert rmse([1.0, 2.0, 3.0], [1.0, 2.0, 5.0]) == pytest.approx(np.sqrt(4.0 / 3.0))
     p = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 3.0]])
     assert rmse(p, np.zeros((2, 3))) == pytest.approx(np.sqrt(11.0 / 6.0))
+
+
+def test_nrmse_is_rmse_over_the_peak_and_matches_numpy():
+    """NRMSE = sqrt(mean((p - t)^2)) / max|t| by default (numpy on random arrays), or over a given
+    peak (e.g. the largest displacement magnitude); an all-zero truth has no peak and raises."""
+    rng = np.random.default_rng(1)
+    t = rng.normal(size=(50, 3))
+    p = t + 0.1 * rng.normal(size=t.shape)
+    expected = np.sqrt(np.mean((p - t) ** 2)) / np.abs(t).max()
+    assert nrmse(p, t) == pytest.approx(expected, rel=1e-14)
+    peak = np.linalg.norm(t, axis=1).max()
+    assert nrmse(p, t, peak=peak) == pytest.approx(rmse(p, t) / peak, rel=1e-14)
+    assert nrmse([1.0, 2.0, 3.0], [1.0, 2.0, 5.0]) == pytest.approx(np.sqrt(4.0 / 3.0) / 5.0)
+    with pytest.raises(ValueError, match="peak is 0.0"):
+        nrmse(np.ones(3), np.zeros(3))
 
 
 def test_pearson_matches_scipy_and_linear_limits():

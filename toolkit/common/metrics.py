@@ -7,8 +7,8 @@ are int64.
 Contents
 --------
 Nodal errors (seeds 000, 002)
-    :func:`nodal_errors`, :func:`mean_euclidean_error`, :func:`rmse`, :func:`pearson`,
-    :func:`region_errors`.
+    :func:`nodal_errors`, :func:`mean_euclidean_error`, :func:`rmse`, :func:`nrmse`,
+    :func:`pearson`, :func:`region_errors`.
 Paired comparison of error distributions (seed 000's explicit vs implicit ablation)
     :func:`wilcoxon_paired` -> :class:`PairedComparison`.
 Surface deviation along normals (seed 001), in :mod:`toolkit.common.surface_distance`
@@ -53,6 +53,7 @@ __all__ = [
     "nodal_errors",
     "mean_euclidean_error",
     "rmse",
+    "nrmse",
     "pearson",
     "region_errors",
     "vertex_normals",
@@ -122,6 +123,26 @@ def rmse(pred, true) -> float:
     """
     a, b = _as_pair(pred, true)
     return float(np.sqrt(np.mean((a - b) ** 2)))
+
+
+def nrmse(pred, true, peak: float | None = None) -> float:
+    """RMSE normalised by the peak of the ground truth, ``rmse(pred, true) / peak``.
+
+    Parameters
+    ----------
+    pred, true : array of any (matching, non-empty) shape, in the unit of the data
+    peak : the normalising peak in that unit; default ``max |true|`` over all entries (pass
+        the largest displacement magnitude for ``(n, 3)`` displacements)
+
+    Returns
+    -------
+    float, dimensionless (0.01 = 1 % of the peak)
+    """
+    a, b = _as_pair(pred, true)
+    p = float(np.max(np.abs(b))) if peak is None else float(peak)
+    if not np.isfinite(p) or p <= 0.0:
+        raise ValueError(f"peak is {p!r}; expected a positive finite value (is the ground truth all zero?)")
+    return float(np.sqrt(np.mean((a - b) ** 2))) / p
 
 
 def pearson(pred, true) -> float:

@@ -1,0 +1,122 @@
+"""The resumable HDF5 job database: records and failures land in the file, the index is readable
+with h5py + pandas alone, reruns skip what is done (and failed, unless retried), an interrupted
+run keeps every finished job, leftover shards are merged, and foreign, mismatched or corrupt
+files are refused with a message naming the problem."""
+
+from concurrent.futures import ThreadPoolExecutor
+
+import h5py
+import numpy as np
+import pandas as pd
+import pytest
+
+from toolkit.common.compat import IncompatibleError
+from toolkit.common.database import Database, DatabaseError, Job, Record, read_failures, read_index, run_jobs
+
+KIND = "toolkit.test.database"
+
+
+def square(params):
+    """A worker: arrays depend on the params; x = 3 fails."""
+    x = params["x"]
+    if x == 3:
+        raise RuntimeError("x = 3 is not allowed")
+    return Record({"values": np.arange(4.0) * x, "grid": np.full((2, 2), x)}, {"sum": 6.0 * x, "label": f"x{x}"})
+
+
+def _db(tmp_path, config=None):
+    db = Database(tmp_path / "db.h5", KIND, 1, config or {"grid": 2})
+    db.create(shared={"points": np.eye(3)})
+    return db
+
+
+def _jobs(xs):
+    return [Job(f"x{x}", {"x": x}) for x in xs]
+
+
+def test_records_failures_and_the_plain_pandas_index(tmp_path):
+    """Three jobs in this process: two records with their arrays and attributes, one failure with
+    its reason; the index table has one row per record (key, params, attributes) and reads with
+    h5py + pandas only."""
+    db = _db(tmp_path)
+    report = run_jobs(db, _jobs([1, 2, 3]), square, workers=0, progress=False)
+    assert sorted(report.done) == ["x1", "x2"] and list(report.failed) == ["x3"]
+    assert "RuntimeError: x = 3 is not allowed" in report.failed["x3"]
+    with h5py.File(db.path) as f:
+        np.testing.assert_array_equal(f["records/x2/values"][()], [0.0, 2.0, 4.0, 6.0])
+        np.testing.assert_array_equal(f["shared/points"][()], np.eye(3))
+        plain = pd.DataFrame(f["index"][()])
+    assert sorted(plain["x"]) == [1, 2] and sorted(plain["sum"]) == [6.0, 12.0]
+    table = read_index(db.path)
+    assert set(table["key"]) == {"x1", "x2"} and set(table["label"]) == {"x1", "x2"}
+    fails = read_failures(db.path)
+    assert list(fails["key"]) == ["x3"] and "not allowed" in fails["reason"][0]
+    assert not db.shards.exists()  # merged
+
+
+def test_rerun_skips_done_and_failed_jobs_unless_retried(tmp_path):
+    db = _db(tmp_path)
+    run_jobs(db, _jobs([1, 3]), square, workers=0, progress=False)
+    again = run_jobs(db, _jobs([1, 3, 4]), square, workers=0, progress=False)
+    assert again.done == ["x4"] and sorted(again.skipped) == ["x1", "x3"]
+    retry = run_jobs(db, _jobs([1, 3, 4]), square, workers=0, retry_failed=True, progress=False)
+    assert list(retry.failed) == ["x3"] and sorted(retry.skipped) == ["x1", "x4"]
+
+
+def test_any_executor_works(tmp_path):
+    """A thread pool (any concurrent.futures executor) gives the same records as in-process runs."""
+    db = _db(tmp_path)
+    with ThreadPoolExecutor(2) as pool:
+        report = run_jobs(db, _jobs([1, 2, 4]), square, executor=pool, progress=False)
+    assert sorted(report.done) == ["x1", "x2", "x4"]
+    assert sorted(read_index(db.path)["sum"]) == [6.0, 12.0, 24.0]
+
+
+def test_dask_local_cluster(tmp_path):
+    """A dask.distributed Client on a LocalCluster is accepted as the executor (its
+    get_executor() is used) and fills the same database."""
+    distributed = pytest.importorskip("distributed")
+    db = _db(tmp_path)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cl, \
+            distributed.Client(cl) as client:
+        report = run_jobs(db, _jobs([1, 2, 3]), square, executor=client, progress=False)
+    assert sorted(report.done) == ["x1", "x2"] and list(report.failed) == ["x3"]
+    assert sorted(read_index(db.path)["x"]) == [1, 2]
+
+
+def test_interrupt_keeps_finished_jobs_and_leftover_shards_are_merged(tmp_path):
+    """Ctrl-C during the third job: the two finished records are in the file afterwards, and the
+    next run does only the rest. A shard left by a killed run (never merged) is merged at the next
+    start instead of being recomputed."""
+    db = _db(tmp_path)
+
+    def interrupting(params):
+        if params["x"] == 5:
+            raise KeyboardInterrupt
+        return square(params)
+
+    with pytest.raises(KeyboardInterrupt):
+        run_jobs(db, _jobs([1, 2, 5, 6]), interrupting, workers=0, progress=False)
+    assert db.keys() == ["x1", "x2"]
+    db.write_shard(Job("x7", {"x": 7}), "done", square({"x": 7}), [])  # as if killed before merging
+    report = run_jobs(db, _jobs([1, 2, 5, 6, 7]), square, workers=0, progress=False)
+    assert sorted(report.done) == ["x5", "x6"] and sorted(report.skipped) == ["x1", "x2", "x7"]
+    assert sorted(read_index(db.path)["x"]) == [1, 2, 5, 6, 7]
+
+
+def test_foreign_mismatched_and_corrupt_files_are_refused(tmp_path):
+    _db(tmp_path, {"grid": 2})
+    with pytest.raises(IncompatibleError, match=r"grid: stored 2, asked 3"):
+        Database(tmp_path / "db.h5", KIND, 1, {"grid": 3}).create()
+    with pytest.raises(DatabaseError, match="is not a 'other.kind' database"):
+        Database(tmp_path / "db.h5", "other.kind", 1, {"grid": 2}).create()
+    with pytest.raises(DatabaseError, match="format version 1, this toolkit reads version 2"):
+        Database(tmp_path / "db.h5", KIND, 2, {"grid": 2}).create()
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"not an hdf5 file at all")
+    with pytest.raises(DatabaseError, match="cannot read .*bad.h5 as HDF5"):
+        Database(bad, KIND, 1, {}).create()
+    with pytest.raises(ValueError, match="must be unique"):
+        run_jobs(_db(tmp_path), _jobs([1, 1]), square, workers=0, progress=False)
+    with pytest.raises(ValueError, match="job key 'a/b'"):
+        Job("a/b")

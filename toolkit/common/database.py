@@ -1,0 +1,455 @@
+"""A resumable, crash-safe HDF5 learning database filled by jobs on any executor.
+
+A database is one HDF5 file built from *jobs* (one simulation each, with a stable
+``key`` and JSON ``params``) run by a picklable ``worker(params) -> Record`` on any
+``concurrent.futures``-style executor: local processes by default
+(``ProcessPoolExecutor``), in-process with ``workers=0``, or a Dask cluster (pass a
+``dask.distributed.Client``; its ``get_executor()`` is used).
+
+Safety:
+
+- only the main process writes; each finished job is first written as its own small
+  *shard* file (``<db>.shards/<key>.h5``, atomically renamed into place), so a crash or
+  Ctrl-C loses at most the jobs still running;
+- shards are merged into the main file copy-on-write (a copy is extended and renamed
+  over the original), every ``merge_every`` seconds, at the end, on Ctrl-C and at the
+  next start: the main file is always a complete, consistent database;
+- a job that raised is recorded with its reason and traceback under ``/failures`` and
+  skipped on the next run unless ``retry_failed``.
+
+Layout: root attributes ``format`` (a tag naming the kind of database), ``format_version``
+and ``config`` (JSON: what generated it; a rerun with another configuration is refused,
+naming the differences); ``/shared/...`` arrays common to every record (a mesh);
+``/records/<key>/`` each record's arrays with ``params`` (JSON) and its scalar ``attrs``;
+``/failures/<key>`` (``reason``, ``traceback``, ``params``); ``/index``, a table with one
+row per record (key, params, scalar attributes), readable without the toolkit::
+
+    import h5py, pandas as pd
+    with h5py.File("db.h5") as f:
+        index = pd.DataFrame(f["index"][()])      # strings come back as bytes
+
+or with :func:`read_index` (strings decoded).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import time
+import traceback
+import warnings
+from collections.abc import Callable, Iterable, Mapping
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from toolkit.common.compat import jsonable, require_same
+
+__all__ = ["Job", "Record", "RunReport", "DatabaseError", "Database", "run_jobs", "read_index", "read_failures",
+           "InProcessExecutor"]
+
+log = logging.getLogger(__name__)
+
+
+class DatabaseError(ValueError):
+    """A file is not a database of the expected kind, version or configuration, or is unreadable."""
+
+
+@dataclass(frozen=True)
+class Job:
+    """One unit of work: ``key`` (unique, stable across runs, no ``/``) and JSON ``params``."""
+
+    key: str
+    params: Mapping = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not isinstance(self.key, str) or not self.key or "/" in self.key or self.key.startswith("."):
+            raise ValueError(f"job key {self.key!r} must be a non-empty string without '/' or a leading '.'")
+        object.__setattr__(self, "params", jsonable(dict(self.params)))
+
+
+@dataclass(frozen=True, eq=False)
+class Record:
+    """What a worker returns: named ``arrays`` (any shapes) and scalar ``attrs`` (numbers, strings,
+    booleans; they also go into the index table)."""
+
+    arrays: Mapping[str, np.ndarray]
+    attrs: Mapping[str, object] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class RunReport:
+    """Outcome of :func:`run_jobs`: keys ``done`` now, ``failed`` now (key -> reason), ``skipped``
+    (already in the database or failed before), and the wall time ``seconds``."""
+
+    done: list
+    failed: dict
+    skipped: list
+    seconds: float
+
+
+class InProcessExecutor(Executor):
+    """Runs each submitted call at once in this process (``workers=0``: debugging, notebooks)."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        fut = Future()
+        try:
+            fut.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # noqa: BLE001 - handed to the future like a pool would
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+            fut.set_exception(exc)
+        return fut
+
+
+def _call(worker: Callable, params: dict):
+    """Run in the worker: ``("done", Record, warnings)`` or ``("failed", reason, traceback)``."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            record = worker(params)
+        except Exception as exc:  # noqa: BLE001 - every failure is recorded, not raised
+            return "failed", f"{type(exc).__name__}: {exc}", traceback.format_exc()
+    if not isinstance(record, Record):
+        return "failed", f"worker returned {type(record).__name__}, expected a Record", ""
+    seen = list(dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in caught))
+    return "done", record, seen
+
+
+class Database:
+    """The HDF5 file at ``path`` holding records made by a given ``config``.
+
+    Parameters
+    ----------
+    path : the ``.h5`` file
+    kind : format tag (e.g. ``"toolkit.impact.database"``); a file with another tag is refused
+    version : format version the caller reads and writes
+    config : JSON-able description of what generates the records; must match an existing file's
+    """
+
+    def __init__(self, path: str | os.PathLike, kind: str, version: int, config: Mapping):
+        self.path = Path(path)
+        self.kind, self.version, self.config = kind, int(version), jsonable(dict(config))
+        self.shards = self.path.with_name(self.path.name + ".shards")
+
+    # ------------------------------------------------------------------ opening / checking
+    @staticmethod
+    def open_attrs(path: Path) -> dict:
+        """Root attributes of an existing database file, or :class:`DatabaseError` if unreadable."""
+        import h5py
+
+        try:
+            with h5py.File(path, "r") as f:
+                return {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        except OSError as exc:
+            raise DatabaseError(f"cannot read {path} as HDF5 (corrupt, truncated or not HDF5): {exc}") from exc
+
+    def check(self) -> None:
+        """Refuse an existing file of another kind, version or configuration."""
+        attrs = self.open_attrs(self.path)
+        if attrs.get("format") != self.kind:
+            raise DatabaseError(f"{self.path} is not a {self.kind!r} database (its format tag is "
+                                f"{attrs.get('format')!r}); choose another output file")
+        if int(attrs.get("format_version", -1)) != self.version:
+            raise DatabaseError(f"{self.path} has format version {attrs.get('format_version')}, this toolkit reads "
+                                f"version {self.version}; regenerate it")
+        stored = json.loads(attrs.get("config", "{}"))
+        require_same(stored, self.config, f"database {self.path}",
+                     hint="use the options it was made with, or another output file")
+
+    def create(self, shared: Mapping[str, np.ndarray] | None = None, shared_attrs: Mapping | None = None) -> None:
+        """Create the file (atomically) if absent, with ``/shared`` arrays; else :meth:`check` it."""
+        import h5py
+
+        from toolkit.common.io import atomic_path
+
+        if self.path.exists():
+            self.check()
+            return
+        with atomic_path(self.path) as tmp:
+            with h5py.File(tmp, "w") as f:
+                f.attrs["format"] = self.kind
+                f.attrs["format_version"] = self.version
+                f.attrs["config"] = json.dumps(self.config)
+                g = f.create_group("shared")
+                for name, arr in (shared or {}).items():
+                    g.create_dataset(name, data=np.asarray(arr))
+                for k, v in (shared_attrs or {}).items():
+                    g.attrs[k] = v
+                f.create_group("records")
+                f.create_group("failures")
+                _write_index(f)
+
+    # ------------------------------------------------------------------ contents
+    def keys(self) -> list[str]:
+        """Keys of finished records (merged and pending shards)."""
+        import h5py
+
+        with h5py.File(self.path, "r") as f:
+            done = set(f["records"].keys())
+        return sorted(done | {k for k, status in self._shard_status().items() if status == "done"})
+
+    def failures(self) -> dict[str, str]:
+        """Failed keys -> reason (merged and pending)."""
+        import h5py
+
+        with h5py.File(self.path, "r") as f:
+            out = {k: _str(g.attrs["reason"]) for k, g in f["failures"].items()}
+        for k, status in self._shard_status().items():
+            if status == "failed":
+                with h5py.File(self.shards / f"{k}.h5", "r") as s:
+                    out[k] = _str(s.attrs["reason"])
+            else:
+                out.pop(k, None)
+        return out
+
+    def _shard_status(self) -> dict[str, str]:
+        import h5py
+
+        out = {}
+        if self.shards.is_dir():
+            for p in sorted(self.shards.glob("*.h5")):
+                if p.name.startswith("."):
+                    continue  # a temporary file of an interrupted atomic write
+                with h5py.File(p, "r") as s:
+                    out[_str(s.attrs["key"])] = _str(s.attrs["status"])
+        return out
+
+    # ------------------------------------------------------------------ writing
+    def write_shard(self, job: Job, status: str, payload, extra) -> None:
+        """Write one finished job as ``<db>.shards/<key>.h5`` (atomically)."""
+        import h5py
+
+        from toolkit.common.io import atomic_path
+
+        self.shards.mkdir(exist_ok=True)
+        with atomic_path(self.shards / f"{job.key}.h5") as tmp:
+            with h5py.File(tmp, "w") as s:
+                s.attrs["key"] = job.key
+                s.attrs["status"] = status
+                s.attrs["params"] = json.dumps(job.params)
+                if status == "done":
+                    for name, arr in payload.arrays.items():
+                        s.create_dataset(name, data=np.asarray(arr))
+                    attrs = dict(payload.attrs)
+                    if extra:
+                        attrs["warnings"] = "; ".join(extra)
+                    s.attrs["record_attrs"] = json.dumps(jsonable(attrs))
+                else:
+                    s.attrs["reason"] = payload
+                    s.attrs["traceback"] = extra or ""
+
+    def merge(self) -> int:
+        """Fold pending shards into the main file copy-on-write; returns how many were merged."""
+        import h5py
+
+        from toolkit.common.io import atomic_path
+
+        shards = [p for p in sorted(self.shards.glob("*.h5")) if not p.name.startswith(".")] \
+            if self.shards.is_dir() else []
+        if not shards:
+            return 0
+        with atomic_path(self.path) as tmp:
+            shutil.copyfile(self.path, tmp)
+            with h5py.File(tmp, "a") as f:
+                for p in shards:
+                    with h5py.File(p, "r") as s:
+                        key, status = _str(s.attrs["key"]), _str(s.attrs["status"])
+                        for group in ("records", "failures"):
+                            if key in f[group]:
+                                del f[group][key]
+                        if status == "done":
+                            g = f["records"].create_group(key)
+                            for name in s:
+                                s.copy(s[name], g, name=name)
+                            g.attrs["params"] = s.attrs["params"]
+                            g.attrs["attrs"] = s.attrs["record_attrs"]
+                        else:
+                            g = f["failures"].create_group(key)
+                            for a in ("params", "reason", "traceback"):
+                                g.attrs[a] = s.attrs[a]
+                _write_index(f)
+        for p in shards:
+            p.unlink()
+        try:
+            self.shards.rmdir()
+        except OSError:
+            pass
+        return len(shards)
+
+
+def _str(v) -> str:
+    return v.decode() if isinstance(v, bytes) else str(v)
+
+
+def _write_index(f) -> None:
+    """(Re)write ``/index``: one row per record with its key, params and scalar attributes."""
+    import h5py
+
+    rows = []
+    for key, g in f["records"].items():
+        row = {"key": key}
+        row.update(_flat(json.loads(_str(g.attrs["params"]))))
+        row.update(_flat(json.loads(_str(g.attrs["attrs"]))))
+        rows.append(row)
+    columns = list(dict.fromkeys(c for r in rows for c in r))
+    if "index" in f:
+        del f["index"]
+    if not rows:
+        f.create_dataset("index", shape=(0,), dtype=np.dtype([("key", h5py.string_dtype())]))
+        return
+    dtypes = []
+    for c in columns:
+        values = [r.get(c) for r in rows]
+        if all(isinstance(v, bool) for v in values):
+            dt = np.dtype(np.bool_)
+        elif all(isinstance(v, int) and not isinstance(v, bool) for v in values):
+            dt = np.dtype(np.int64)
+        elif all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+            dt = np.dtype(np.float64)
+        else:
+            dt = h5py.string_dtype()
+        dtypes.append((c, dt))
+    table = np.zeros(len(rows), dtype=np.dtype(dtypes))
+    for c, dt in dtypes:
+        if dt.kind == "O":
+            table[c] = ["" if r.get(c) is None else str(r.get(c)) for r in rows]
+        else:
+            table[c] = [r.get(c) for r in rows]
+    f.create_dataset("index", data=table)
+
+
+def _flat(d: Mapping, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping):
+            out.update(_flat(v, f"{prefix}{k}."))
+        elif isinstance(v, (list, tuple)):
+            out[f"{prefix}{k}"] = json.dumps(v)
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def read_index(path: str | os.PathLike):
+    """The database's index as a DataFrame (one row per finished record, strings decoded)."""
+    import h5py
+    import pandas as pd
+
+    Database.open_attrs(Path(path))
+    with h5py.File(path, "r") as f:
+        table = pd.DataFrame(f["index"][()])
+    for c in table.columns:
+        if table[c].dtype == object:
+            table[c] = table[c].map(_str)
+    return table
+
+
+def read_failures(path: str | os.PathLike):
+    """Failed jobs of the database: DataFrame with ``key``, ``reason``, ``params`` (JSON)."""
+    import h5py
+    import pandas as pd
+
+    Database.open_attrs(Path(path))
+    with h5py.File(path, "r") as f:
+        rows = [{"key": k, "reason": _str(g.attrs["reason"]), "params": _str(g.attrs["params"])}
+                for k, g in f["failures"].items()]
+    return pd.DataFrame(rows, columns=["key", "reason", "params"])
+
+
+def _resolve_executor(executor, workers: int):
+    if executor is not None:
+        if hasattr(executor, "get_executor"):  # a dask.distributed Client
+            return executor.get_executor(pure=False), False
+        return executor, False
+    if workers == 0:
+        return InProcessExecutor(), True
+    import multiprocessing
+
+    # spawn: the parent may hold threads (tqdm, BLAS, torch) that fork would copy mid-state
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")), True
+
+
+def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=None, workers: int = 1,
+             retry_failed: bool = False, progress: bool = True, merge_every: float = 60.0) -> RunReport:
+    """Run the jobs of ``jobs`` not yet in ``db`` and store their records.
+
+    Parameters
+    ----------
+    db : Database (created with :meth:`Database.create` beforehand)
+    jobs : Job objects with distinct keys
+    worker : picklable ``worker(params) -> Record`` (a module-level function or an instance of a
+        module-level class); exceptions it raises become recorded failures
+    executor : any object with ``submit(fn, *args) -> Future`` (``concurrent.futures``), or a
+        ``dask.distributed.Client``; default: a process pool of ``workers`` processes
+        (``workers=0``: run in this process)
+    retry_failed : rerun jobs recorded as failed
+    progress : tqdm bar over jobs
+    merge_every : seconds between merges of finished shards into the main file
+
+    Returns
+    -------
+    RunReport
+    """
+    from tqdm.auto import tqdm
+
+    t0 = time.perf_counter()
+    jobs = list(jobs)
+    keys = [j.key for j in jobs]
+    if len(set(keys)) != len(keys):
+        dup = sorted({k for k in keys if keys.count(k) > 1})
+        raise ValueError(f"job keys must be unique; repeated: {dup}")
+    if int(workers) < 0:
+        raise ValueError(f"workers must be >= 0 (0: in this process), got {workers}")
+    db.merge()  # shards left by a crashed run
+    done_before, failed_before = set(db.keys()), db.failures()
+    skip = done_before | (set() if retry_failed else set(failed_before))
+    todo = [j for j in jobs if j.key not in skip]
+    skipped = [j.key for j in jobs if j.key in skip]
+    report = RunReport([], {}, skipped, 0.0)
+    if not todo:
+        return RunReport([], {}, skipped, time.perf_counter() - t0)
+    pool, owned = _resolve_executor(executor, int(workers))
+    # a sliding window of submitted jobs: results are stored as they come (an in-process
+    # executor runs one at a time), and a Ctrl-C leaves few jobs queued
+    window = 1 if isinstance(pool, InProcessExecutor) else (2 * int(workers) if owned else len(todo))
+    pending, futures = list(reversed(todo)), {}
+    bar = tqdm(total=len(todo), desc="simulations", disable=not progress)
+    last_merge = time.perf_counter()
+    try:
+        while pending or futures:
+            while pending and len(futures) < window:
+                job = pending.pop()
+                futures[pool.submit(_call, worker, dict(job.params))] = job
+            finished, _ = wait(futures, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                job = futures.pop(fut)
+                try:
+                    status, payload, extra = fut.result()
+                except Exception as exc:  # noqa: BLE001 - the worker process itself died
+                    status, payload, extra = "failed", f"{type(exc).__name__}: {exc}", traceback.format_exc()
+                db.write_shard(job, status, payload, extra)
+                if status == "done":
+                    report.done.append(job.key)
+                else:
+                    report.failed[job.key] = payload
+                    log.warning("job %s failed: %s", job.key, payload)
+                bar.update(1)
+                bar.set_postfix(failed=len(report.failed))
+            if time.perf_counter() - last_merge > merge_every:
+                db.merge()
+                last_merge = time.perf_counter()
+    except KeyboardInterrupt:
+        for fut in futures:
+            fut.cancel()
+        raise
+    finally:
+        bar.close()
+        if owned:
+            pool.shutdown(wait=False, cancel_futures=True)
+        db.merge()
+    return RunReport(report.done, report.failed, skipped, time.perf_counter() - t0)
