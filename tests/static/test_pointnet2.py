@@ -307,7 +307,7 @@ def test_errors_name_the_bad_values(phantom):
         model(torch.rand(1, 771, 6), h)
     with pytest.raises(ValueError, match="features have 700 nodes but the hierarchy was built for a mesh of 771"):
         model(torch.rand(1, 700, 9), h)
-    with pytest.raises(ValueError, match=r"radii \(0.15, 0.3, 0.6, 1.2\).*the config expects 4, \(0.25, 0.5, 1.0, 2.0\)"):
+    with pytest.raises(ValueError, match=r"radii \(0.15, 0.3, 0.6, 1.2\).*config expects 4, \(0.25, 0.5, 1.0, 2.0\)"):
         model(torch.rand(1, 771, 9), PointHierarchy.build(points, PointNet2Config()))
     with pytest.raises(ValueError, match="level 1 asks for 1024 centres but level 0 has only 771"):
         PointHierarchy.build(points, PointNet2Config(centers=(1024, 256, 64, 16)))

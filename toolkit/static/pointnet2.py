@@ -18,19 +18,33 @@ Three layers, each usable on its own:
 
 Typical use (``points`` the mesh's reference coordinates, ``features`` built by the caller)::
 
-    config = PointNet2Config(in_channels=9)           # coords 3 + one-hot 3 + s 3
-    hierarchy = PointHierarchy.build(points, config)  # once per mesh, (n, 3) mm
+    config = PointNet2Config(in_channels=9)            # coords 3 + one-hot 3 + s 3
+    hierarchy = PointHierarchy.build(points, config)   # once per mesh; (n, 3) mm
     model = PointNet2(config)
-    u = model(features, hierarchy)                    # (B, n, 9) -> (B, n, 3)
+    u = model(features, hierarchy)                     # (B, n, 9) -> (B, n, 3)
+
+    # hard boundary conditions: exactly 0 at fixed nodes, exactly s at moving nodes
+    config = PointNet2Config(in_channels=9, hard_boundary=True)
+    u = PointNet2(config)(features, hierarchy, BoundaryTargets.from_types(types, s))
+
+    # one file for config, weights and hierarchy (plain tensors, ``weights_only=True`` loads it)
+    torch.save({"config": config.to_dict(), "model": model.state_dict(),
+                "hierarchy": hierarchy.state_dict()}, path)
+    saved = torch.load(path, weights_only=True)
+    model = PointNet2(PointNet2Config.from_dict(saved["config"]), device="cuda")
+    model.load_state_dict(saved["model"])
+    hierarchy = PointHierarchy.from_state_dict(saved["hierarchy"], device="cuda")
 
 Geometry is normalised before any distance: coordinates are centred on their bounding box
 and divided by its largest half-extent, so the mesh fits in ``[-1, 1]^3`` and radii are in
 those units (1 unit is ~58 mm on the phantom face). Hierarchies are permutation-equivariant:
 building one on the nodes in another order gives the same centres and groups, re-indexed
 (ties between equal distances are broken by the points' lexicographic order, not by their
-index), so permuting the input nodes permutes the output. Coincident nodes (the two faces
-of the closed mouth slit) are geometrically identical here: only their input features can
-tell them apart.
+index), so permuting the input nodes permutes the output. The one exception is coincident
+nodes (the two faces of the closed mouth slit): which copy a group holds when the group's
+size cuts between them follows the input order. Coincident nodes are geometrically one
+point to the network; only their input features can tell them apart
+(:attr:`PointHierarchy.n_coincident` counts them).
 """
 
 from __future__ import annotations
@@ -42,6 +56,8 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 import torch
 from torch import Tensor, nn
+
+from toolkit.static.boundary import NodeType
 
 __all__ = [
     "farthest_point_sampling",
@@ -571,7 +587,7 @@ class BoundaryTargets:
         t = torch.as_tensor(np.asarray(types.cpu() if isinstance(types, Tensor) else types, dtype=np.int64))
         prescribed = torch.as_tensor(prescribed)
         t = t.to(prescribed.device)
-        moving, fixed = t == 1, t == 2
+        moving, fixed = t == NodeType.MOVING, t == NodeType.FIXED
         values = torch.where(fixed.unsqueeze(-1), torch.zeros((), dtype=prescribed.dtype, device=prescribed.device),
                              prescribed)
         return cls(moving | fixed, values)
@@ -731,7 +747,8 @@ class PointNet2(nn.Module):
         if (hierarchy.n_levels != cfg.n_levels or hierarchy.radii != tuple(map(float, cfg.radii))
                 or hierarchy.group_size != cfg.group_size):
             raise ValueError(f"PointNet2: hierarchy has {hierarchy.n_levels} levels, radii {hierarchy.radii}, groups "
-                             f"{hierarchy.group_size}; the config expects {cfg.n_levels}, {cfg.radii}, {cfg.group_size}")
+                             f"{hierarchy.group_size}; the config expects {cfg.n_levels}, {cfg.radii}, "
+                             f"{cfg.group_size}: build it with this model's config")
         if hierarchy.device != features.device:
             raise ValueError(f"PointNet2: features on {features.device} but hierarchy on {hierarchy.device}; "
                              f"use hierarchy.to({str(features.device)!r})")
