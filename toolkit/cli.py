@@ -77,6 +77,78 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(sim)
     sim.set_defaults(func=_cmd_static_simulate)
 
+    ds = st_sub.add_parser("dataset", help="generate the surrogate's learning database",
+                           description="Simulate sampled plans on phantom subjects; every increment is a learning "
+                                       "sample (seed 000). Resumable: a rerun skips finished simulations; failures "
+                                       "are recorded with their reason. Ctrl-C loses no finished simulation.")
+    ds.add_argument("--resolution", default="coarse", choices=["coarse", "paper", "fine"])
+    ds.add_argument("--subjects", type=int, default=1, help="phantom subjects (0: default shape; k: FaceShape.sample(k))")
+    ds.add_argument("--plans", type=int, required=True, help="plans per subject")
+    ds.add_argument("--mode", default="sagittal", choices=["sagittal", "full"], help="plan directions")
+    ds.add_argument("--increments", type=int, default=3)
+    ds.add_argument("--material", default="linear", choices=["linear", "neo-hookean"])
+    ds.add_argument("--sliding", default="mucosa+lip", choices=["none", "mucosa", "mucosa+lip"])
+    ds.add_argument("--poisson-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="draw Poisson's ratio per simulation (for models with material channels)")
+    ds.add_argument("--workers", type=int, default=1, help="local processes (0: in this process)")
+    ds.add_argument("--scheduler", default=None,
+                    help="address of a Dask scheduler (tcp://host:8786) to run on a cluster instead")
+    ds.add_argument("--seed", type=int, default=0)
+    ds.add_argument("--retry-failed", action="store_true", help="rerun simulations recorded as failed")
+    ds.add_argument("--out", required=True, type=Path, help="database file (.h5)")
+    _add_common(ds)
+    ds.set_defaults(func=_cmd_static_dataset)
+
+    tr = st_sub.add_parser("train", help="train the PointNet++ surrogate on a database",
+                           description="Train PointNet++ (seed 000) on a static database; writes model.pt and "
+                                       "config.json (checkpoint.pt while training; --resume continues it).")
+    tr.add_argument("--data", required=True, type=Path)
+    tr.add_argument("--out", required=True, type=Path, help="model directory")
+    tr.add_argument("--variant", default="explicit", choices=["explicit", "implicit", "hard"],
+                    help="boundary types as inputs (explicit, seed 000), none (implicit), or explicit with exact "
+                         "boundary values (hard)")
+    tr.add_argument("--extra-channels", action="store_true", help="mucosa/lip one-hot, jaw side, mucosa bone motion")
+    tr.add_argument("--material-channels", action="store_true", help="Poisson's ratio per node")
+    tr.add_argument("--network", default="small", choices=["paper", "small", "tiny"])
+    tr.add_argument("--test-subjects", type=int, nargs="*", default=None,
+                    help="hold these subjects out for testing (default: 70/10/20 split by simulation)")
+    tr.add_argument("--epochs", type=int, default=100)
+    tr.add_argument("--batch-size", type=int, default=8)
+    tr.add_argument("--lr", type=float, default=1e-3)
+    tr.add_argument("--max-minutes", type=float, default=None)
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--device", default="cpu", help="cpu, cuda or auto")
+    tr.add_argument("--resume", action="store_true")
+    _add_common(tr)
+    tr.set_defaults(func=_cmd_static_train)
+
+    ev = st_sub.add_parser("evaluate", help="score a surrogate on a database",
+                           description="Mean Euclidean nodal error per sample (all, free, lips), inference and FE "
+                                       "times; writes metrics.json, per_sample.csv and error_map.png.")
+    ev.add_argument("--model", required=True, type=Path)
+    ev.add_argument("--data", required=True, type=Path)
+    ev.add_argument("--out", required=True, type=Path)
+    ev.add_argument("--device", default="cpu")
+    ev.add_argument("--no-render", action="store_true")
+    _add_common(ev)
+    ev.set_defaults(func=_cmd_static_evaluate)
+
+    pr = st_sub.add_parser("predict", help="predict a plan with a surrogate",
+                           description="Run a plan with the surrogate instead of the FE; writes the files of "
+                                       "`toolkit static simulate`.")
+    pr.add_argument("--model", required=True, type=Path)
+    pr.add_argument("--plan", type=Path, help="plan (.toml/.json); default: the packaged bimaxillary plan")
+    psrc = pr.add_mutually_exclusive_group()
+    psrc.add_argument("--mesh", type=Path, help="face mesh with the phantom's node sets (needs --plan)")
+    psrc.add_argument("--resolution", default=None, choices=["coarse", "paper", "fine"],
+                      help="built-in phantom (default: the training database's)")
+    pr.add_argument("--bone", action="append", default=[], metavar="SEGMENT=FILE", help="as for simulate")
+    pr.add_argument("--device", default="cpu")
+    pr.add_argument("--out", required=True, type=Path)
+    pr.add_argument("--no-preview", action="store_true")
+    _add_common(pr)
+    pr.set_defaults(func=_cmd_static_predict)
+
     im = sub.add_parser("impact", help="ball-impact workflow (seed 002)",
                         description="Impact workflow: explicit elastoplastic simulation of a ball pressed into the face.")
     im_sub = im.add_subparsers(dest="impact_command", metavar="IMPACT_COMMAND")
@@ -146,6 +218,108 @@ def _cmd_static_simulate(args) -> int:
           f"max penetration {s['max_penetration_mm']:.2e} mm, {s['wall_time_s']:.1f} s")
     print(f"wrote {args.out}/ (result.vtu: pre-operative face with 'displacement'; postop.vtu: post-operative face; "
           f"increments.xdmf, summary.json{'' if args.no_preview else ', preview.png'})")
+    return 0
+
+
+def _cmd_static_dataset(args) -> int:
+    from toolkit.static.dataset import DatasetConfig, generate
+
+    config = DatasetConfig(resolution=args.resolution, subjects=args.subjects, plans=args.plans, mode=args.mode,
+                           increments=args.increments, material=args.material, sliding=args.sliding, seed=args.seed,
+                           poisson_range=tuple(args.poisson_range) if args.poisson_range else None)
+    client = None
+    if args.scheduler:
+        from dask.distributed import Client
+
+        client = Client(args.scheduler)
+    try:
+        report = generate(args.out, config, executor=client, workers=args.workers, retry_failed=args.retry_failed)
+    finally:
+        if client is not None:
+            client.close()
+    print(f"{len(report.done)} simulations done, {len(report.skipped)} already there, {len(report.failed)} failed "
+          f"in {report.seconds:.1f} s -> {args.out}")
+    for key, reason in list(report.failed.items())[:10]:
+        print(f"  failed {key}: {reason[:160]}")
+    return 0
+
+
+def _cmd_static_train(args) -> int:
+    from toolkit.static.features import FeatureSpec
+    from toolkit.static.surrogate import SurrogateConfig, train_surrogate
+
+    config = SurrogateConfig(
+        FeatureSpec(args.variant, args.extra_channels, args.material_channels), network=args.network,
+        coarse_radii=_database_resolution(args.data) == "coarse",
+        split="subjects" if args.test_subjects else "plans", test_subjects=tuple(args.test_subjects or ()),
+        epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
+        max_seconds=None if args.max_minutes is None else 60 * args.max_minutes)
+    model = train_surrogate(args.data, args.out, config, resume=args.resume)
+    x = model.bundle.extra
+    print(f"trained {config.features.variant} PointNet++ ({x['parameters']:,} parameters) on {x['split']['train']} "
+          f"samples in {x['train_seconds']:.0f} s: best epoch {x['best_epoch']} ({x['stopped']}) -> {args.out}")
+    return 0
+
+
+def _database_resolution(path) -> str:
+    import json as _json
+
+    from toolkit.common.database import Database
+
+    return _json.loads(Database.open_attrs(Path(path)).get("config", "{}")).get("resolution", "paper")
+
+
+def _cmd_static_evaluate(args) -> int:
+    from toolkit.static.dataset import subject_phantom
+    from toolkit.static.surrogate import Surrogate, evaluate_surrogate, write_evaluation
+
+    model = Surrogate.load(args.model, device=args.device)
+    result = evaluate_surrogate(model, args.data)
+    mesh = None if args.no_render else subject_phantom(_database_resolution(args.data), 0).mesh
+    write_evaluation(result, args.out, mesh)
+    m = result["metrics"]
+    print(f"{m['samples']} samples: mean error {m['mean_error_mm']:.3f} mm (median {m['median_error_mm']:.3f}, p95 "
+          f"{m['p95_error_mm']:.3f}, max {m['max_error_mm']:.3f}); free nodes {m['free_mean_error_mm']:.3f}, lips "
+          f"{m['lips_mean_error_mm']:.3f}; {m['inference_ms']:.1f} ms per prediction vs {m['fe_ms']:.0f} ms FE per "
+          f"increment -> {args.out}/metrics.json")
+    return 0
+
+
+def _cmd_static_predict(args) -> int:
+    from toolkit.common.io import read
+    from toolkit.static import SurgicalPlan, default_plan
+    from toolkit.static.bones import segments_from_files
+    from toolkit.static.boundary import BoundaryError, segments_from_mesh
+    from toolkit.static.dataset import subject_phantom
+    from toolkit.static.surrogate import Surrogate
+
+    model = Surrogate.load(args.model, device=args.device)
+    bones = _bones(args.bone)
+    if args.mesh is None:
+        phantom = subject_phantom(args.resolution or model.bundle.data["database"]["resolution"], 0)
+        plan = SurgicalPlan.read(args.plan, phantom=phantom) if args.plan else default_plan(phantom)
+        segments = dict(phantom.segments)
+        segments.update(segments_from_files(phantom.mesh, bones, {k: s.pivot for k, s in phantom.segments.items()}))
+        result = model.predict_plan(phantom, plan, segments=segments)
+    else:
+        if args.plan is None:
+            raise ValueError("--mesh needs --plan (with pivot_mm for every rotating segment)")
+        mesh = read(args.mesh, require_node_sets=["fixed"])
+        plan = SurgicalPlan.read(args.plan)
+        pivots = {k: m.pivot for k, m in plan.motions.items()}
+        try:
+            segments = segments_from_mesh(mesh, pivots)
+        except BoundaryError:
+            if not bones:
+                raise
+            segments = {}
+        segments.update(segments_from_files(mesh, bones, pivots))
+        result = model.predict_plan(mesh, plan, segments=segments)
+    result.write(args.out, preview=not args.no_preview)
+    s = result.summary()
+    print(f"{s['nodes']} nodes, {s['increments']} increments predicted in {s['wall_time_s'] * 1e3:.0f} ms: max "
+          f"displacement {s['max_displacement_mm']:.2f} mm, min scaled Jacobian {s['min_scaled_jacobian']:.3f} -> "
+          f"{args.out}/ (result.vtu, postop.vtu, increments.xdmf, summary.json)")
     return 0
 
 

@@ -444,8 +444,15 @@ def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=No
                 db.merge()
                 last_merge = time.perf_counter()
     except KeyboardInterrupt:
-        for fut in futures:
-            fut.cancel()
+        for fut, job in futures.items():
+            if fut.done() and not fut.cancelled():  # finished before the interrupt: keep it
+                try:
+                    status, payload, extra = fut.result()
+                except Exception:  # noqa: BLE001 - the worker died; it reruns next time
+                    continue
+                db.write_shard(job, status, payload, extra)
+            else:
+                fut.cancel()
         raise
     finally:
         bar.close()

@@ -1,0 +1,440 @@
+"""The static surrogate's learning database (seed 000): FE simulations of sampled plans.
+
+Each *simulation* runs one plan of :func:`~toolkit.static.plan.sample_plans` on one
+*subject* (a face phantom: subject 0 is the default :class:`~toolkit.common.phantom.FaceShape`,
+subject k > 0 is ``FaceShape.sample(k)``), and each of its increments is one learning
+*sample*, as in seed 000:
+
+- the starting mesh ``x (n, 3)`` mm: the face at the start of the increment;
+- the boundary types ``(n,)`` (``free=0, moving=1, fixed=2, mucosa_sliding=3, lip_sliding=4``);
+- the prescribed displacement ``s (n, 3)`` mm of the increment: what the bone gives the
+  moving nodes, zero elsewhere; ``bone (n, 3)`` also has, for the mucosa nodes, what their
+  bone's rigid motion in this increment would do at their place (they slide on it instead);
+- the FE displacement ``v (n, 3)`` mm of the increment (the target).
+
+Storage (one HDF5 file through :mod:`toolkit.common.database`: crash-safe shards, resume,
+failures recorded with their reason, a configuration check that refuses a foreign file):
+``/shared/subject_<k>/`` holds each subject's pre-operative points, boundary types and
+bone-segment ids (``/shared/cells/<type>`` and ``/shared/sets/<name>`` the topology and
+node sets, common to all subjects); ``/records/<key>/`` each simulation's cumulative
+displacement ``displacements (increments + 1, n, 3)`` and the increments' bone
+displacements ``bone (increments, n, 3)`` (float32, mm); ``/index`` one row per
+simulation and ``/samples`` one row per increment (subject, plan, increment, plan
+parameters, largest input displacement, solver diagnostics), both readable with pandas
+without the toolkit (:func:`read_samples`).
+
+Generation runs on any ``concurrent.futures``-style executor (local processes by default,
+a ``dask.distributed.Client`` for a cluster); CLI ``toolkit static dataset``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from toolkit.common.database import Database, Job, Record, RunReport, read_index, run_jobs
+from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES
+
+__all__ = ["DatasetConfig", "generate", "StaticDatabase", "read_samples", "subject_phantom", "plan_features",
+           "jaw_side", "material_for", "simulate_job",
+           "DATABASE_KIND", "DATABASE_VERSION", "PLAN_FEATURES"]
+
+DATABASE_KIND = "toolkit.static.database"
+DATABASE_VERSION = 1
+#: per-sample plan parameters (the increment's target position of each segment): pivot
+#: translation (mm) and rotation vector (deg) of the Le Fort I and distal segments, and the
+#: fraction of the plan reached
+PLAN_FEATURES = ("lefort_tx", "lefort_ty", "lefort_tz", "lefort_rx", "lefort_ry", "lefort_rz",
+                 "distal_tx", "distal_ty", "distal_tz", "distal_rx", "distal_ry", "distal_rz", "fraction")
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """What a database holds.
+
+    Attributes
+    ----------
+    resolution : phantom resolution (``coarse``, ``paper``, ``fine``)
+    subjects : number of phantom subjects (0 = default shape, k = ``FaceShape.sample(k)``)
+    plans : plans per subject
+    mode : ``sagittal`` or ``full`` (:func:`~toolkit.static.plan.sample_plans`)
+    increments : increments per simulation (seed 001: 3); each is a sample
+    material : ``linear`` or ``neo-hookean``
+    sliding : ``mucosa+lip``, ``mucosa`` or ``none``
+    seed : plan sampling seed (subject k draws from ``[seed, k]``)
+    max_jaw_closing_mm : the sampler's bound (None: none)
+    poisson_range : (lo, hi) — each simulation draws Poisson's ratio uniformly in it (the
+        same for the whole face and the lip muscle; seed 001's 0.47 when None), for models
+        with material channels. A displacement-driven linear problem does not depend on E.
+    """
+
+    resolution: str = "coarse"
+    subjects: int = 1
+    plans: int = 10
+    mode: str = "sagittal"
+    increments: int = 3
+    material: str = "linear"
+    sliding: str = "mucosa+lip"
+    seed: int = 0
+    max_jaw_closing_mm: float | None = MAX_JAW_CLOSING_MM
+    poisson_range: tuple[float, float] | None = None
+
+    def __post_init__(self):
+        from toolkit.common.phantom import FACE_RESOLUTIONS
+        from toolkit.static.simulate import MATERIALS, SLIDING_MODELS
+
+        if self.resolution not in FACE_RESOLUTIONS:
+            raise ValueError(f"resolution = {self.resolution!r}; expected one of {list(FACE_RESOLUTIONS)}")
+        for name, lo in (("subjects", 1), ("plans", 1), ("increments", 1)):
+            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < lo:
+                raise ValueError(f"{name} = {getattr(self, name)!r}; expected an integer >= {lo}")
+        if self.mode not in SAMPLING_MODES:
+            raise ValueError(f"mode = {self.mode!r}; expected one of {SAMPLING_MODES}")
+        if self.material not in MATERIALS:
+            raise ValueError(f"material = {self.material!r}; expected one of {MATERIALS}")
+        if self.sliding not in SLIDING_MODELS:
+            raise ValueError(f"sliding = {self.sliding!r}; expected one of {SLIDING_MODELS}")
+        if self.poisson_range is not None:
+            lo, hi = (float(v) for v in self.poisson_range)
+            if not 0.0 <= lo <= hi < 0.5:
+                raise ValueError(f"poisson_range = {self.poisson_range!r}; expected 0 <= lo <= hi < 0.5")
+            object.__setattr__(self, "poisson_range", (lo, hi))
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@lru_cache(maxsize=8)
+def subject_phantom(resolution: str, subject: int):
+    """The face phantom of ``subject`` (0: the default shape; k: ``FaceShape.sample(k)``)."""
+    from toolkit.common.phantom import FaceShape, face_hex
+
+    return face_hex(resolution, FaceShape() if subject == 0 else FaceShape.sample(int(subject)))
+
+
+def _boundary(phantom, sliding: str):
+    """The boundary conditions a simulation of ``phantom`` uses (release bands, sliding model)."""
+    from toolkit.static.boundary import BoundaryConditions
+    from toolkit.static.simulate import SimulationOptions
+
+    options = SimulationOptions()
+    bc = BoundaryConditions.from_mesh(phantom.mesh, phantom.segments, lip_threshold=options.lip_threshold)
+    return bc.with_release_bands(phantom.mesh, options.release_width).with_sliding(sliding)
+
+
+def plan_features(plan, increments: int) -> np.ndarray:
+    """Per-increment plan parameters ``(increments, 13)`` (see :data:`PLAN_FEATURES`)."""
+    rows = []
+    for k, p in enumerate(plan.increments(increments), start=1):
+        row = []
+        for name in ("lefort", "distal"):
+            m = p.motion(name)
+            row += list(m.translation) + list(m.rotation_vector_deg)
+        rows.append(row + [k / increments])
+    return np.array(rows)
+
+
+def _jobs(config: DatasetConfig) -> list[Job]:
+    from toolkit.static.plan import sample_plans
+
+    jobs = []
+    for subject in range(config.subjects):
+        phantom = subject_phantom(config.resolution, subject)
+        plans = sample_plans(config.plans, np.random.default_rng([config.seed, subject]), config.mode,
+                             phantom=phantom, max_jaw_closing_mm=config.max_jaw_closing_mm)
+        nu_rng = np.random.default_rng([config.seed, subject, 1])
+        for p, plan in enumerate(plans):
+            nu = float(nu_rng.uniform(*config.poisson_range)) if config.poisson_range else None
+            jobs.append(Job(f"s{subject:03d}-p{p:05d}", {"subject": subject, "plan": p, "config": config.as_dict(),
+                                                          "motions": plan.as_dict(), "poisson": nu}))
+    return jobs
+
+
+def material_for(material: str, poisson: float | None, mesh):
+    """Seed 001's material assignment, with Poisson's ratio ``poisson`` if given."""
+    from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
+    from toolkit.static.assembly import MaterialAssignment
+    from toolkit.static.simulate import material_assignment
+
+    if poisson is None:
+        return material
+    if material == "neo-hookean":
+        return MaterialAssignment(NeoHookean(nu=poisson))
+    base = material_assignment("linear", mesh)
+    regions = {name: TransverselyIsotropic(nu=poisson) for name in (base.regions or {})}
+    return MaterialAssignment(LinearElastic(nu=poisson), regions)
+
+
+def simulate_job(params: dict) -> Record:
+    """Worker: run one simulation of the database (picklable, module level)."""
+    from toolkit.static.plan import SurgicalPlan, dental_arch, jaw_closing
+    from toolkit.static.simulate import simulate
+
+    cfg = DatasetConfig(**params["config"])
+    phantom = subject_phantom(cfg.resolution, int(params["subject"]))
+    motions = {k: v for k, v in params["motions"].items() if k != "force"}
+    plan = SurgicalPlan.from_dict(motions)
+    t0 = time.perf_counter()
+    result = simulate(phantom, plan, cfg.increments, material_for(cfg.material, params.get("poisson"), phantom.mesh),
+                      cfg.sliding)
+    seconds = time.perf_counter() - t0
+    U = result.displacements
+    bc = result.boundary
+    X = phantom.mesh.points
+    # what following its bone would do to each bone-driven node in each increment: the
+    # increment's rigid motion of the bone (M_k after M_{k-1}^-1) at the node's current place
+    bone = np.zeros((cfg.increments, X.shape[0], 3))
+    driven = np.flatnonzero(bc.segment >= 0)
+    previous = None
+    for k, p in enumerate(plan.increments(cfg.increments)):
+        for s, name in enumerate(bc.segment_names):
+            ids = driven[bc.segment[driven] == s]
+            step = p.motion(name) if previous is None else p.motion(name).after(previous.motion(name).inverted())
+            x = X[ids] + U[k, ids]
+            bone[k, ids] = step.apply(x) - x
+        previous = p
+    moving = bc.types == 1
+    s = summary = result.summary()
+    attrs = {"seconds": seconds, "min_scaled_jacobian": summary["min_scaled_jacobian"],
+             "substeps": summary["substeps"], "regulated_nodes": summary["regulated_nodes"],
+             "max_displacement_mm": summary["max_displacement_mm"], "max_penetration_mm": s["max_penetration_mm"],
+             "jaw_closing_mm": jaw_closing(plan, dental_arch(phantom)),
+             "poisson": 0.47 if params.get("poisson") is None else float(params["poisson"]),
+             "max_input_displacement_mm": float(np.linalg.norm(bone[:, moving], axis=-1).max(initial=0.0))}
+    return Record({"displacements": U.astype(np.float32), "bone": bone.astype(np.float32),
+                   "seconds_per_increment": np.array(summary["seconds_per_increment"]),
+                   "features": plan_features(plan, cfg.increments)}, attrs)
+
+
+def _shared(config: DatasetConfig) -> dict:
+    """Arrays common to the database: topology, node sets, each subject's points and types."""
+    out = {}
+    first = subject_phantom(config.resolution, 0)
+    for ctype, cells in first.mesh.cells.items():
+        out[f"cells/{ctype}"] = cells
+    for name in ("skin", "lip_sliding", "upper_lip_face", "lower_lip_face", "mucosa_sliding", "bone"):
+        if name in first.mesh.node_sets:
+            out[f"sets/{name}"] = first.mesh.node_sets[name]
+    for subject in range(config.subjects):
+        ph = subject_phantom(config.resolution, subject)
+        bc = _boundary(ph, config.sliding)
+        out[f"subject_{subject:03d}/points"] = ph.mesh.points
+        out[f"subject_{subject:03d}/types"] = bc.types
+        out[f"subject_{subject:03d}/segment"] = bc.segment
+        out[f"subject_{subject:03d}/shape"] = np.array([getattr(ph.shape, f) for f in _SHAPE_FIELDS])
+    return out
+
+
+_SHAPE_FIELDS = ("face_width", "face_height", "tissue_thickness", "lip_protrusion", "mouth_open", "nose_height")
+
+
+def generate(path: str | os.PathLike, config: DatasetConfig, *, executor=None, workers: int = 1,
+             retry_failed: bool = False, progress: bool = True) -> RunReport:
+    """Create or complete the database at ``path`` (resumes: finished simulations are skipped).
+
+    Parameters
+    ----------
+    path : ``.h5`` file
+    config : DatasetConfig (an existing file made with another configuration is refused)
+    executor : ``concurrent.futures`` executor or ``dask.distributed.Client``; default a pool of
+        ``workers`` local processes (``workers=0``: in this process)
+    retry_failed : rerun simulations recorded as failed
+
+    Returns
+    -------
+    RunReport (``done``, ``failed`` with reasons, ``skipped``, ``seconds``)
+    """
+    db = Database(path, DATABASE_KIND, DATABASE_VERSION, config.as_dict())
+    if not Path(path).exists():
+        db.create(_shared(config))
+    else:
+        db.check()
+    report = run_jobs(db, _jobs(config), simulate_job, executor=executor, workers=workers,
+                      retry_failed=retry_failed, progress=progress)
+    _write_samples(Path(path))
+    return report
+
+
+def _write_samples(path: Path) -> None:
+    """(Re)write ``/samples`` (one row per increment) copy-on-write, like the database merges."""
+    import shutil
+
+    import h5py
+    import pandas as pd
+
+    from toolkit.common.io import atomic_path
+
+    table = _sample_table(path)
+    with atomic_path(path) as tmp:
+        shutil.copyfile(path, tmp)
+        with h5py.File(tmp, "a") as f:
+            if "samples" in f:
+                del f["samples"]
+            rec = table.to_records(index=False)
+            dtype = [(n, h5py.string_dtype() if rec.dtype[n].kind in "OU" else rec.dtype[n]) for n in rec.dtype.names]
+            f.create_dataset("samples", data=np.array([tuple(r) for r in rec], dtype=dtype))
+    del pd
+
+
+def _sample_table(path: Path):
+    import h5py
+    import pandas as pd
+
+    rows = []
+    with h5py.File(path, "r") as f:
+        for key, g in f["records"].items():
+            params = json.loads(g.attrs["params"])
+            attrs = json.loads(g.attrs["attrs"])
+            feats = g["features"][()]
+            secs = g["seconds_per_increment"][()]
+            moving = f["shared"][f"subject_{params['subject']:03d}"]["types"][()] == 1
+            bone = g["bone"][()][:, moving]
+            for k in range(feats.shape[0]):
+                row = {"key": key, "subject": params["subject"], "plan": params["plan"], "increment": k + 1,
+                       "status": "ok", "seconds": float(secs[k]),
+                       "max_input_displacement_mm": float(np.linalg.norm(bone[k], axis=-1).max(initial=0.0)),
+                       "min_scaled_jacobian": attrs["min_scaled_jacobian"], "substeps": attrs["substeps"],
+                       "jaw_closing_mm": attrs["jaw_closing_mm"], "poisson": attrs["poisson"]}
+                row.update(dict(zip(PLAN_FEATURES, feats[k].tolist())))
+                rows.append(row)
+        for key, g in f["failures"].items():
+            params = json.loads(g.attrs["params"])
+            reason = g.attrs["reason"]
+            rows.append({"key": key, "subject": params["subject"], "plan": params["plan"], "increment": 0,
+                         "status": "failed: " + (reason.decode() if isinstance(reason, bytes) else str(reason))[:200]})
+    columns = ["key", "subject", "plan", "increment", "status", "seconds", "max_input_displacement_mm",
+               "min_scaled_jacobian", "substeps", "jaw_closing_mm", "poisson", *PLAN_FEATURES]
+    return pd.DataFrame(rows, columns=columns).sort_values(["subject", "plan", "increment"]).reset_index(drop=True)
+
+
+#: segment ids of the phantoms' segments on the upper (+1) and lower (-1) jaw
+_UPPER, _LOWER = ("lefort",), ("distal", "proximal_left", "proximal_right")
+
+
+def jaw_side(segment: np.ndarray, sets: dict, n: int, names=("lefort", "distal", "proximal_left",
+                                                              "proximal_right", "skull")) -> np.ndarray:
+    """+1 for the upper lip face and the nodes on the Le Fort I segment, -1 for the lower lip
+    face and the mandible's nodes, 0 elsewhere ``(n,)``; ``names`` orders the segment ids."""
+    side = np.zeros(n)
+    seg = np.asarray(segment)
+    for k, name in enumerate(names):
+        side[seg == k] = 1.0 if name in _UPPER else (-1.0 if name in _LOWER else 0.0)
+    if "upper_lip_face" in sets:
+        side[sets["upper_lip_face"]] = 1.0
+    if "lower_lip_face" in sets:
+        side[sets["lower_lip_face"]] = -1.0
+    return side
+
+
+def read_samples(path: str | os.PathLike):
+    """The per-increment table ``/samples`` of a database as a DataFrame (strings decoded)."""
+    import h5py
+    import pandas as pd
+
+    Database.open_attrs(Path(path))
+    with h5py.File(path, "r") as f:
+        if "samples" not in f:
+            raise ValueError(f"{path} has no /samples table: is it a static database? (regenerate or complete it)")
+        table = pd.DataFrame(f["samples"][()])
+    for c in table.columns:
+        if table[c].dtype == object:
+            table[c] = table[c].map(lambda v: v.decode() if isinstance(v, bytes) else v)
+    return table
+
+
+@dataclass(eq=False)
+class StaticDatabase:
+    """A finished static database in memory, sample by sample.
+
+    Attributes
+    ----------
+    path : the file
+    config : DatasetConfig it was made with
+    samples : DataFrame, one row per successful increment (:func:`read_samples`)
+    points : subject -> (n, 3) pre-operative points, mm
+    types : subject -> (n,) boundary types; segment : subject -> (n,) bone segment or -1
+    side : subject -> (n,) +1 upper jaw/lip, -1 lower, 0 elsewhere
+    cells : cell type -> connectivity; sets : node set name -> ids
+    """
+
+    path: Path
+    config: DatasetConfig
+    samples: object
+    points: dict
+    types: dict
+    segment: dict
+    side: dict
+    cells: dict
+    sets: dict
+    _U: dict = field(default_factory=dict, repr=False)
+    _bone: dict = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> "StaticDatabase":
+        """Read a database written by :func:`generate` (refuses other files, naming what is wrong)."""
+        import h5py
+
+        from toolkit.common.database import DatabaseError
+
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"database {str(path)!r} does not exist; create it with `toolkit static dataset`")
+        attrs = Database.open_attrs(path)
+        if attrs.get("format") != DATABASE_KIND:
+            raise DatabaseError(f"{path} is not a static database (format {attrs.get('format')!r}, expected "
+                                f"{DATABASE_KIND!r})")
+        if int(attrs.get("format_version", -1)) != DATABASE_VERSION:
+            raise DatabaseError(f"{path} has format version {attrs.get('format_version')}; this toolkit reads "
+                                f"version {DATABASE_VERSION}")
+        config = DatasetConfig(**json.loads(attrs["config"]))
+        samples = read_samples(path)
+        samples = samples[samples.status == "ok"].reset_index(drop=True)
+        points, types, segment, cells, sets, U, bone = {}, {}, {}, {}, {}, {}, {}
+        with h5py.File(path, "r") as f:
+            sh = f["shared"]
+            for name in sh["cells"]:
+                cells[name] = sh["cells"][name][()]
+            for name in sh["sets"]:
+                sets[name] = sh["sets"][name][()]
+            for s in range(config.subjects):
+                g = sh[f"subject_{s:03d}"]
+                points[s], types[s], segment[s] = g["points"][()], g["types"][()], g["segment"][()]
+            for key in samples.key.unique():
+                U[key] = f["records"][key]["displacements"][()].astype(np.float64)
+                bone[key] = f["records"][key]["bone"][()].astype(np.float64)
+        side = {s: jaw_side(segment[s], sets, points[s].shape[0]) for s in points}
+        return cls(path, config, samples, points, types, segment, side, cells, sets, U, bone)
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def sample(self, i: int) -> dict:
+        """Sample ``i``: ``x`` starting mesh (n, 3), ``types`` (n,), ``s`` prescribed (n, 3),
+        ``bone`` (n, 3), ``v`` FE displacement of the increment (n, 3), all mm; and its row."""
+        row = self.samples.iloc[int(i)]
+        k, key, subject = int(row.increment), row.key, int(row.subject)
+        U = self._U[key]
+        types = self.types[subject]
+        bone = self._bone[key][k - 1]
+        s = np.where((types == 1)[:, None], bone, 0.0)
+        return {"x": self.points[subject] + U[k - 1], "types": types, "s": s, "bone": bone,
+                "v": U[k] - U[k - 1], "subject": subject, "side": self.side[subject], "poisson": float(row.poisson),
+                "row": row}
+
+    def arrays(self, indices=None) -> dict:
+        """Stacked samples: ``x``, ``s``, ``bone``, ``v`` (m, n, 3) mm, ``types`` (m, n), ``subject`` (m,)."""
+        idx = range(len(self)) if indices is None else indices
+        items = [self.sample(i) for i in idx]
+        out = {k: np.stack([it[k] for it in items]) for k in ("x", "s", "bone", "v", "types")}
+        out["subject"] = np.array([it["subject"] for it in items])
+        return out
+
+    def index(self):
+        """The per-simulation index (:func:`toolkit.common.database.read_index`)."""
+        return read_index(self.path)

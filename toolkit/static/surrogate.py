@@ -1,0 +1,485 @@
+"""The static surrogate (seed 000): PointNet++ trained on the FE database, its evaluation and
+its prediction of a surgical plan.
+
+:func:`train_surrogate` reads a :class:`~toolkit.static.dataset.StaticDatabase`, encodes
+every sample (:mod:`toolkit.static.features`), scales the inputs to [0, 1] (the scaler is
+saved with the model) and the targets by one factor (so that exact boundary values stay
+exact), splits by simulation (70/10/20: the increments of one plan never straddle two
+splits) or holds out whole subjects, and trains with MSE and Adam through
+:func:`toolkit.common.training.train` (early stopping on validation, checkpoints, resume,
+seed control). The model directory (``model.pt`` + ``config.json``) carries everything
+needed to predict: :class:`Surrogate` reloads it and refuses data or meshes of another
+kind, naming the difference.
+
+:func:`evaluate_surrogate` scores a model on the samples it did not train on: per-sample
+mean Euclidean nodal error on all nodes, on free nodes and on the lips, summarised as mean,
+median, 95th percentile and max; inference time per prediction against the FE time per
+increment. :meth:`Surrogate.predict_plan` runs a plan increment by increment like the FE
+(CLI ``toolkit static predict``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from toolkit.common.training import MinMaxScaler, ModelBundle, TrainConfig, resolve_device, split_groups, torch_seeded
+from toolkit.common.training import train as train_loop
+from toolkit.static.features import FeatureSpec, channel_names, encode
+
+__all__ = ["SurrogateConfig", "Surrogate", "train_surrogate", "evaluate_surrogate", "network_config",
+           "MODEL_KIND", "NETWORK_PRESETS"]
+
+MODEL_KIND = "toolkit.static.pointnet2"
+#: network sizes: ``paper`` (seed 000's widths), ``small`` (a quarter of the widths; the
+#: speed goal), ``tiny`` (tests on the coarse face)
+NETWORK_PRESETS = {
+    "paper": {},
+    "small": {"sa_widths": ((16, 16, 32), (32, 32, 64), (64, 64, 128), (128, 128, 256)),
+              "fp_widths": ((128, 128), (128, 128), (128, 64), (64, 64, 64)), "head_width": 64,
+              "group_size": (16, 16, 16, 16)},
+    "tiny": {"sa_widths": ((16, 32), (32, 64), (64, 64), (64, 128)),
+             "fp_widths": ((64,), (64,), (64,), (64,)), "head_width": 32, "group_size": (16, 16, 16, 16)},
+}
+
+
+@dataclass(frozen=True)
+class SurrogateConfig:
+    """How a surrogate is built and trained.
+
+    Attributes
+    ----------
+    features : FeatureSpec (variant explicit / implicit / hard, extra and material channels)
+    network : preset name (:data:`NETWORK_PRESETS`)
+    coarse_radii : use :meth:`PointNet2Config.coarse` radii (meshes of ~800 nodes)
+    split : ``plans`` (70/10/20 by simulation) or ``subjects`` (``test_subjects`` held out,
+        the others split 80/20 by simulation into training and validation)
+    test_subjects : subjects never seen in training (split ``subjects``)
+    epochs, batch_size, lr, patience, seed, device, max_seconds : training (seed 000: Adam
+        lr 1e-5, batch 8, 100 epochs; the default lr 1e-3 with early stopping reaches its error in
+        fewer epochs here)
+    """
+
+    features: FeatureSpec = FeatureSpec()
+    network: str = "small"
+    coarse_radii: bool = False
+    split: str = "plans"
+    test_subjects: tuple[int, ...] = ()
+    epochs: int = 100
+    batch_size: int = 8
+    lr: float = 1e-3
+    patience: int | None = 15
+    seed: int = 0
+    device: str = "cpu"
+    max_seconds: float | None = None
+
+    def __post_init__(self):
+        if isinstance(self.features, dict):
+            object.__setattr__(self, "features", FeatureSpec(**self.features))
+        if self.network not in NETWORK_PRESETS:
+            raise ValueError(f"network = {self.network!r}; expected one of {sorted(NETWORK_PRESETS)}")
+        if self.split not in ("plans", "subjects"):
+            raise ValueError(f"split = {self.split!r}; expected 'plans' or 'subjects'")
+        if self.split == "subjects" and not self.test_subjects:
+            raise ValueError("split 'subjects' needs test_subjects=(...): the subjects held out for testing")
+        object.__setattr__(self, "test_subjects", tuple(int(s) for s in self.test_subjects))
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["features"] = asdict(self.features)
+        return d
+
+
+def network_config(config: SurrogateConfig):
+    """The :class:`~toolkit.static.pointnet2.PointNet2Config` of a surrogate."""
+    from toolkit.static.pointnet2 import PointNet2Config
+
+    preset = dict(NETWORK_PRESETS[config.network])
+    preset.update(in_channels=config.features.n_channels, hard_boundary=config.features.variant == "hard")
+    return PointNet2Config.coarse(**preset) if config.coarse_radii else PointNet2Config(**preset)
+
+
+def _points_key(points: np.ndarray) -> str:
+    return hashlib.sha1(np.ascontiguousarray(points, dtype=np.float64).tobytes()).hexdigest()[:20]
+
+
+def _mesh_signature(points: np.ndarray, cells: dict) -> dict:
+    """What a model checks about a mesh: node count and topology (not the coordinates: a new
+    subject of the same topology is fine)."""
+    h = hashlib.sha1()
+    for ctype in sorted(cells):
+        h.update(ctype.encode())
+        h.update(np.ascontiguousarray(cells[ctype], dtype=np.int64).tobytes())
+    return {"nodes": int(points.shape[0]), "topology": h.hexdigest()[:16]}
+
+
+# ------------------------------------------------------------------ the model
+def _face_module():
+    import torch
+    from torch import nn
+
+    from toolkit.static.pointnet2 import BoundaryTargets, PointNet2
+
+    class FaceSurrogate(nn.Module):
+        """PointNet++ with one point hierarchy per subject and the targets' scale.
+
+        ``forward(features (B, n, C) scaled, subject (B,), prescribed (B, n, 3) in the output
+        unit, mask (B, n) bool)`` -> ``(B, n, 3)`` in the output unit; with hard boundaries the
+        output is exactly ``prescribed`` where ``mask`` is set.
+        """
+
+        def __init__(self, net_config, hierarchies: dict):
+            super().__init__()
+            self.net = PointNet2(net_config)
+            self.hierarchies = dict(hierarchies)
+
+        def forward(self, features, subject, prescribed, mask):
+            out = torch.empty(features.shape[:2] + (3,), dtype=features.dtype, device=features.device)
+            for sid in torch.unique(subject).tolist():
+                idx = (subject == sid).nonzero().flatten()
+                boundary = BoundaryTargets(mask[idx], prescribed[idx]) if self.net.config.hard_boundary else None
+                out[idx] = self.net(features[idx], self.hierarchies[sid], boundary).to(out.dtype)
+            return out
+
+    return FaceSurrogate
+
+
+@dataclass(eq=False)
+class Surrogate:
+    """A trained static surrogate (load one with :meth:`load`).
+
+    Attributes
+    ----------
+    config : SurrogateConfig
+    bundle : the ModelBundle (weights, scalers, data signature, training facts)
+    module : the torch module (eval mode)
+    device : torch device
+    """
+
+    config: SurrogateConfig
+    bundle: ModelBundle
+    module: object
+    device: object
+    _hierarchy_cache: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def out_scale(self) -> float:
+        """mm per output unit."""
+        return float(self.bundle.extra["out_scale_mm"])
+
+    @classmethod
+    def load(cls, directory, device: str = "cpu") -> "Surrogate":
+        """Load a model directory written by :func:`train_surrogate`."""
+        from toolkit.static.pointnet2 import PointHierarchy
+
+        bundle = ModelBundle.load(directory, kind=MODEL_KIND)
+        config = SurrogateConfig(**bundle.config["surrogate"])
+        dev = resolve_device(device)
+        hierarchies = {int(k): PointHierarchy.from_state_dict(v, device=dev)
+                       for k, v in bundle.state_dict["hierarchies"].items()}
+        module = _face_module()(network_config(config), hierarchies)
+        module.net.load_state_dict(bundle.state_dict["net"])
+        module.to(dev).eval()
+        return cls(config, bundle, module, dev)
+
+    def check_mesh(self, points: np.ndarray, cells: dict) -> None:
+        """Refuse a mesh of another node count or topology than the training meshes."""
+        self.bundle.check_data({**self.bundle.data, "mesh": _mesh_signature(points, cells)}, "this mesh")
+
+    def hierarchy(self, points: np.ndarray, subject: int | None = None):
+        """The point hierarchy of a training subject, or one built for ``points`` (cached)."""
+        from toolkit.static.pointnet2 import PointHierarchy
+
+        if subject is not None and subject in self.module.hierarchies:
+            return self.module.hierarchies[subject]
+        key = _points_key(points)
+        known = self.bundle.extra.get("subject_points", {})
+        if key in known and int(known[key]) in self.module.hierarchies:  # a training subject's own mesh
+            return self.module.hierarchies[int(known[key])]
+        if key not in self._hierarchy_cache:
+            self._hierarchy_cache[key] = PointHierarchy.build(points, network_config(self.config), device=self.device)
+        return self._hierarchy_cache[key]
+
+    def predict(self, features: np.ndarray, prescribed: np.ndarray, mask: np.ndarray, hierarchy) -> np.ndarray:
+        """Displacement ``(B, n, 3)`` mm from raw features ``(B, n, C)``, the prescribed
+        displacement ``(B, n, 3)`` mm and the prescribed mask ``(B, n)``, on one mesh."""
+        import torch
+
+        scaler = self.bundle.scalers["inputs"]
+        f = torch.as_tensor(scaler.transform(np.asarray(features, dtype=np.float64)), dtype=torch.float32,
+                            device=self.device)
+        p = torch.as_tensor(np.asarray(prescribed) / self.out_scale, dtype=torch.float32, device=self.device)
+        m = torch.as_tensor(np.asarray(mask, dtype=bool), device=self.device)
+        net = self.module.net
+        from toolkit.static.pointnet2 import BoundaryTargets
+
+        with torch.no_grad():
+            boundary = BoundaryTargets(m, p) if net.config.hard_boundary else None
+            out = net(f, hierarchy, boundary)
+        return out.double().cpu().numpy() * self.out_scale
+
+    def predict_plan(self, face, plan, *, segments=None):
+        """Run ``plan`` on a face like :func:`~toolkit.static.simulate.simulate`, increment by
+        increment with the network, with the increments and sliding model of the training
+        database.
+
+        Parameters
+        ----------
+        face : FacePhantom, or a Mesh with the phantoms' node sets (then pass ``segments``)
+        plan : SurgicalPlan
+        segments : name -> BoneSegment (default the phantom's)
+
+        Returns
+        -------
+        SimulationResult (``.write(out)`` gives the files of ``toolkit static simulate``)
+        """
+        from toolkit.common.phantom import FacePhantom
+        from toolkit.static.boundary import BoundaryConditions
+        from toolkit.static.dataset import DatasetConfig, jaw_side
+        from toolkit.static.simulate import IncrementReport, SimulationOptions, SimulationResult
+
+        t0 = time.perf_counter()
+        data = DatasetConfig(**self.bundle.data["database"])
+        if isinstance(face, FacePhantom):
+            mesh, segments = face.mesh, segments or face.segments
+        else:
+            mesh = face
+        if segments is None:
+            raise ValueError("a bare Mesh needs segments=... (name -> BoneSegment) for the bony surfaces")
+        self.check_mesh(mesh.points, dict(mesh.cells))
+        options = SimulationOptions()
+        bc = BoundaryConditions.from_mesh(mesh, segments, lip_threshold=options.lip_threshold)
+        bc = bc.with_release_bands(mesh, options.release_width).with_sliding(data.sliding)
+        X = mesh.points
+        h = self.hierarchy(X)
+        sets = {k: mesh.node_sets[k] for k in ("upper_lip_face", "lower_lip_face") if k in mesh.node_sets}
+        side = jaw_side(bc.segment, sets, X.shape[0], tuple(bc.segment_names))
+        driven = np.flatnonzero(bc.segment >= 0)
+        mask = np.isin(bc.types, (1, 2))
+        U, previous, quality = [np.zeros_like(X)], None, []
+        for p in plan.increments(data.increments):
+            x = X + U[-1]
+            bone = np.zeros_like(X)
+            for s, name in enumerate(bc.segment_names):
+                ids = driven[bc.segment[driven] == s]
+                step = p.motion(name) if previous is None else p.motion(name).after(previous.motion(name).inverted())
+                bone[ids] = step.apply(x[ids]) - x[ids]
+            prescribed = np.where((bc.types == 1)[:, None], bone, 0.0)
+            feats = encode(self.config.features, x, bc.types, prescribed, bone, side, 0.47)
+            U.append(U[-1] + self.predict(feats[None], prescribed[None], mask[None], h)[0])
+            quality.append(mesh.with_points(X + U[-1]).scaled_jacobian())
+            previous = p
+        wall = time.perf_counter() - t0
+        reports = [IncrementReport(k, wall / len(quality), 0.0, 0, 0, 0, float(q.min()), int(np.argmin(q)),
+                                   0.0, 0.0, 0.0, 0) for k, q in enumerate(quality, start=1)]
+        return SimulationResult(mesh, np.stack(U), bc, reports, wall, f"surrogate ({self.config.features.variant})",
+                                data.sliding)
+
+
+# ------------------------------------------------------------------ data
+@dataclass(frozen=True, eq=False)
+class _Data:
+    features: np.ndarray  # (m, n, C) raw
+    prescribed: np.ndarray  # (m, n, 3) mm
+    mask: np.ndarray  # (m, n) bool
+    target: np.ndarray  # (m, n, 3) mm
+    subject: np.ndarray  # (m,)
+    types: np.ndarray  # (m, n)
+    keys: np.ndarray  # (m,) simulation key
+
+
+def _encode_database(db, spec: FeatureSpec) -> _Data:
+    feats, pres, mask, target, subject, types, keys = [], [], [], [], [], [], []
+    for i in range(len(db)):
+        s = db.sample(i)
+        feats.append(encode(spec, s["x"], s["types"], s["s"], s["bone"], s["side"], s["poisson"]))
+        pres.append(s["s"])
+        mask.append(np.isin(s["types"], (1, 2)))
+        target.append(s["v"])
+        subject.append(s["subject"])
+        types.append(s["types"])
+        keys.append(s["row"].key)
+    f32 = lambda a: np.stack(a).astype(np.float32)  # noqa: E731
+    return _Data(np.stack(feats), f32(pres), np.stack(mask), f32(target), np.array(subject), np.stack(types),
+                 np.array(keys))
+
+
+def _split(data: _Data, config: SurrogateConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if config.split == "plans":
+        return split_groups(data.keys, (0.7, 0.1, 0.2), config.seed)
+    test = np.flatnonzero(np.isin(data.subject, config.test_subjects))
+    rest = np.flatnonzero(~np.isin(data.subject, config.test_subjects))
+    if not test.size or not rest.size:
+        raise ValueError(f"test subjects {config.test_subjects} leave {rest.size} training and {test.size} test "
+                         f"samples; the database has subjects {sorted(set(data.subject.tolist()))}")
+    tr, va = split_groups(data.keys[rest], (0.8, 0.2), config.seed)
+    return rest[tr], rest[va], test
+
+
+def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), *, resume: bool = False,
+                    progress: bool = True) -> Surrogate:
+    """Train a surrogate on a database and save it to the directory ``out``.
+
+    Parameters
+    ----------
+    database : path of a static database, or a StaticDatabase
+    out : model directory (``model.pt``, ``config.json``; ``checkpoint.pt`` while training)
+    config : SurrogateConfig
+    resume : continue an interrupted training from ``out/checkpoint.pt``
+
+    Returns
+    -------
+    Surrogate (the best validation weights), also written to ``out``
+    """
+    import torch
+
+    from toolkit.static.dataset import StaticDatabase
+    from toolkit.static.pointnet2 import PointHierarchy
+
+    db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if config.features.material_channels and db.config.poisson_range is None:
+        raise ValueError("material_channels needs a database whose simulations vary Poisson's ratio "
+                         "(DatasetConfig.poisson_range); this one uses 0.47 throughout")
+    data = _encode_database(db, config.features)
+    train_idx, val_idx, test_idx = _split(data, config)
+    scaler = MinMaxScaler.fit(data.features[train_idx], names=channel_names(config.features))
+    out_scale = float(np.abs(data.target[train_idx]).max()) or 1.0
+    net_config = network_config(config)
+    device = resolve_device(config.device)
+    hierarchies = {s: PointHierarchy.build(db.points[s], net_config, device=device) for s in db.points}
+    with torch_seeded(config.seed):
+        module = _face_module()(net_config, hierarchies)
+
+    def tensors(idx):
+        f = scaler.transform(data.features[idx].astype(np.float64)).astype(np.float32)
+        return ((f, data.subject[idx], data.prescribed[idx] / out_scale, data.mask[idx]),
+                data.target[idx] / out_scale)
+
+    tc = TrainConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, patience=config.patience,
+                     seed=config.seed, device=config.device, max_seconds=config.max_seconds, progress=progress)
+    signature = {"database": db.config.as_dict(), "mesh": _mesh_signature(db.points[0], db.cells),
+                 "channels": list(channel_names(config.features))}
+    identity = {"surrogate": config.as_dict(), "data": signature, "samples": int(len(data.keys)),
+                "train": [int(i) for i in train_idx[:5]]}
+    result = train_loop(module, torch.nn.functional.mse_loss, tensors(train_idx), tensors(val_idx), tc,
+                        checkpoint=out / "checkpoint.pt", resume=resume, identity=identity)
+    module.eval()
+    state = {"net": {k: v.detach().cpu() for k, v in module.net.state_dict().items()},
+             "hierarchies": {str(s): {k: v.cpu() for k, v in h.state_dict().items()} for s, h in hierarchies.items()}}
+    test_keys = sorted(set(data.keys[test_idx].tolist()))
+    extra = {"out_scale_mm": out_scale, "train_seconds": result.seconds, "best_epoch": result.best_epoch,
+             "stopped": result.stopped, "history": result.history.to_dict(orient="list"),
+             "split": {"train": int(train_idx.size), "validation": int(val_idx.size), "test": int(test_idx.size)},
+             "test_keys": test_keys, "parameters": int(sum(p.numel() for p in module.net.parameters())),
+             "subject_points": {_points_key(pts): int(s) for s, pts in db.points.items()}}
+    bundle = ModelBundle(MODEL_KIND, {"surrogate": config.as_dict(), "network": net_config.to_dict()}, signature,
+                         {"inputs": scaler}, state, extra)
+    bundle.save(out)
+    return Surrogate.load(out, device=config.device)
+
+
+# ------------------------------------------------------------------ evaluation
+def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_samples: int = 20) -> dict:
+    """Score ``model`` on a database's samples (default: the model's test simulations when the
+    database is the one it was trained on, else every sample).
+
+    Returns a dict: ``per_sample`` DataFrame (key, subject, increment, errors in mm),
+    ``metrics`` (mean/median/p95/max of the per-sample mean nodal error on all nodes, free
+    nodes, lips; ``inference_ms`` per prediction; ``fe_ms`` FE time per increment), and
+    ``predictions`` ``(m, n, 3)`` mm with ``targets``.
+    """
+    import pandas as pd
+
+    from toolkit.common.metrics import nodal_errors
+    from toolkit.static.dataset import StaticDatabase
+
+    db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
+    model.check_mesh(db.points[0], db.cells)
+    same = db.config.as_dict() == model.bundle.data["database"]
+    if keys is None:
+        keys = model.bundle.extra["test_keys"] if same else sorted(db.samples.key.unique())
+    rows = np.flatnonzero(db.samples.key.isin(list(keys)).to_numpy())
+    if not rows.size:
+        raise ValueError("no sample of the database belongs to the requested simulations")
+    data = _encode_database(_Subset(db, rows), model.config.features)
+    preds = np.empty_like(data.target, dtype=np.float64)
+    for sid in np.unique(data.subject):
+        idx = np.flatnonzero(data.subject == sid)
+        h = model.hierarchy(db.points[sid], sid)
+        for start in range(0, idx.size, 16):
+            chunk = idx[start:start + 16]
+            preds[chunk] = model.predict(data.features[chunk], data.prescribed[chunk], data.mask[chunk], h)
+    target = data.target.astype(np.float64)
+    err = nodal_errors(preds.reshape(-1, 3), target.reshape(-1, 3)).reshape(target.shape[:2])
+    lips = np.unique(np.concatenate([db.sets[k] for k in ("lip_sliding", "upper_lip_face", "lower_lip_face")
+                                     if k in db.sets]))
+    free = data.types == 0
+    per_sample = pd.DataFrame({
+        "key": data.keys, "subject": data.subject, "increment": db.samples.increment.to_numpy()[rows],
+        "mean_error_mm": err.mean(axis=1),
+        "free_mean_error_mm": np.array([e[f].mean() if f.any() else np.nan for e, f in zip(err, free)]),
+        "lips_mean_error_mm": err[:, lips].mean(axis=1),
+        "max_error_mm": err.max(axis=1),
+        "mean_displacement_mm": np.linalg.norm(target, axis=-1).mean(axis=1)})
+    # inference time of one prediction (batch 1), after a warm-up
+    sid = int(data.subject[0])
+    h = model.hierarchy(db.points[sid], sid)
+    one = (data.features[:1], data.prescribed[:1], data.mask[:1])
+    model.predict(*one, h)
+    times = []
+    for i in range(min(inference_samples, len(rows))):
+        t0 = time.perf_counter()
+        model.predict(data.features[i:i + 1], data.prescribed[i:i + 1], data.mask[i:i + 1], h)
+        times.append(time.perf_counter() - t0)
+    m = per_sample.mean_error_mm
+    metrics = {"samples": int(len(rows)), "mean_error_mm": float(m.mean()), "median_error_mm": float(m.median()),
+               "p95_error_mm": float(np.percentile(m, 95)), "max_error_mm": float(m.max()),
+               "free_mean_error_mm": float(per_sample.free_mean_error_mm.mean()),
+               "lips_mean_error_mm": float(per_sample.lips_mean_error_mm.mean()),
+               "max_nodal_error_mm": float(per_sample.max_error_mm.max()),
+               "mean_displacement_mm": float(per_sample.mean_displacement_mm.mean()),
+               "inference_ms": 1e3 * float(np.median(times)),
+               "fe_ms": 1e3 * float(db.samples.seconds.to_numpy()[rows].mean()),
+               "train_seconds": float(model.bundle.extra.get("train_seconds", np.nan)),
+               "variant": model.config.features.variant}
+    return {"per_sample": per_sample, "metrics": metrics, "predictions": preds, "targets": target, "rows": rows}
+
+
+@dataclass(eq=False)
+class _Subset:
+    """A view of some rows of a StaticDatabase (for encoding)."""
+
+    db: object
+    rows: np.ndarray
+
+    def __len__(self):
+        return len(self.rows)
+
+    def sample(self, i):
+        return self.db.sample(int(self.rows[i]))
+
+
+def write_evaluation(result: dict, out, mesh=None) -> Path:
+    """``metrics.json``, ``per_sample.csv`` and (with a mesh) ``error_map.png`` in ``out``."""
+    from toolkit.common.io import atomic_path
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out / "metrics.json") as tmp:
+        tmp.write_text(json.dumps(result["metrics"], indent=2))
+    with atomic_path(out / "per_sample.csv") as tmp:
+        result["per_sample"].to_csv(tmp, index=False)
+    if mesh is not None:
+        from toolkit.common.plotting import render
+
+        err = np.linalg.norm(result["predictions"] - result["targets"], axis=-1).mean(axis=0)
+        render(mesh, out / "error_map.png", scalars=err, camera="iso", cmap="magma",
+               scalar_label="mean nodal error (mm)", title="surrogate error over the test samples")
+    return out
