@@ -5,7 +5,16 @@ plasticity, contact, integrator) are importable. Imports nothing from :mod:`tool
 """
 
 from toolkit.impact.explicit import InstabilityError
-from toolkit.impact.scene import BallSpec, ContactSpec, FaceSpec, Fidelity, MaterialSpec, Scene, default_scene
+from toolkit.impact.scene import (
+    BallSpec,
+    ContactSpec,
+    FaceSpec,
+    Fidelity,
+    MaterialSpec,
+    Scene,
+    default_scene,
+    yielding_scene,
+)
 from toolkit.impact.simulate import ImpactResult, SceneGeometryWarning, UnstableTimeStepError, build_model, simulate
 
 __all__ = [
@@ -16,6 +25,7 @@ __all__ = [
     "Fidelity",
     "MaterialSpec",
     "default_scene",
+    "yielding_scene",
     "simulate",
     "build_model",
     "ImpactResult",

@@ -75,7 +75,8 @@ def build_model(scene: Scene) -> BuiltScene:
 
     fid = scene.fidelity
     if scene.face.mesh:
-        face = read(scene.face.mesh, require_node_sets=[scene.face.fixed_set, "skin"])
+        needed = [scene.face.fixed_set, "skin"] + (["bone"] if scene.face.support == "skull" else [])
+        face = read(scene.face.mesh, require_node_sets=needed)
     else:
         face = face_tet(scene.face.resolution, order=fid.order, lower_fixed_fraction=scene.face.lower_fixed_fraction)
     face_kin = tet_kinematics(face)
@@ -100,6 +101,8 @@ def build_model(scene: Scene) -> BuiltScene:
     centre0 = centre0 + d * first_touch
     travel = scene.ball.velocity * scene.duration
     fixed_ids = face.node_set(scene.face.fixed_set)
+    if scene.face.support == "skull":
+        fixed_ids = np.union1d(fixed_ids, face.node_set("bone"))
     clearance = float(sweep_travel(face.points[fixed_ids], centre0, d, R).min(initial=np.inf)) - travel
     if clearance < 0:
         warnings.warn(f"the ball's path reaches the fixed region after {travel + clearance:.1f} mm of its "
@@ -197,6 +200,8 @@ class ImpactResult:
     energies : DataFrame per frame (mJ) with the balance error
     contact_force : (n_frames, 3) N on the face
     stats : dict (steps, dt_s, wall_time_s, energy_error, ...)
+    plastic_volume_fraction : (n_frames,) share of the face volume (integration points) that has
+        yielded
     """
 
     scene: Scene
@@ -209,6 +214,7 @@ class ImpactResult:
     energies: object
     contact_force: np.ndarray
     stats: dict
+    plastic_volume_fraction: np.ndarray | None = None
 
     def summary(self) -> dict:
         mag = np.linalg.norm(self.displacement, axis=2)
@@ -225,6 +231,8 @@ class ImpactResult:
             "max_displacement_mm": float(mag.max()),
             "max_von_mises_mpa": float(self.von_mises.max()),
             "max_equivalent_plastic_strain": float(self.equivalent_plastic_strain.max()),
+            "plastic_volume_fraction": (None if self.plastic_volume_fraction is None
+                                        else float(np.max(self.plastic_volume_fraction))),
             "energy_error": float(self.stats["energy_error"]),
             "max_energy_error": float(self.stats["max_energy_error"]),
             "added_mass_fraction": float(self.stats["added_mass_fraction"]),
@@ -273,7 +281,8 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
     result = ImpactResult(scene, built.face, built.ball, np.array([f.time for f in frames]),
                           np.stack([f.displacement for f in frames]), np.stack([f.von_mises for f in frames]),
                           np.stack([f.equivalent_plastic_strain for f in frames]), energies,
-                          np.stack([f.contact_force for f in frames]), stats)
+                          np.stack([f.contact_force for f in frames]), stats,
+                          np.array([f.plastic_volume_fraction for f in frames]))
     if out is not None:
         import h5py
 
@@ -285,6 +294,7 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
                 h5["contact_force_n"] = result.contact_force
                 h5["max_displacement_mm"] = np.linalg.norm(result.displacement, axis=2).max(axis=1)
                 h5["max_von_mises_mpa"] = result.von_mises.max(axis=1)
+                h5["plastic_volume_fraction"] = result.plastic_volume_fraction
         with atomic_path(out / "summary.json") as tmp:
             tmp.write_text(json.dumps(result.summary(), indent=2))
         if preview:
