@@ -141,7 +141,7 @@ class SurrogateConfig:
 CONFIGS = {
     "seed": SurrogateConfig("seed", "per_output_lstm", hidden=5, layers=1, features="seed", loss="mae", lr=1e-3,
                             batch_size=10_000),
-    "strong": SurrogateConfig("strong", "lstm", hidden=64, layers=2, features="ball", fourier=6, per_travel=True,
+    "strong": SurrogateConfig("strong", "lstm", hidden=32, layers=1, features="ball", fourier=6, per_travel=True,
                               loss="mse", lr=3e-3, batch_size=256),
     "baseline": SurrogateConfig("baseline", "mlp", hidden=128, layers=3, features="ball", fourier=6, per_travel=True,
                                 loss="mse", lr=3e-3, batch_size=256),
