@@ -1,4 +1,4 @@
-"""Command line: ``toolkit demo``, ``toolkit phantom`` (and the workflows as they land).
+"""Command line: ``toolkit demo``, ``toolkit phantom``, ``toolkit static ...``, ``toolkit impact ...``.
 
 Only this module prints; the library raises, warns or logs.
 """
@@ -167,16 +167,102 @@ def build_parser() -> argparse.ArgumentParser:
     isim.add_argument("--no-preview", action="store_true")
     _add_common(isim)
     isim.set_defaults(func=_cmd_impact_simulate)
+
+    ids = im_sub.add_parser(
+        "dataset", help="build the learning database (one simulation per velocity)",
+        description="Simulate the scene at every training and held-out velocity and store the per-node "
+                    "displacement and von Mises time series in one resumable HDF5 file (rerun to resume; failures "
+                    "are recorded). Default scene: the face held by the skull, 0.36 s (yielding_scene).")
+    ids.add_argument("--velocities", type=_floats, default=None,
+                     help="training velocities, mm/s, comma-separated (default seed 002's 20,26,32,38,44,50)")
+    ids.add_argument("--held-out", type=_floats, default=None,
+                     help="held-out velocities, mm/s (default: midpoints of every other gap, 23,35,47); '' for none")
+    ids.add_argument("--scene", type=Path, help="scene TOML (default: the skull-held yielding scene)")
+    ids.add_argument("--resolution", choices=["coarse", "paper"], help="face resolution")
+    ids.add_argument("--ball", choices=["deformable", "rigid"], help="ball model")
+    ids.add_argument("--order", type=int, choices=[1, 2], help="tetrahedron order (1: tet4, 2: tet10)")
+    ids.add_argument("--mass-scaling", type=float, help="density factor >= 1 (longer stable steps)")
+    ids.add_argument("--duration", type=float, help="simulated time, s")
+    ids.add_argument("--workers", type=int, default=1, help="local worker processes (default 1; 0: in this process)")
+    ids.add_argument("--dask", metavar="ADDRESS", default=None,
+                     help="run on a Dask cluster: a scheduler address (tcp://host:8786) or 'local' for a "
+                          "LocalCluster of --workers processes")
+    ids.add_argument("--retry-failed", action="store_true", help="rerun velocities recorded as failed")
+    ids.add_argument("--out", required=True, type=Path, help="database file (.h5)")
+    _add_common(ids)
+    ids.set_defaults(func=_cmd_impact_dataset)
+
+    itr = im_sub.add_parser("train", help="train a surrogate on a database",
+                            description="Train the seed 002 LSTM, the stronger LSTM or the non-recurrent baseline; "
+                                        "writes model.pt, config.json (with the scalers) and checkpoint.pt.")
+    itr.add_argument("--data", required=True, type=Path, help="database (.h5) from `toolkit impact dataset`")
+    itr.add_argument("--out", required=True, type=Path, help="model directory")
+    itr.add_argument("--config", default="seed", choices=["seed", "strong", "baseline"])
+    itr.add_argument("--split", default="random", choices=["random", "velocity"],
+                     help="random: 76%% of the items train (seed 002); velocity: held-out velocities are the test set")
+    itr.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or auto")
+    itr.add_argument("--seed", type=int, default=0, help="weights, batch order and split (default 0)")
+    itr.add_argument("--epochs", type=int, default=None, help="maximum epochs (default: the configuration's)")
+    itr.add_argument("--max-minutes", type=float, default=None, help="training time limit (default 15)")
+    itr.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    _add_common(itr)
+    itr.set_defaults(func=_cmd_impact_train)
+
+    iev = im_sub.add_parser("evaluate", help="score a model on its test split",
+                            description="RMSE, Pearson and NRMSE of displacement and von Mises on the model's test "
+                                        "split; writes metrics.json, timeseries.png and fields.png.")
+    iev.add_argument("--model", required=True, type=Path, help="model directory")
+    iev.add_argument("--data", required=True, type=Path, help="the database it was trained on")
+    iev.add_argument("--out", required=True, type=Path, help="output folder")
+    iev.add_argument("--split", choices=["random", "velocity"], default=None,
+                     help="test split (default: the one the model was trained with)")
+    iev.add_argument("--nodes", type=_ints, default=None, help="node ids for timeseries.png (comma-separated)")
+    iev.add_argument("--frames", type=_ints, default=None, help="frame indices for fields.png (comma-separated)")
+    _add_common(iev)
+    iev.set_defaults(func=_cmd_impact_evaluate)
+
+    ipr = im_sub.add_parser("predict", help="predict the database's scene at a velocity",
+                            description="Whole-face displacement and von Mises time series at VELOCITY; writes "
+                                        "face.xdmf, summary.json and scene.toml (run its FE with "
+                                        "`toolkit impact simulate --scene OUT/scene.toml`).")
+    ipr.add_argument("--model", required=True, type=Path, help="model directory")
+    ipr.add_argument("--velocity", required=True, type=float, help="ball velocity, mm/s")
+    ipr.add_argument("--out", required=True, type=Path, help="output folder")
+    _add_common(ipr)
+    ipr.set_defaults(func=_cmd_impact_predict)
     return parser
 
 
-def _impact_scene(args):
+def _torch_threads(args) -> None:
+    """torch picks its thread count at import: apply --threads (default 1) again once it is loaded."""
+    import torch  # noqa: F401
+
+    from toolkit.common.runtime import set_threads
+
+    set_threads(args.threads)
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def _ints(text: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def _impact_scene(args, base=None):
     from dataclasses import replace
 
     from toolkit.impact.scene import Scene, default_scene
 
-    scene = Scene.read(args.scene) if args.scene else default_scene()
-    if args.velocity is not None:
+    scene = Scene.read(args.scene) if args.scene else (base or default_scene)()
+    if getattr(args, "velocity", None) is not None:
         scene = scene.with_ball(velocity=args.velocity)
     if args.resolution is not None:
         scene = scene.with_face(resolution=args.resolution)
@@ -202,6 +288,98 @@ def _cmd_impact_simulate(args) -> int:
           f"{s['energy_error']:.2%}")
     print(f"wrote {args.out}/ (face.xdmf, {'ball.xdmf, ' if result.ball is not None else ''}history.h5, "
           f"summary.json{'' if args.no_preview else ', preview.png'})")
+    return 0
+
+
+def _cmd_impact_dataset(args) -> int:
+    from toolkit.impact.dataset import SEED_VELOCITIES, build_database
+    from toolkit.impact.scene import yielding_scene
+
+    scene = _impact_scene(args, base=yielding_scene)
+    velocities = args.velocities or list(SEED_VELOCITIES)
+    client = cluster = None
+    if args.dask:
+        from distributed import Client, LocalCluster
+
+        if args.dask == "local":
+            cluster = LocalCluster(n_workers=max(args.workers, 1), threads_per_worker=1, dashboard_address=None)
+            client = Client(cluster)
+        else:
+            client = Client(args.dask)
+    try:
+        report = build_database(args.out, velocities, args.held_out, scene, workers=args.workers, executor=client,
+                                retry_failed=args.retry_failed, progress=True)
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+    from toolkit.common.database import read_index
+
+    print(f"{len(report.done)} simulated, {len(report.skipped)} already there or failed before, "
+          f"{len(report.failed)} failed now ({report.seconds:.1f} s) -> {args.out}")
+    for key, reason in report.failed.items():
+        print(f"  failed {key}: {reason}")
+    table = read_index(args.out)
+    if len(table):
+        cols = ["key", "held_out", "max_displacement_mm", "max_von_mises_mpa", "max_equivalent_plastic_strain",
+                "plastic_volume_fraction", "energy_error", "wall_time_s"]
+        print(table[[c for c in cols if c in table]].sort_values("key").to_string(index=False, float_format="%.4g"))
+    return 1 if report.failed else 0
+
+
+def _cmd_impact_train(args) -> int:
+    _torch_threads(args)
+    from toolkit.impact.lstm import CONFIGS, train_surrogate
+
+    cfg = CONFIGS[args.config]
+    if args.epochs is not None:
+        cfg = cfg.with_(epochs=args.epochs)
+    if args.max_minutes is not None:
+        cfg = cfg.with_(max_seconds=60.0 * args.max_minutes)
+    model = train_surrogate(args.data, cfg, args.split, out=args.out, seed=args.seed, device=args.device,
+                            resume=args.resume, progress=True)
+    e = model.bundle.extra
+    print(f"{cfg.name} ({cfg.network}, hidden {cfg.hidden}, layers {cfg.layers}) on the {args.split} split: "
+          f"{e['epochs_run']} epochs ({e['stopped']}), best validation loss {e['best_val_loss']:.4g} at epoch "
+          f"{e['best_epoch']}, {e['train_seconds']:.1f} s -> {args.out}/ (model.pt, config.json)")
+    return 0
+
+
+def _cmd_impact_evaluate(args) -> int:
+    _torch_threads(args)
+    from toolkit.impact.dataset import load_database
+    from toolkit.impact.evaluation import evaluate_surrogate, write_evaluation
+    from toolkit.impact.lstm import ImpactSurrogate
+
+    model = ImpactSurrogate.load(args.model)
+    db = load_database(args.data)
+    ev = evaluate_surrogate(model, db, args.split)
+    write_evaluation(ev, db, model, args.out, nodes=args.nodes, frames=args.frames)
+    m = ev.metrics
+    print(f"{m['config']} on the {m['split']} split ({m['n_test_items']} test node series, velocities "
+          f"{m['test_velocities_mm_s']} mm/s):")
+    print(f"  displacement RMSE {m['displacement_rmse_mm']:.3g} mm, Pearson {m['displacement_pearson']:.4f}, "
+          f"NRMSE {m['displacement_nrmse']:.3%}")
+    print(f"  von Mises    RMSE {m['von_mises_rmse_mpa']:.3g} MPa, Pearson {m['von_mises_pearson']:.4f}, "
+          f"NRMSE {m['von_mises_nrmse']:.3%}")
+    print(f"  trained {m['train_seconds']:.1f} s; {m['inference_ms']:.2f} ms per whole-face frame "
+          f"(FE {m['fe_ms_per_frame']:.0f} ms per frame)")
+    print(f"wrote {args.out}/ (metrics.json, timeseries.png, fields.png)")
+    return 0
+
+
+def _cmd_impact_predict(args) -> int:
+    _torch_threads(args)
+    from toolkit.impact.lstm import ImpactSurrogate, predict_scene
+
+    pred = predict_scene(ImpactSurrogate.load(args.model), args.velocity)
+    pred.write(args.out)
+    s = pred.summary()
+    print(f"{s['face_nodes']} face nodes at {s['velocity_mm_s']} mm/s, {pred.times.size} frames in "
+          f"{s['wall_time_s']:.2f} s: max displacement {s['max_displacement_mm']:.2f} mm, max von Mises "
+          f"{s['max_von_mises_mpa']:.4f} MPa")
+    print(f"wrote {args.out}/ (face.xdmf, summary.json, scene.toml)")
     return 0
 
 

@@ -453,6 +453,9 @@ def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=No
                 db.write_shard(job, status, payload, extra)
             else:
                 fut.cancel()
+        if owned:  # do not wait for running simulations at exit (the pool would join its workers)
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
         raise
     finally:
         bar.close()

@@ -1,11 +1,26 @@
 """Impact workflow: explicit finite-strain elastoplastic ball impact on the face (seed 002).
 
 ``simulate(default_scene())`` runs seed 002's scene; the pieces (scene, elements,
-plasticity, contact, integrator) are importable. Imports nothing from :mod:`toolkit.static`.
+plasticity, contact, integrator) are importable. The surrogate side: ``build_database``
+(one simulation per velocity, HDF5), ``train_surrogate`` (seed 002's LSTM, a stronger one,
+an MLP baseline), ``evaluate_surrogate`` and ``predict_scene``. Imports nothing from
+:mod:`toolkit.static`.
 """
 
+from toolkit.impact.dataset import ImpactDatabase, build_database, load_database
+from toolkit.impact.evaluation import evaluate_surrogate
 from toolkit.impact.explicit import InstabilityError
-from toolkit.impact.scene import BallSpec, ContactSpec, FaceSpec, Fidelity, MaterialSpec, Scene, default_scene
+from toolkit.impact.lstm import CONFIGS, ImpactSurrogate, SurrogateConfig, predict_scene, train_surrogate
+from toolkit.impact.scene import (
+    BallSpec,
+    ContactSpec,
+    FaceSpec,
+    Fidelity,
+    MaterialSpec,
+    Scene,
+    default_scene,
+    yielding_scene,
+)
 from toolkit.impact.simulate import ImpactResult, SceneGeometryWarning, UnstableTimeStepError, build_model, simulate
 
 __all__ = [
@@ -16,10 +31,20 @@ __all__ = [
     "Fidelity",
     "MaterialSpec",
     "default_scene",
+    "yielding_scene",
     "simulate",
     "build_model",
     "ImpactResult",
     "InstabilityError",
     "UnstableTimeStepError",
     "SceneGeometryWarning",
+    "build_database",
+    "load_database",
+    "ImpactDatabase",
+    "train_surrogate",
+    "ImpactSurrogate",
+    "SurrogateConfig",
+    "CONFIGS",
+    "evaluate_surrogate",
+    "predict_scene",
 ]

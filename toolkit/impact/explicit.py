@@ -117,7 +117,8 @@ class Frame:
     """Output of the first body (the face) at one time: ``time`` s, ``displacement (n, 3)``
     mm, ``von_mises (n,)`` MPa (nodal, volume-weighted from the Gauss points),
     ``equivalent_plastic_strain (n,)``, energies (whole model), contact force on the face
-    (3,) N and ``max_penetration`` mm."""
+    (3,) N, ``max_penetration`` mm and ``plastic_volume_fraction`` (the share of the face's
+    volume, over integration points, whose equivalent plastic strain is > 0)."""
 
     time: float
     displacement: np.ndarray
@@ -126,6 +127,7 @@ class Frame:
     energies: Energies
     contact_force: np.ndarray
     max_penetration: float
+    plastic_volume_fraction: float = 0.0
 
 
 @dataclass(eq=False)
@@ -172,6 +174,11 @@ def moving_sphere_contact(pair, slaves: np.ndarray, centre0: np.ndarray, velocit
 def _von_mises(sigma: np.ndarray) -> np.ndarray:
     s = sigma - np.trace(sigma, axis1=-2, axis2=-1)[..., None, None] * np.eye(3) / 3.0
     return np.sqrt(1.5 * np.einsum("...ij,...ij->...", s, s))
+
+
+def _volume_share(kin: TetKinematics, mask: np.ndarray) -> float:
+    """Share of the body's volume at the integration points where ``mask (E, Q)`` holds."""
+    return float(np.sum(kin.weight[mask]) / np.sum(kin.weight))
 
 
 def _to_nodes(kin: TetKinematics, values: np.ndarray, n_nodes: int) -> np.ndarray:
@@ -294,11 +301,12 @@ def run_explicit(model: ExplicitModel, duration: float, n_frames: int, on_frame:
                     "displacement": u[b.offset:b.offset + b.n_nodes].copy(),
                     "von_mises": _to_nodes(b.kin, _von_mises(sig).reshape(epb.shape), b.n_nodes),
                     "equivalent_plastic_strain": _to_nodes(b.kin, epb, b.n_nodes),
+                    "plastic_volume_fraction": float(_volume_share(b.kin, epb > 0.0)),
                 })
             e = Energies(**energies.__dict__)
             face = bodies_fields[0]
             frame = Frame(t, face["displacement"], face["von_mises"], face["equivalent_plastic_strain"],
-                          e, f_face.copy(), float(penetration))
+                          e, f_face.copy(), float(penetration), face["plastic_volume_fraction"])
             frames.append(frame)
             if on_frame is not None:
                 on_frame(frame, bodies_fields)

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["MaterialSpec", "FaceSpec", "BallSpec", "ContactSpec", "Fidelity", "Scene", "default_scene",
-           "FACE_YIELD", "BALL_YIELD"]
+           "yielding_scene", "FACE_YIELD", "BALL_YIELD", "SUPPORTS", "YIELDING_DURATION"]
 
 #: seed 002 yield tables: (yield stress MPa, equivalent plastic strain)
 FACE_YIELD = ((0.015, 0.0), (0.020, 0.03), (0.025, 0.032), (0.028, 0.05), (0.030, 0.06), (0.031, 0.07))
@@ -56,18 +56,41 @@ class MaterialSpec:
             object.__setattr__(self, "yield_table", tuple(tuple(float(x) for x in row) for row in self.yield_table))
 
 
+#: how the face is held: ``band`` (seed 002: only the lower band) or ``skull`` (also the bone-side surface)
+SUPPORTS = ("band", "skull")
+
+#: duration (s) of :func:`yielding_scene`: the fastest seed ball (50 mm/s) travels 18 mm, short of the
+#: ~21 mm of tissue between the first touch and the skull
+YIELDING_DURATION = 0.36
+
+
 @dataclass(frozen=True)
 class FaceSpec:
     """The face: ``resolution`` (``coarse``/``paper``) or ``mesh`` (a tet file with node set
-    ``fixed_set``), its material, and the fraction of the height fixed at the bottom (phantoms
+    ``fixed_set``), its material, the fraction of the height fixed at the bottom (phantoms
     only; 0.05 = the lowest 5 mm of the 100 mm phantom, so that the ball's path over seed 002's
-    velocities clears it, see :class:`BallSpec`)."""
+    velocities clears it, see :class:`BallSpec`), and how the face is held (``support``):
+
+    - ``"band"`` (seed 002): only node set ``fixed_set`` (the lower band) is fixed. The face is
+      then a free flap: the ball turns it about the band almost rigidly, and the tissue never
+      yields (its first yield, 0.015 MPa = E, needs a Hencky equivalent strain of ~1; the flap
+      reaches ~0.4 at the band, 0.0058 MPa at 30 mm/s on the paper face).
+    - ``"skull"``: the bone-side surface (node set ``bone``) is fixed too, as the skull and
+      teeth hold the soft tissue. The ball then crushes the 17-21 mm of tissue in front of the
+      maxilla; it yields once the ball has travelled ~12-13 mm past the first touch and the
+      ball's path meets the skull after ~21 mm (see :func:`yielding_scene`).
+    """
 
     resolution: str = "paper"
     mesh: str | None = None
     material: MaterialSpec = MaterialSpec(0.015, 0.49, 1e-9, FACE_YIELD)
     fixed_set: str = "fixed"
     lower_fixed_fraction: float = 0.05
+    support: str = "band"
+
+    def __post_init__(self):
+        if self.support not in SUPPORTS:
+            raise ValueError(f"face support {self.support!r} is not one of {sorted(SUPPORTS)}")
 
 
 @dataclass(frozen=True)
@@ -265,3 +288,20 @@ def default_scene(velocity: float = 30.0) -> Scene:
     """Seed 002's scene: paper-resolution tet10 face (lower part fixed), deformable rubber ball
     driven at ``velocity`` mm/s (default 30) for 1.8 s."""
     return Scene().with_ball(velocity=velocity)
+
+
+def yielding_scene(velocity: float = 50.0) -> Scene:
+    """Seed 002's scene with the face held by the skull (``FaceSpec.support = "skull"``), for
+    :data:`YIELDING_DURATION` = 0.36 s with a frame every 10 ms; the learning database's default.
+
+    Why: held only at its lower band the face turns away from the ball as a flap and stays
+    elastic; held by the skull it is squeezed between the ball and the maxilla and yields.
+    Where the ball hits is seed 002's default aim (30 mm above the nose tip: nose, upper lip and
+    the infraorbital region first). The soft tissue in front of the bone is only ~21 mm thick
+    along the ball's path, so a skull-held face cannot follow seed 002's 1.8 s (36-90 mm of
+    travel); 0.36 s keeps the fastest seed ball (50 mm/s, 18 mm) clear of the skull. The tissue
+    yields after ~12-13 mm of travel, so over 0.36 s the balls from ~35 mm/s up yield and the
+    slower ones stay elastic: the database holds both regimes.
+    """
+    scene = Scene(duration=YIELDING_DURATION, n_frames=36).with_ball(velocity=velocity)
+    return scene.with_face(support="skull")

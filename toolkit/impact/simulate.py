@@ -30,7 +30,8 @@ from toolkit.impact.explicit import Body, ExplicitModel, moving_sphere_contact, 
 from toolkit.impact.plasticity import HardeningTable, J2Plasticity
 from toolkit.impact.scene import MaterialSpec, Scene
 
-__all__ = ["simulate", "ImpactResult", "build_model", "UnstableTimeStepError", "SceneGeometryWarning", "sweep_travel"]
+__all__ = ["simulate", "ImpactResult", "build_model", "UnstableTimeStepError", "SceneGeometryWarning", "sweep_travel",
+           "face_mesh", "fixed_nodes", "ball_start"]
 
 
 class UnstableTimeStepError(ValueError):
@@ -69,37 +70,19 @@ class BuiltScene:
 
 def build_model(scene: Scene) -> BuiltScene:
     """Meshes, materials, masses, time step and contact for ``scene``."""
-    from toolkit.common.io import read
     from toolkit.common.phantom import ball as ball_mesh
-    from toolkit.common.phantom import face_tet
 
     fid = scene.fidelity
-    if scene.face.mesh:
-        face = read(scene.face.mesh, require_node_sets=[scene.face.fixed_set, "skin"])
-    else:
-        face = face_tet(scene.face.resolution, order=fid.order, lower_fixed_fraction=scene.face.lower_fixed_fraction)
+    face = face_mesh(scene)
     face_kin = tet_kinematics(face)
     ms = fid.mass_scaling
     face_mat = _material(scene.face.material, ms)
     d = np.asarray(scene.ball.direction, dtype=float)
     skin = face.node_set("skin")
-    if scene.ball.target is None:
-        target = face.points[skin[np.argmax(face.points[skin] @ -d)]]
-    else:
-        target = np.asarray(scene.ball.target, dtype=float)
-    target = target + np.asarray(scene.ball.target_offset, dtype=float)
     R = scene.ball.radius
-    # start behind the plane through the most upstream skin point, then advance until the
-    # closest skin node is `gap` mm from the sphere (first touch of a sphere of radius R + gap)
-    lead = float(np.max(face.points[skin] @ -d))
-    centre0 = target - d * (R + scene.ball.gap + (lead - target @ -d))
-    first_touch = float(sweep_travel(face.points[skin], centre0, d, R + scene.ball.gap).min())
-    if not np.isfinite(first_touch):
-        raise ValueError(f"the ball (radius {R} mm) aimed at {np.round(target, 1).tolist()} mm along "
-                         f"{list(scene.ball.direction)} misses the face; change ball.target or target_offset")
-    centre0 = centre0 + d * first_touch
+    centre0 = ball_start(scene, face.points[skin])
     travel = scene.ball.velocity * scene.duration
-    fixed_ids = face.node_set(scene.face.fixed_set)
+    fixed_ids = fixed_nodes(scene, face)
     clearance = float(sweep_travel(face.points[fixed_ids], centre0, d, R).min(initial=np.inf)) - travel
     if clearance < 0:
         warnings.warn(f"the ball's path reaches the fixed region after {travel + clearance:.1f} mm of its "
@@ -164,6 +147,53 @@ def build_model(scene: Scene) -> BuiltScene:
     return BuiltScene(model, face, ball, centre0, dt_crit, dt_elem, ms - 1.0, clearance)
 
 
+def ball_start(scene: Scene, skin_points: np.ndarray) -> np.ndarray:
+    """The ball's centre at t = 0, ``(3,)`` mm: on the line along ``ball.direction`` through the
+    target (plus offset), advanced until the closest of the ``skin_points (n, 3)`` mm is
+    ``ball.gap`` from the sphere. Independent of the velocity; the centre then moves as
+    ``centre0 + velocity * direction * t``."""
+    d = np.asarray(scene.ball.direction, dtype=float)
+    skin = np.asarray(skin_points, dtype=float)
+    if scene.ball.target is None:
+        target = skin[np.argmax(skin @ -d)]
+    else:
+        target = np.asarray(scene.ball.target, dtype=float)
+    target = target + np.asarray(scene.ball.target_offset, dtype=float)
+    R = scene.ball.radius
+    # start behind the plane through the most upstream skin point, then advance until the
+    # closest skin node is `gap` mm from the sphere (first touch of a sphere of radius R + gap)
+    lead = float(np.max(skin @ -d))
+    centre0 = target - d * (R + scene.ball.gap + (lead - target @ -d))
+    first_touch = float(sweep_travel(skin, centre0, d, R + scene.ball.gap).min())
+    if not np.isfinite(first_touch):
+        raise ValueError(f"the ball (radius {R} mm) aimed at {np.round(target, 1).tolist()} mm along "
+                         f"{list(scene.ball.direction)} misses the face; change ball.target or target_offset")
+    return centre0 + d * first_touch
+
+
+def face_mesh(scene: Scene) -> Mesh:
+    """The scene's face: the tetrahedral phantom at ``scene.face.resolution`` and the fidelity's
+    element order, or the mesh file ``scene.face.mesh`` (with node sets ``fixed_set``, ``skin``
+    and, for a skull-held face, ``bone``). Points ``(n, 3)`` mm."""
+    from toolkit.common.io import read
+    from toolkit.common.phantom import face_tet
+
+    if scene.face.mesh:
+        needed = [scene.face.fixed_set, "skin"] + (["bone"] if scene.face.support == "skull" else [])
+        return read(scene.face.mesh, require_node_sets=needed)
+    return face_tet(scene.face.resolution, order=scene.fidelity.order,
+                    lower_fixed_fraction=scene.face.lower_fixed_fraction)
+
+
+def fixed_nodes(scene: Scene, face: Mesh) -> np.ndarray:
+    """Face node ids (int64, ascending) with zero velocity: node set ``fixed_set``, and the
+    bone-side set ``bone`` too when the face is held by the skull."""
+    ids = face.node_set(scene.face.fixed_set)
+    if scene.face.support == "skull":
+        ids = np.union1d(ids, face.node_set("bone"))
+    return np.asarray(ids, dtype=np.int64)
+
+
 def sweep_travel(points: np.ndarray, centre0: np.ndarray, direction: np.ndarray, radius: float) -> np.ndarray:
     """Travel (mm) after which a sphere of ``radius`` mm starting at ``centre0`` and moving along
     the unit ``direction`` first touches each of the fixed ``points (n, 3)`` mm; ``inf`` for points
@@ -197,6 +227,8 @@ class ImpactResult:
     energies : DataFrame per frame (mJ) with the balance error
     contact_force : (n_frames, 3) N on the face
     stats : dict (steps, dt_s, wall_time_s, energy_error, ...)
+    plastic_volume_fraction : (n_frames,) share of the face volume (integration points) that has
+        yielded
     """
 
     scene: Scene
@@ -209,6 +241,7 @@ class ImpactResult:
     energies: object
     contact_force: np.ndarray
     stats: dict
+    plastic_volume_fraction: np.ndarray | None = None
 
     def summary(self) -> dict:
         mag = np.linalg.norm(self.displacement, axis=2)
@@ -225,6 +258,8 @@ class ImpactResult:
             "max_displacement_mm": float(mag.max()),
             "max_von_mises_mpa": float(self.von_mises.max()),
             "max_equivalent_plastic_strain": float(self.equivalent_plastic_strain.max()),
+            "plastic_volume_fraction": (None if self.plastic_volume_fraction is None
+                                        else float(np.max(self.plastic_volume_fraction))),
             "energy_error": float(self.stats["energy_error"]),
             "max_energy_error": float(self.stats["max_energy_error"]),
             "added_mass_fraction": float(self.stats["added_mass_fraction"]),
@@ -273,7 +308,8 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
     result = ImpactResult(scene, built.face, built.ball, np.array([f.time for f in frames]),
                           np.stack([f.displacement for f in frames]), np.stack([f.von_mises for f in frames]),
                           np.stack([f.equivalent_plastic_strain for f in frames]), energies,
-                          np.stack([f.contact_force for f in frames]), stats)
+                          np.stack([f.contact_force for f in frames]), stats,
+                          np.array([f.plastic_volume_fraction for f in frames]))
     if out is not None:
         import h5py
 
@@ -285,6 +321,7 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
                 h5["contact_force_n"] = result.contact_force
                 h5["max_displacement_mm"] = np.linalg.norm(result.displacement, axis=2).max(axis=1)
                 h5["max_von_mises_mpa"] = result.von_mises.max(axis=1)
+                h5["plastic_volume_fraction"] = result.plastic_volume_fraction
         with atomic_path(out / "summary.json") as tmp:
             tmp.write_text(json.dumps(result.summary(), indent=2))
         if preview:

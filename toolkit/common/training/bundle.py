@@ -95,6 +95,9 @@ class ModelBundle:
         require_same(self.data, signature, f"this {self.kind} model",
                      hint=f"{what} differs from what it was trained on; train a model on it")
 
-    def check_config(self, config: dict) -> None:
-        """Refuse a configuration other than the stored one (e.g. loading seed weights as 'strong')."""
-        require_same(self.config, config, f"this {self.kind} model")
+    def check_config(self, config: dict, ignore: tuple[str, ...] = ()) -> None:
+        """Refuse a configuration other than the stored one (e.g. loading seed weights as 'strong');
+        keys in ``ignore`` (e.g. the training budget) may differ."""
+        stored = {k: v for k, v in self.config.items() if k not in ignore}
+        asked = {k: v for k, v in config.items() if k not in ignore}
+        require_same(stored, asked, f"this {self.kind} model")

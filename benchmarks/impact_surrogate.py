@@ -1,0 +1,229 @@
+"""Impact surrogate benchmark: the paper-scale database, then seed 002's LSTM, the stronger
+LSTM and the non-recurrent baseline side by side against seed 002's figures.
+
+Stages (each resumable; rerun the same command to continue):
+
+1. ``database``: the skull-held yielding scene (``toolkit.impact.yielding_scene``) on the
+   paper face at seed 002's six velocities plus the held-out 23, 35 and 47 mm/s, at the
+   chosen fidelity (default: tet10 face, deformable ball, no mass scaling, seed 002's own
+   model) -> ``results/impact_paper.h5``; the per-velocity yield table
+   -> ``results/impact_surrogate_yield.csv``.
+2. ``sweep`` (optional, ``--sweep``): candidate LSTM sizes on the random split with a
+   shorter time budget -> ``results/impact_surrogate_sweep.csv`` (how ``strong`` was chosen).
+3. ``models``: seed / strong / baseline on the random (76 % items) and held-out-velocity
+   splits, each trained (CPU, one thread) and evaluated -> ``results/impact_models/``,
+   ``results/impact_surrogate.csv``, ``results/impact_surrogate.png``.
+
+Timed stages should not overlap other timed work: run under ``flock /tmp/bench.lock``.
+
+    flock /tmp/bench.lock python benchmarks/impact_surrogate.py
+    python benchmarks/impact_surrogate.py --resolution coarse --order 1 --ball rigid --mass-scaling 100  # quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+RESULTS = Path(__file__).parent / "results"
+
+#: seed 002's reported figures (Abaqus FE, Keras LSTM hidden 5 / output 1, ~3 h training)
+SEED_002 = {"displacement_rmse_mm": 3.13, "displacement_pearson": 0.98, "von_mises_rmse_mpa": 0.001,
+            "von_mises_pearson": 0.94, "train_seconds": 3 * 3600.0}
+#: the issue's goals
+GOALS = {"displacement_rmse_mm": ("<", 1.0), "displacement_pearson": (">=", 0.995),
+         "von_mises_pearson": (">=", 0.97), "train_seconds": ("<", 900.0)}
+
+#: candidates for the stronger LSTM (sweep stage), each a change of CONFIGS["strong"]: the inputs and
+#: loss of seed 002 with a bigger LSTM, then one knob at a time (output scaling by the travel,
+#: positional encoding, sizes, separate single-output LSTMs)
+SWEEP = {
+    "lstm64x2_seed_inputs_mae": dict(features="seed", loss="mae", fourier=0, per_travel=False),
+    "lstm64x2_ball_mse": dict(fourier=0, per_travel=False),
+    "lstm64x2_ball_mse_travel": dict(fourier=0),
+    "lstm64x2_ball_mse_travel_fourier6": dict(),
+    "lstm32x1_ball_mse_travel_fourier6": dict(hidden=32, layers=1),
+    "lstm128x2_ball_mse_travel_fourier6": dict(hidden=128),
+    "4x_lstm32_ball_mse_travel_fourier6": dict(network="per_output_lstm", hidden=32, layers=1),
+}
+
+
+def _scene(args):
+    from dataclasses import replace
+
+    from toolkit.impact import yielding_scene
+
+    scene = yielding_scene().with_face(resolution=args.resolution).with_ball(rigid=args.ball == "rigid")
+    scene = scene.with_fidelity(order=args.order, mass_scaling=args.mass_scaling)
+    return replace(scene, n_frames=args.frames) if args.frames else scene
+
+
+def stage_database(args, db_path: Path) -> pd.DataFrame:
+    from toolkit.common.database import read_failures, read_index
+    from toolkit.impact.dataset import SEED_VELOCITIES, build_database
+
+    t0 = time.perf_counter()
+    report = build_database(db_path, SEED_VELOCITIES, None, _scene(args), workers=args.workers)
+    print(f"database: {len(report.done)} simulated now, {len(report.skipped)} before, {len(report.failed)} failed "
+          f"({time.perf_counter() - t0:.0f} s) -> {db_path}")
+    fails = read_failures(db_path)
+    if len(fails):
+        print(fails.to_string(index=False))
+    table = read_index(db_path).sort_values("velocity")
+    cols = ["velocity", "held_out", "max_displacement_mm", "max_von_mises_mpa", "max_equivalent_plastic_strain",
+            "plastic_volume_fraction", "energy_error", "max_energy_error", "steps", "wall_time_s",
+            "fe_ms_per_frame"]
+    table = table[cols]
+    table.to_csv(RESULTS / f"impact_surrogate_yield{args.suffix}.csv", index=False)
+    print(table.to_string(index=False, float_format="%.4g"))
+    return table
+
+
+def _train_eval(db, cfg, split, out: Path, seed: int) -> dict:
+    from toolkit.impact.evaluation import evaluate_surrogate, write_evaluation
+    from toolkit.impact.lstm import ImpactSurrogate, train_surrogate
+
+    if (out / "config.json").exists():
+        model = ImpactSurrogate.load(out)
+    else:
+        model = train_surrogate(db, cfg, split, out=out, seed=seed, resume=True, progress=True)
+    ev = evaluate_surrogate(model, db)
+    write_evaluation(ev, db, model, out / "evaluation")
+    return ev.metrics
+
+
+def stage_sweep(args, db) -> pd.DataFrame:
+    from dataclasses import asdict
+
+    from toolkit.impact.lstm import CONFIGS
+
+    path = RESULTS / f"impact_surrogate_sweep{args.suffix}.csv"
+    rows = pd.read_csv(path).to_dict(orient="records") if path.exists() else []
+    for name, change in SWEEP.items():
+        if any(r["name"] == name for r in rows):
+            continue
+        cfg = CONFIGS["strong"].with_(name=name, max_seconds=args.sweep_seconds, **change)
+        m = _train_eval(db, cfg, "random", RESULTS / f"impact_models{args.suffix}" / "sweep" / name, args.seed)
+        knobs = {k: v for k, v in asdict(cfg).items() if k in ("network", "hidden", "layers", "features", "fourier",
+                                                                 "per_travel", "loss", "lr", "batch_size")}
+        rows.append({"name": name, **knobs, **{k: m[k] for k in (
+            "displacement_rmse_mm", "displacement_pearson", "von_mises_rmse_mpa", "von_mises_pearson",
+            "train_seconds", "epochs_run", "best_epoch", "inference_ms")}})
+        pd.DataFrame(rows).to_csv(path, index=False)
+    table = pd.DataFrame(rows)
+    print(table.to_string(index=False, float_format="%.4g"))
+    return table
+
+
+def stage_models(args, db) -> pd.DataFrame:
+    from toolkit.impact.lstm import CONFIGS
+
+    rows = []
+    for split in ("random", "velocity"):
+        for name in ("seed", "strong", "baseline"):
+            cfg = CONFIGS[name]
+            if args.max_minutes:
+                cfg = cfg.with_(max_seconds=60.0 * args.max_minutes)
+            out = RESULTS / f"impact_models{args.suffix}" / f"{name}_{split}"
+            m = _train_eval(db, cfg, split, out, args.seed)
+            rows.append({"config": name, "split": split, **{k: m[k] for k in (
+                "displacement_rmse_mm", "displacement_pearson", "displacement_nrmse", "displacement_magnitude_rmse_mm",
+                "displacement_magnitude_pearson", "von_mises_rmse_mpa", "von_mises_pearson", "von_mises_nrmse",
+                "peak_displacement_mm", "peak_von_mises_mpa", "train_seconds", "epochs_run", "best_epoch", "stopped",
+                "inference_ms", "fe_ms_per_frame", "speedup_vs_fe", "n_train_items", "n_test_items")}})
+            pd.DataFrame(rows).to_csv(RESULTS / f"impact_surrogate{args.suffix}.csv", index=False)
+    table = pd.DataFrame(rows)
+    seed_row = {"config": "seed 002 (paper)", "split": "random", **SEED_002}
+    print(pd.concat([table, pd.DataFrame([seed_row])], ignore_index=True)[
+        ["config", "split", "displacement_rmse_mm", "displacement_pearson", "displacement_nrmse", "von_mises_rmse_mpa",
+         "von_mises_pearson", "von_mises_nrmse", "train_seconds", "inference_ms", "fe_ms_per_frame"]].to_string(
+        index=False, float_format="%.4g"))
+    for key, (op, goal) in GOALS.items():
+        for _, r in table.iterrows():
+            ok = r[key] < goal if op == "<" else r[key] >= goal
+            print(f"goal {key} {op} {goal}: {r['config']}/{r['split']} = {r[key]:.4g} -> {'met' if ok else 'NOT met'}")
+    _plot(table, RESULTS / f"impact_surrogate{args.suffix}.png")
+    return table
+
+
+def _plot(table: pd.DataFrame, path: Path) -> None:
+    from matplotlib.figure import Figure
+
+    from toolkit.common.io import atomic_path
+
+    panels = [("displacement_rmse_mm", "displacement RMSE (mm)"), ("displacement_pearson", "displacement Pearson"),
+              ("von_mises_rmse_mpa", "von Mises RMSE (MPa)"), ("von_mises_pearson", "von Mises Pearson"),
+              ("train_seconds", "training time (s)"), ("inference_ms", "inference (ms / face frame)")]
+    fig = Figure(figsize=(12, 6.5), layout="constrained")
+    axes = fig.subplots(2, 3).ravel()
+    configs = list(dict.fromkeys(table["config"]))
+    width = 0.38
+    for ax, (key, label) in zip(axes, panels):
+        for j, split in enumerate(("random", "velocity")):
+            sub = table[table.split == split].set_index("config").reindex(configs)
+            ax.bar(np.arange(len(configs)) + (j - 0.5) * width, sub[key], width, label=f"{split} split")
+        if key in SEED_002:
+            ax.axhline(SEED_002[key], color="k", ls="--", lw=1, label="seed 002")
+        if key in GOALS:
+            ax.axhline(GOALS[key][1], color="C3", ls=":", lw=1, label="goal")
+        if key == "inference_ms":
+            ax.axhline(float(table["fe_ms_per_frame"].median()), color="C2", ls="-.", lw=1, label="FE per frame")
+        if key in ("train_seconds", "inference_ms", "displacement_rmse_mm", "von_mises_rmse_mpa"):
+            ax.set_yscale("log")
+        if key.endswith("pearson"):
+            ax.set_ylim(min(0.9, float(table[key].min()) - 0.01), 1.0)
+        ax.set_xticks(np.arange(len(configs)), configs)
+        ax.set_title(label, fontsize=10)
+        ax.grid(alpha=0.3, axis="y")
+    axes[0].legend(fontsize=7)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--resolution", default="paper", choices=["coarse", "paper"])
+    parser.add_argument("--order", type=int, default=2, choices=[1, 2])
+    parser.add_argument("--ball", default="deformable", choices=["deformable", "rigid"])
+    parser.add_argument("--mass-scaling", type=float, default=1.0)
+    parser.add_argument("--frames", type=int, default=None, help="output frames (default: the scene's 36)")
+    parser.add_argument("--workers", type=int, default=1, help="simulation processes (default 1: the machine is shared)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--max-minutes", type=float, default=None, help="training time limit per model")
+    parser.add_argument("--sweep", action="store_true", help="also run the strong-configuration sweep")
+    parser.add_argument("--sweep-seconds", type=float, default=300.0)
+    parser.add_argument("--suffix", default="", help="suffix of the result files (e.g. _coarse)")
+    parser.add_argument("--stages", nargs="+", default=["database", "models"],
+                        choices=["database", "sweep", "models"])
+    args = parser.parse_args(argv)
+    if args.sweep and "sweep" not in args.stages:
+        args.stages.insert(1, "sweep")
+    import torch
+
+    from toolkit.common.runtime import set_threads
+    from toolkit.impact.dataset import load_database
+
+    set_threads(None)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    db_path = RESULTS / f"impact_{args.resolution}{args.suffix}.h5"
+    machine = {"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
+               "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
+    print(json.dumps(machine))
+    if "database" in args.stages:
+        stage_database(args, db_path)
+    db = load_database(db_path)
+    if "sweep" in args.stages:
+        stage_sweep(args, db)
+    if "models" in args.stages:
+        stage_models(args, db)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,436 @@
+"""The LSTM surrogate of the impact simulation (seed 002) and its baselines.
+
+An *item* is one node's time series at one imposed velocity. Its inputs at frame ``k``
+(:data:`FEATURES`) are, for seed 002's set (``seed``), the node's initial position
+``x0, y0, z0`` (mm), the ball's velocity (mm/s), the time ``t_k`` (s) and whether the scene
+holds the node (0/1); the ``ball`` set adds what the scene defines about the ball at that
+time: its travel ``v t_k`` (mm) and the node's signed distance to the ball's nominal
+sphere ``|x0 - c(t_k)| - R`` (mm, negative once the undeformed node would be inside it).
+Outputs are the displacement ``ux, uy, uz`` (mm) and the von Mises stress (MPa). Inputs
+and outputs are min-max scaled to [0, 1] with scalers fitted on the training items and
+saved with the model.
+
+Configurations (:data:`CONFIGS`):
+
+- ``seed``: seed 002's model, LSTM with 5 hidden units and 1 output, one per output
+  channel (so 4 models: ux, uy, uz, von Mises), MAE loss, Adam, batches of 10,000 items,
+  seed 002's inputs;
+- ``strong``: one multi-output LSTM with the ``ball`` inputs and an MSE loss, chosen by
+  measurement (``benchmarks/impact_surrogate.py --sweep``; README);
+- ``baseline``: a multilayer perceptron applied to each frame independently (no
+  recurrence), with the same inputs and loss as ``strong``.
+
+Splits (:func:`split_items`): ``random``, seed 002's item split (76 % of the training
+velocities' items for training, the rest for testing); ``velocity``, every item of the
+training velocities for training and the held-out velocities' simulations, never seen, for
+testing. Validation (early stopping) takes 10 % of the training items.
+
+After prediction, nodes the scene holds are given zero displacement (the boundary
+condition, enforced in the output rather than learned).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+import warnings
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from toolkit.common.training import (
+    MinMaxScaler,
+    ModelBundle,
+    TrainConfig,
+    split_groups,
+    torch_seeded,
+    train,
+)
+from toolkit.impact.dataset import ImpactDatabase, load_database
+
+__all__ = ["SurrogateConfig", "CONFIGS", "FEATURES", "INPUTS", "OUTPUTS", "MODEL_KIND", "SPLITS", "item_features",
+           "item_targets", "split_items", "train_surrogate", "ImpactSurrogate", "ExtrapolationWarning", "Prediction",
+           "predict_scene"]
+
+log = logging.getLogger(__name__)
+
+MODEL_KIND = "toolkit.impact.lstm"
+#: the input feature sets (names with units)
+FEATURES = {
+    "seed": ("x0_mm", "y0_mm", "z0_mm", "velocity_mm_s", "time_s", "fixed"),
+    "ball": ("x0_mm", "y0_mm", "z0_mm", "velocity_mm_s", "time_s", "fixed", "travel_mm", "ball_gap_mm"),
+}
+INPUTS = FEATURES["seed"]
+OUTPUTS = ("ux_mm", "uy_mm", "uz_mm", "von_mises_mpa")
+SPLITS = ("random", "velocity")
+#: seed 002: 450,000 of 592,260 items for training
+RANDOM_TRAIN_FRACTION = 0.76
+VALIDATION_FRACTION = 0.1
+#: the networks of :mod:`toolkit.impact.networks` (named here so that importing this module does not import torch)
+NETWORK_NAMES = ("per_output_lstm", "lstm", "mlp")
+
+
+class ExtrapolationWarning(UserWarning):
+    """A prediction asked for a velocity outside the range the model was trained on."""
+
+
+@dataclass(frozen=True)
+class SurrogateConfig:
+    """Network and optimisation settings of one surrogate configuration.
+
+    Attributes
+    ----------
+    name : label (``seed``, ``strong``, ``baseline`` or your own)
+    network : ``per_output_lstm``, ``lstm`` or ``mlp`` (:mod:`toolkit.impact.networks`)
+    hidden, layers : units per layer, stacked layers
+    features : input set, a key of :data:`FEATURES`
+    fourier : octaves of the positional encoding of the node position (0: none)
+    per_travel : learn the outputs divided by the ball's travel ``v t`` (mm) and multiply back:
+        the fields start from zero with the travel by construction, and in this quasi-static
+        scene (the ball moves at ~1 % of the shear-wave speed) they grow roughly with it
+    loss : ``mae`` (seed 002) or ``mse``
+    lr : Adam learning rate; batch_size : items (node series) per step
+    epochs, patience : at most this many epochs; stop after ``patience`` without improvement
+    max_seconds : training time limit, s
+    """
+
+    name: str
+    network: str
+    hidden: int
+    layers: int = 1
+    features: str = "seed"
+    fourier: int = 0
+    per_travel: bool = False
+    loss: str = "mae"
+    lr: float = 1e-3
+    batch_size: int = 10_000
+    epochs: int = 300
+    patience: int | None = 30
+    max_seconds: float = 900.0
+
+    def __post_init__(self):
+        if self.network not in NETWORK_NAMES:
+            raise ValueError(f"network {self.network!r} is not one of {list(NETWORK_NAMES)}")
+        if self.loss not in ("mae", "mse"):
+            raise ValueError(f"loss {self.loss!r} must be 'mae' or 'mse'")
+        if self.features not in FEATURES:
+            raise ValueError(f"features {self.features!r} is not one of {sorted(FEATURES)}")
+
+    #: settings that set how long training may run, not what the model is
+    BUDGET = ("epochs", "patience", "max_seconds")
+
+    def identity(self) -> dict:
+        """The settings that define the model (everything but the training budget)."""
+        return {k: v for k, v in asdict(self).items() if k not in self.BUDGET}
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        return FEATURES[self.features]
+
+    def with_(self, **kw) -> "SurrogateConfig":
+        return replace(self, **kw)
+
+    def train_config(self, seed: int, device: str, progress: bool) -> TrainConfig:
+        return TrainConfig(epochs=self.epochs, batch_size=self.batch_size, lr=self.lr, patience=self.patience,
+                           seed=seed, device=device, max_seconds=self.max_seconds, progress=progress)
+
+
+#: the three configurations of the benchmark (``strong``'s sizes: see README, chosen by measurement)
+CONFIGS = {
+    "seed": SurrogateConfig("seed", "per_output_lstm", hidden=5, layers=1, features="seed", loss="mae", lr=1e-3,
+                            batch_size=10_000),
+    "strong": SurrogateConfig("strong", "lstm", hidden=32, layers=1, features="ball", fourier=6, per_travel=True,
+                              loss="mse", lr=3e-3, batch_size=256),
+    "baseline": SurrogateConfig("baseline", "mlp", hidden=128, layers=3, features="ball", fourier=6, per_travel=True,
+                                loss="mse", lr=3e-3, batch_size=256),
+}
+
+
+def item_features(inputs, velocities, features: str = "seed") -> np.ndarray:
+    """Inputs of every item, ``(S * N, F, k)`` float32 in ``FEATURES[features]`` order (sim-major).
+
+    inputs : :class:`~toolkit.impact.dataset.SceneInputs` (points (N, 3) mm, fixed (N,), times (F,) s,
+        the ball's path); velocities : (S,) mm/s
+    """
+    names = FEATURES[features]
+    v = np.asarray(velocities, dtype=np.float64).reshape(-1)
+    points, times = inputs.points, inputs.times
+    n, f, s = points.shape[0], times.shape[0], v.size
+    x = np.empty((s, n, f, len(names)), dtype=np.float32)
+    x[..., 0:3] = points[None, :, None, :]
+    x[..., 3] = v[:, None, None]
+    x[..., 4] = times[None, None, :]
+    x[..., 5] = np.asarray(inputs.fixed, dtype=np.float32)[None, :, None]
+    if features == "ball":
+        travel = v[:, None] * times[None, :]  # (S, F) mm
+        x[..., 6] = travel[:, None, :]
+        centre = inputs.ball_centre0 + travel[..., None] * inputs.ball_direction  # (S, F, 3)
+        for k in range(s):  # one simulation at a time keeps the (N, F, 3) temporary small
+            x[k, ..., 7] = np.linalg.norm(points[:, None, :] - centre[k][None], axis=-1) - inputs.ball_radius
+    return x.reshape(s * n, f, len(names))
+
+
+def item_targets(db: ImpactDatabase, sims: np.ndarray | None = None) -> np.ndarray:
+    """Outputs of every item of the simulations ``sims`` (default all), ``(S * N, F, 4)`` float32."""
+    sims = np.arange(db.velocities.size) if sims is None else np.asarray(sims)
+    u = np.moveaxis(db.displacement[sims], 1, 2)  # (S, N, F, 3)
+    vm = np.moveaxis(db.von_mises[sims], 1, 2)[..., None]
+    return np.concatenate([u, vm], axis=-1).reshape(-1, db.times.size, len(OUTPUTS)).astype(np.float32)
+
+
+def split_items(db: ImpactDatabase, split: str, seed: int) -> dict[str, np.ndarray]:
+    """Item indices (into :func:`item_features` of all simulations) for ``train``, ``val``, ``test``.
+
+    ``random``: the items of the training velocities, 76 % train+val / 24 % test (whole node
+    series; seed 002's proportion). ``velocity``: all items of the training velocities for
+    train+val, every item of the held-out velocities for test. Validation is 10 % of train+val.
+    """
+    if split not in SPLITS:
+        raise ValueError(f"split {split!r} is not one of {SPLITS}")
+    n = db.n_nodes
+    sim_of_item = np.repeat(np.arange(db.velocities.size), n)
+    training = np.flatnonzero(~db.held_out[sim_of_item])
+    if split == "random":
+        a, b = split_groups(training, (RANDOM_TRAIN_FRACTION, 1.0 - RANDOM_TRAIN_FRACTION), seed)
+        pool, test = training[a], training[b]
+    else:
+        if not db.held_out.any():
+            raise ValueError(f"{db.path} has no held-out velocity; build it with held-out velocities "
+                             "(toolkit impact dataset --held-out ...) or use the random split")
+        pool, test = training, np.flatnonzero(db.held_out[sim_of_item])
+    tr, va = split_groups(pool, (1.0 - VALIDATION_FRACTION, VALIDATION_FRACTION), seed + 1)
+    return {"train": pool[tr], "val": pool[va], "test": test}
+
+
+def _travel(x: np.ndarray) -> np.ndarray:
+    """The ball's travel ``v t`` (mm) of item inputs ``(B, F, k)`` as ``(B, F, 1)`` (every set has v, t)."""
+    return (x[..., 3] * x[..., 4])[..., None]
+
+
+def _loss(name: str):
+    import torch
+
+    return torch.nn.functional.l1_loss if name == "mae" else torch.nn.functional.mse_loss
+
+
+def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateConfig | str = "seed",
+                    split: str = "random", *, out: str | os.PathLike | None = None, seed: int = 0,
+                    device: str = "cpu", resume: bool = False, progress: bool = True) -> "ImpactSurrogate":
+    """Train a surrogate on an impact database.
+
+    Parameters
+    ----------
+    db : ImpactDatabase or the path of one
+    config : a :data:`CONFIGS` name or a SurrogateConfig
+    split : ``random`` or ``velocity`` (see :func:`split_items`)
+    out : model directory; ``model.pt`` + ``config.json`` are written at the end and
+        ``checkpoint.pt`` after every epoch (``resume=True`` continues from it)
+    seed : weights, batch order and split
+    device : ``cpu`` (default), ``cuda`` or ``auto``
+
+    Returns
+    -------
+    ImpactSurrogate (its ``bundle.extra`` holds ``train_seconds``, ``history``, ``split``)
+    """
+    import torch
+
+    from toolkit.impact.networks import build_network
+
+    db = load_database(db) if not isinstance(db, ImpactDatabase) else db
+    cfg = CONFIGS[config] if isinstance(config, str) and config in CONFIGS else config
+    if not isinstance(cfg, SurrogateConfig):
+        raise ValueError(f"config {config!r} is not one of {sorted(CONFIGS)} or a SurrogateConfig")
+    idx = split_items(db, split, seed)
+    x_all = item_features(db.inputs, db.velocities, cfg.features)
+    y_all = item_targets(db)
+    if cfg.per_travel:
+        y_all /= _travel(x_all)
+    x_scaler = MinMaxScaler.fit(x_all[idx["train"]], cfg.inputs)
+    y_scaler = MinMaxScaler.fit(y_all[idx["train"]], OUTPUTS)
+
+    def scaled(which):
+        return (x_scaler.transform(x_all[idx[which]]).astype(np.float32),
+                y_scaler.transform(y_all[idx[which]]).astype(np.float32))
+
+    train_data, val_data = scaled("train"), scaled("val")
+    del x_all, y_all
+    with torch_seeded(seed):
+        net = build_network(cfg.network, len(cfg.inputs), len(OUTPUTS), cfg.hidden, cfg.layers, cfg.fourier)
+    split_spec = {"kind": split, "seed": seed, "train_fraction": RANDOM_TRAIN_FRACTION if split == "random" else None,
+                  "validation_fraction": VALIDATION_FRACTION,
+                  "train_velocities": db.velocities[~db.held_out].tolist(),
+                  "held_out_velocities": db.velocities[db.held_out].tolist()}
+    identity = {"config": cfg.identity(), "data": db.signature(), "split": split_spec,
+                "scalers": {"inputs": x_scaler.to_dict(), "outputs": y_scaler.to_dict()}}
+    checkpoint = None
+    if out is not None:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        checkpoint = Path(out) / "checkpoint.pt"
+    result = train(net, _loss(cfg.loss), train_data, val_data, cfg.train_config(seed, device, progress),
+                   checkpoint=checkpoint, resume=resume, identity=identity)
+    net.to("cpu")
+    extra = {"train_seconds": result.seconds, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
+             "best_val_loss": result.best_val_loss, "stopped": result.stopped, "split": split_spec,
+             "n_train_items": int(idx["train"].size), "n_val_items": int(idx["val"].size),
+             "history": result.history.to_dict(orient="list"), "torch_threads": torch.get_num_threads(),
+             "device": device}
+    bundle = ModelBundle(MODEL_KIND, asdict(cfg), db.signature(),
+                         {"inputs": x_scaler, "outputs": y_scaler},
+                         {k: v.detach().clone() for k, v in net.state_dict().items()}, extra)
+    surrogate = ImpactSurrogate(bundle, net)
+    if out is not None:
+        bundle.save(out)
+    return surrogate
+
+
+class ImpactSurrogate:
+    """A trained impact surrogate: predicts displacement and von Mises time series of every node.
+
+    Build with :func:`train_surrogate` or :meth:`load`; ``bundle`` holds config, scalers and the
+    data signature, ``network`` the torch module (CPU).
+    """
+
+    def __init__(self, bundle: ModelBundle, network):
+        self.bundle, self.network = bundle, network
+        self.config = SurrogateConfig(**bundle.config)
+        self.network.eval()
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike, config: str | SurrogateConfig | None = None) -> "ImpactSurrogate":
+        """Read a model directory. ``config`` (a name or SurrogateConfig), if given, must be the
+        one the model was trained with; a mismatch is refused naming the differing settings."""
+        from toolkit.impact.networks import build_network
+
+        bundle = ModelBundle.load(directory, kind=MODEL_KIND)
+        if config is not None:
+            expected = CONFIGS[config] if isinstance(config, str) and config in CONFIGS else config
+            if not isinstance(expected, SurrogateConfig):
+                raise ValueError(f"config {config!r} is not one of {sorted(CONFIGS)} or a SurrogateConfig")
+            bundle.check_config(expected.identity(), ignore=SurrogateConfig.BUDGET)
+        cfg = SurrogateConfig(**bundle.config)
+        net = build_network(cfg.network, len(cfg.inputs), len(OUTPUTS), cfg.hidden, cfg.layers, cfg.fourier)
+        try:
+            net.load_state_dict(bundle.state_dict)
+        except RuntimeError as exc:
+            raise ValueError(f"{directory}/model.pt does not fit the network its config.json describes "
+                             f"({cfg.network}, hidden {cfg.hidden}, layers {cfg.layers}): {exc}") from exc
+        return cls(bundle, net)
+
+    # ------------------------------------------------------------------ data checks
+    def check_database(self, db: ImpactDatabase) -> None:
+        """Refuse a database of another face, scene or frame times than the training one."""
+        self.bundle.check_data(db.signature(), what=f"database {db.path}")
+
+    @property
+    def velocity_range(self) -> tuple[float, float]:
+        v = self.bundle.extra["split"]["train_velocities"]
+        return float(min(v)), float(max(v))
+
+    # ------------------------------------------------------------------ prediction
+    def predict_items(self, x: np.ndarray, batch_size: int = 20_000):
+        """Outputs ``(B, F, 4)`` (mm, MPa) of item inputs ``x (B, F, k)`` in the model's input order
+        (:func:`item_features`); items whose ``fixed`` input is 1 get zero displacement."""
+        import torch
+
+        xs = self.bundle.scalers["inputs"].transform(np.asarray(x, dtype=np.float64)).astype(np.float32)
+        out = np.empty(xs.shape[:2] + (len(OUTPUTS),), dtype=np.float64)
+        with torch.no_grad():
+            for i in range(0, xs.shape[0], batch_size):
+                y = self.network(torch.from_numpy(xs[i:i + batch_size])).numpy()
+                out[i:i + batch_size] = self.bundle.scalers["outputs"].inverse(y.astype(np.float64))
+        if self.config.per_travel:
+            out *= _travel(x)
+        held = np.asarray(x[:, 0, 5] > 0.5)
+        out[held, :, :3] = 0.0
+        return out
+
+    def predict(self, velocity: float, inputs):
+        """Whole-face prediction at ``velocity`` mm/s for the scene's ``inputs``
+        (:class:`~toolkit.impact.dataset.SceneInputs`): ``(displacement (F, N, 3) mm,
+        von_mises (F, N) MPa)``; warns :class:`ExtrapolationWarning` outside the trained range."""
+        lo, hi = self.velocity_range
+        if not lo <= velocity <= hi:
+            warnings.warn(f"velocity {velocity} mm/s is outside the trained range [{lo}, {hi}] mm/s: the "
+                          "surrogate extrapolates", ExtrapolationWarning, stacklevel=2)
+        y = self.predict_items(item_features(inputs, [velocity], self.config.features))
+        return np.moveaxis(y[..., :3], 0, 1), np.moveaxis(y[..., 3], 0, 1)
+
+    def inference_ms_per_frame(self, db: ImpactDatabase, repeats: int = 3) -> float:
+        """Wall time (ms) to predict the whole face, divided by the number of frames; best of
+        ``repeats`` (one thread unless the caller raised it)."""
+        best = np.inf
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            self.predict(float(db.velocities[0]), db.inputs)
+            best = min(best, time.perf_counter() - t0)
+        return 1000.0 * best / db.times.size
+
+
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """A surrogate's whole-face prediction of the database's scene at one velocity.
+
+    Attributes: ``scene`` (the Scene predicted for), ``face`` (Mesh), ``times`` (F,) s,
+    ``displacement`` (F, N, 3) mm, ``von_mises`` (F, N) MPa, ``wall_time_s``.
+    """
+
+    scene: object
+    face: object
+    times: np.ndarray
+    displacement: np.ndarray
+    von_mises: np.ndarray
+    wall_time_s: float
+    config: str
+
+    def summary(self) -> dict:
+        """The keys of :meth:`toolkit.impact.simulate.ImpactResult.summary`; what only an FE run
+        knows (steps, energies, contact) is None."""
+        mag = np.linalg.norm(self.displacement, axis=2)
+        return {"face_nodes": self.face.n_points, "face_elements": self.face.n_cells,
+                "element": self.face.volume_type,
+                "ball": "rigid" if self.scene.ball.rigid else "deformable",
+                "velocity_mm_s": float(self.scene.ball.velocity), "steps": None, "dt_s": None, "dt_critical_s": None,
+                "wall_time_s": self.wall_time_s, "max_displacement_mm": float(mag.max()),
+                "max_von_mises_mpa": float(self.von_mises.max()), "max_equivalent_plastic_strain": None,
+                "plastic_volume_fraction": None, "energy_error": None, "max_energy_error": None,
+                "added_mass_fraction": None, "max_contact_force_n": None, "max_penetration_mm": None,
+                "fixed_clearance_mm": None, "predicted_by": f"{MODEL_KIND} ({self.config})"}
+
+    def write(self, out: str | os.PathLike) -> Path:
+        """``face.xdmf`` (+ .h5; point data ``displacement`` mm, ``von_mises`` MPa per frame),
+        ``summary.json`` and ``scene.toml`` (run the FE of the same case with
+        ``toolkit impact simulate --scene scene.toml``)."""
+        import json
+
+        from toolkit.common.io import TimeSeriesWriter, atomic_path
+
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        with TimeSeriesWriter(out / "face.xdmf", self.face.without_fields()) as w:
+            for k, t in enumerate(self.times):
+                w.append(float(t), displacement=self.displacement[k], von_mises=self.von_mises[k])
+        with atomic_path(out / "summary.json") as tmp:
+            tmp.write_text(json.dumps(self.summary(), indent=2))
+        self.scene.write(out / "scene.toml")
+        return out
+
+
+def predict_scene(surrogate: ImpactSurrogate, velocity: float) -> Prediction:
+    """Predict the training database's scene at ``velocity`` mm/s on its face (rebuilt from the
+    scene, and refused if it is not the face the model was trained on)."""
+    from toolkit.impact.dataset import SceneInputs, mesh_checksum
+    from toolkit.impact.scene import Scene
+    from toolkit.impact.simulate import face_mesh
+
+    t0 = time.perf_counter()
+    sig = surrogate.bundle.data
+    scene = Scene.from_dict(sig["scene"]).with_ball(velocity=float(velocity))
+    face = face_mesh(scene)
+    if mesh_checksum(face.points) != sig["mesh_checksum"]:
+        raise ValueError(f"the scene's face ({face.n_points} nodes) is not the one the model was trained on "
+                         f"({sig['n_nodes']} nodes, checksum {sig['mesh_checksum']})")
+    times = np.asarray(sig["times_s"], dtype=float)
+    u, vm = surrogate.predict(float(velocity), SceneInputs.from_scene(scene, face, times))
+    return Prediction(scene, face, times, u, vm, time.perf_counter() - t0, surrogate.config.name)
