@@ -142,7 +142,7 @@ def test_models_refuse_what_they_were_not_built_for(tiny_db, tmp_path):
     from dataclasses import replace
 
     train_surrogate(tiny_db, CONFIGS["seed"].with_(epochs=1), "random", out=tmp_path / "m", progress=False)
-    with pytest.raises(IncompatibleError, match=r"hidden: stored 5, asked 64"):
+    with pytest.raises(IncompatibleError, match=r"hidden: stored 5, asked 32"):
         ImpactSurrogate.load(tmp_path / "m", config="strong")
     model = ImpactSurrogate.load(tmp_path / "m")
     other = tmp_path / "other.h5"
