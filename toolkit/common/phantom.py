@@ -86,6 +86,8 @@ BOUNDARY_SETS = ("fixed", "maxilla", "mandible", "mucosa_sliding", "lip_sliding"
 _THETA_MAX = np.deg2rad(80.0)  # half-angle of the arch covered by the face
 _MOUTH_FRACTION = 0.6  # fraction of the height below the occlusal plane
 _MANDIBLE_ATTACHED_FRACTION = 0.3  # inferior part of the mandible height whose tissue is attached
+_MAXILLA_ATTACHED_DEG = 40.0  # half-angle of the anterior maxilla whose tissue stays attached
+_POSTERIOR_MARGIN = 10.0  # mm above the condyles where the posterior cut starts to be held
 
 
 @dataclass(frozen=True)
@@ -206,6 +208,9 @@ class _Geometry:
         self.z_mandible_attached = self.z_bot + _MANDIBLE_ATTACHED_FRACTION * -self.z_bot
         self.theta_osteo = np.deg2rad(50.0)  # sagittal split, molar region
         self.theta_maxilla = np.deg2rad(55.0)  # posterior end of the Le Fort I segment
+        # the soft tissue stays attached to the anterior maxilla (nasal base, upper lip); the
+        # degloved lateral walls, back to the pterygomaxillary junction, let it slide
+        self.theta_maxilla_attached = np.deg2rad(_MAXILLA_ATTACHED_DEG)
         t_cheek = shape.tissue_thickness + 3.0
         self.a0 = shape.face_width / (2.0 * np.sin(_THETA_MAX)) - t_cheek
         h = shape.face_height
@@ -445,7 +450,7 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
 
     # the model is cut at the infraorbital line (top row) and behind the ramus (posterior
     # edges); the posterior cut is held only above the condyles, below which the ramus moves
-    posterior = ((i == 0) | (i == nu1 - 1)) & (z >= geom.z_condyle - 1e-9)
+    posterior = ((i == 0) | (i == nu1 - 1)) & (z >= geom.z_condyle + _POSTERIOR_MARGIN - 1e-9)
     fixed = (j == nv1 - 1) | posterior
     # Le Fort I degloving: the mucoperiosteum over the maxilla is elevated up to the
     # infraorbital rim, so above the cut the tissue slides on the immobile skull
@@ -457,10 +462,12 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
     over_proximal = np.abs(theta) > geom.theta_osteo
     # the tissue over the ramus slides on the proximal segments: behind the sagittal split the
     # distal and proximal bones move apart by millimetres, which an attachment would tear
-    mucosa = inner & ~fixed & ((z < 0) & over_proximal | vestibule) | skull
+    lateral_maxilla = (z > 0) & (z <= geom.z_lefort + 1e-9) & (np.abs(theta) > geom.theta_maxilla_attached) \
+        & (np.abs(theta) <= geom.theta_maxilla)
+    mucosa = inner & ~fixed & ((z < 0) & over_proximal | vestibule | lateral_maxilla) | skull
     # the Le Fort I segment ends at the pterygomaxillary junction: laterally the tissue lies
     # on the zygoma and ramus and is left free
-    maxilla = inner & ~fixed & ~mucosa & (z > 0) & (np.abs(theta) <= geom.theta_maxilla)
+    maxilla = inner & ~fixed & ~mucosa & (z > 0) & (np.abs(theta) <= geom.theta_maxilla_attached)
     distal = inner & ~fixed & ~mucosa & (z < 0)
     upper_side = (z > 0) | is_upper_copy
     mucosa_on = {
