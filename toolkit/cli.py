@@ -10,6 +10,7 @@ import json
 import logging
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 __all__ = ["main", "build_parser"]
@@ -57,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     st_sub.required = True
     sim = st_sub.add_parser("simulate", help="simulate a surgical plan on a face",
                             description="Run the incremental FE simulation (mucosa and lip sliding) and write "
-                                        "result.vtu, increments.xdmf, summary.json and preview.png.")
+                                        "result.vtu (reference mesh + displacement), postop.vtu (post-operative face), increments.xdmf, summary.json and preview.png.")
     src = sim.add_mutually_exclusive_group()
     src.add_argument("--mesh", type=Path, help="face mesh (.inp/.vtu/.xdmf) with the phantom's node sets")
     src.add_argument("--resolution", default="coarse", choices=["coarse", "paper", "fine"],
@@ -91,8 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--poisson-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                     help="draw Poisson's ratio per simulation (for models with material channels)")
     ds.add_argument("--workers", type=int, default=1, help="local processes (0: in this process)")
-    ds.add_argument("--scheduler", default=None,
-                    help="address of a Dask scheduler (tcp://host:8786) to run on a cluster instead")
+    ds.add_argument("--dask", "--scheduler", dest="dask", metavar="ADDRESS", default=None,
+                    help="run on a Dask cluster: a scheduler address (tcp://host:8786) or 'local' for a "
+                         "LocalCluster of --workers processes")
     ds.add_argument("--seed", type=int, default=0)
     ds.add_argument("--retry-failed", action="store_true", help="rerun simulations recorded as failed")
     ds.add_argument("--out", required=True, type=Path, help="database file (.h5)")
@@ -297,23 +299,9 @@ def _cmd_impact_dataset(args) -> int:
 
     scene = _impact_scene(args, base=yielding_scene)
     velocities = args.velocities or list(SEED_VELOCITIES)
-    client = cluster = None
-    if args.dask:
-        from distributed import Client, LocalCluster
-
-        if args.dask == "local":
-            cluster = LocalCluster(n_workers=max(args.workers, 1), threads_per_worker=1, dashboard_address=None)
-            client = Client(cluster)
-        else:
-            client = Client(args.dask)
-    try:
+    with _dask_client(args.dask, args.workers) as client:
         report = build_database(args.out, velocities, args.held_out, scene, workers=args.workers, executor=client,
                                 retry_failed=args.retry_failed, progress=True)
-    finally:
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()
     from toolkit.common.database import read_index
 
     print(f"{len(report.done)} simulated, {len(report.skipped)} already there or failed before, "
@@ -399,22 +387,34 @@ def _cmd_static_simulate(args) -> int:
     return 0
 
 
+@contextmanager
+def _dask_client(address: str | None, workers: int):
+    """A Dask client for ``--dask`` (a scheduler address, or ``local``: a LocalCluster of
+    ``workers`` single-threaded processes); None without it. Closed on exit."""
+    if not address:
+        yield None
+        return
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=max(workers, 1), threads_per_worker=1, dashboard_address=None) \
+        if address == "local" else None
+    client = Client(cluster if cluster is not None else address)
+    try:
+        yield client
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
 def _cmd_static_dataset(args) -> int:
     from toolkit.static.dataset import DatasetConfig, generate
 
     config = DatasetConfig(resolution=args.resolution, subjects=args.subjects, plans=args.plans, mode=args.mode,
                            increments=args.increments, material=args.material, sliding=args.sliding, seed=args.seed,
                            poisson_range=tuple(args.poisson_range) if args.poisson_range else None)
-    client = None
-    if args.scheduler:
-        from dask.distributed import Client
-
-        client = Client(args.scheduler)
-    try:
+    with _dask_client(args.dask, args.workers) as client:
         report = generate(args.out, config, executor=client, workers=args.workers, retry_failed=args.retry_failed)
-    finally:
-        if client is not None:
-            client.close()
     print(f"{len(report.done)} simulations done, {len(report.skipped)} already there, {len(report.failed)} failed "
           f"in {report.seconds:.1f} s -> {args.out}")
     for key, reason in list(report.failed.items())[:10]:

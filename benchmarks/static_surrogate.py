@@ -1,0 +1,234 @@
+"""Static surrogate benchmark (issue: static surrogate): PointNet++ variants beside the two
+baselines and the FE, on the same test samples of a paper-resolution database.
+
+Stages (each resumable; rerun the same command to continue):
+
+1. ``database``: ``--plans`` plans (``--mode``, seed 001's ranges, 3 increments, linear,
+   mucosa + lip sliding) on the default face -> ``results/static_paper.h5``; and, for the
+   held-out-subject goal, ``--subject-plans`` plans on each of ``--subjects`` phantom shapes
+   -> ``results/static_paper_subjects.h5``.
+2. ``models``: PointNet++ ``explicit``, ``implicit``, ``hard`` and ``explicit+extra`` (mucosa/lip
+   channels) trained on the 70/10/20 split by plan, each within ``--max-minutes``; a model
+   trained on all subjects but the last and tested on the last; the linear influence matrix
+   (condensed stiffness on the bone-attached nodes) and POD + quadratic ridge regression on the
+   plan parameters, scored on the same test samples. Errors are per-sample mean nodal
+   Euclidean errors (mm); times per prediction at batch 1; ``fe_ms`` is the FE time of the same
+   increments. The explicit-vs-implicit ablation is a Wilcoxon signed-rank test on paired samples.
+
+Writes ``results/static_surrogate.csv``, ``results/static_surrogate.png`` (error vs time) and
+``results/static_models/<name>/`` (model, metrics.json, per_sample.csv, error_map.png), and
+prints the table. Timed stages should not overlap other timed work.
+
+    python benchmarks/static_surrogate.py --plans 100 --subjects 4 --subject-plans 25 --max-minutes 8
+    python benchmarks/static_surrogate.py --resolution coarse --plans 30 --subjects 3 --subject-plans 10 \
+        --max-minutes 1 --suffix _coarse          # a quick look
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+RESULTS = Path(__file__).resolve().parent / "results"
+#: seed 000's reported test mean errors (mm) and the issue's goals
+SEED_000 = (0.159, 0.642)
+GOALS = {"one subject": 0.2, "unseen subject": 0.4, "inference_ms": 20.0}
+VARIANTS = {
+    "explicit": dict(variant="explicit"),
+    "implicit": dict(variant="implicit"),
+    "hard": dict(variant="hard"),
+    "explicit+extra": dict(variant="explicit", extra_channels=True),
+}
+
+
+def stage_database(args) -> dict:
+    from toolkit.static.dataset import DatasetConfig, generate, read_samples
+
+    out = {}
+    for name, cfg in (("one", DatasetConfig(args.resolution, 1, args.plans, args.mode, seed=args.seed)),
+                      ("subjects", DatasetConfig(args.resolution, args.subjects, args.subject_plans, args.mode,
+                                                 seed=args.seed))):
+        if name == "subjects" and args.subjects < 2:
+            continue
+        path = RESULTS / f"static_{args.resolution}{'' if name == 'one' else '_subjects'}{args.suffix}.h5"
+        t0 = time.perf_counter()
+        report = generate(path, cfg, workers=args.workers)
+        samples = read_samples(path)
+        ok = samples[samples.status == "ok"]
+        print(f"database {path.name}: {len(report.done)} simulated now ({time.perf_counter() - t0:.0f} s), "
+              f"{len(report.skipped)} before, {len(report.failed)} failed; {len(ok)} samples from "
+              f"{ok.key.nunique()} simulations, FE {ok.seconds.sum():.0f} s in all")
+        out[name] = path
+    return out
+
+
+def _pointnet(db_path, name, config, out: Path, subject: int = 0) -> dict:
+    from toolkit.static.dataset import StaticDatabase, subject_phantom
+    from toolkit.static.surrogate import Surrogate, evaluate_surrogate, train_surrogate, write_evaluation
+
+    if (out / "config.json").exists():
+        model = Surrogate.load(out)
+    else:
+        model = train_surrogate(db_path, out, config, resume=(out / "checkpoint.pt").exists())
+    result = evaluate_surrogate(model, db_path)
+    mesh = subject_phantom(StaticDatabase.open(db_path).config.resolution, subject).mesh
+    write_evaluation(result, out / "evaluation", mesh)
+    return result
+
+
+def _baselines(db, test_keys, train_keys) -> dict:
+    """Influence matrix and POD regression scored on the test samples of ``db`` (subject 0)."""
+    from toolkit.common.metrics import nodal_errors
+    from toolkit.static.baselines import InfluenceMatrix, PODRegression
+    from toolkit.static.dataset import PLAN_FEATURES, subject_phantom
+
+    samples = db.samples
+    test_rows = np.flatnonzero(samples.key.isin(test_keys).to_numpy())
+    train_rows = np.flatnonzero(samples.key.isin(train_keys).to_numpy())
+    test = db.arrays(test_rows)
+    types = db.types[0]
+    mesh = subject_phantom(db.config.resolution, 0).mesh
+    im = InfluenceMatrix.build(mesh, np.flatnonzero(types == 1), np.flatnonzero(types == 2))
+    t0 = time.perf_counter()
+    pred_im = np.stack([im.predict(s) for s in test["s"]])
+    im_ms = 1e3 * (time.perf_counter() - t0) / len(test_rows)
+
+    params = samples[list(PLAN_FEATURES)].to_numpy()
+    # the increment's displacement from the plan (POD learns v, the change of the increment)
+    train = db.arrays(train_rows)
+    t0 = time.perf_counter()
+    pod = PODRegression.fit(params[train_rows], train["v"])
+    fit_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    pred_pod = pod.predict(params[test_rows])
+    pod_ms = 1e3 * (time.perf_counter() - t0) / len(test_rows)
+    out = {}
+    for name, pred, ms, train_s in (("influence matrix", pred_im, im_ms, im.seconds),
+                                    ("POD regression", pred_pod, pod_ms, fit_s)):
+        err = nodal_errors(pred.reshape(-1, 3), test["v"].reshape(-1, 3)).reshape(test["v"].shape[:2])
+        per = err.mean(axis=1)
+        free = np.array([e[t == 0].mean() for e, t in zip(err, test["types"])])
+        out[name] = {"per_sample": per, "metrics": {
+            "samples": int(len(per)), "mean_error_mm": float(per.mean()), "median_error_mm": float(np.median(per)),
+            "p95_error_mm": float(np.percentile(per, 95)), "max_error_mm": float(per.max()),
+            "free_mean_error_mm": float(free.mean()), "inference_ms": ms, "train_seconds": train_s,
+            "fe_ms": 1e3 * float(samples.seconds.to_numpy()[test_rows].mean())}}
+    return out
+
+
+def stage_models(args, paths: dict) -> pd.DataFrame:
+    from toolkit.common.metrics import wilcoxon_paired
+    from toolkit.static.dataset import StaticDatabase
+    from toolkit.static.features import FeatureSpec
+    from toolkit.static.surrogate import SurrogateConfig
+
+    models = RESULTS / f"static_models{args.suffix}"
+    common = dict(network=args.network, coarse_radii=args.resolution == "coarse", seed=args.seed,
+                  max_seconds=60.0 * args.max_minutes, epochs=args.epochs)
+    rows, per_sample = [], {}
+    db_path = paths["one"]
+    for name, feats in VARIANTS.items():
+        config = SurrogateConfig(features=FeatureSpec(**feats), **common)
+        result = _pointnet(db_path, name, config, models / name.replace("+", "_"))
+        per_sample[name] = result["per_sample"].mean_error_mm.to_numpy()
+        rows.append({"method": f"PointNet++ {name}", "test": "one subject", **result["metrics"]})
+        print(rows[-1])
+    from toolkit.static.surrogate import Surrogate
+
+    db = StaticDatabase.open(db_path)
+    model_keys = Surrogate.load(models / "explicit").bundle.extra["test_keys"]
+    train_keys = sorted(set(db.samples.key) - set(model_keys))
+    for name, res in _baselines(db, model_keys, train_keys).items():
+        per_sample[name] = res["per_sample"]
+        rows.append({"method": name, "test": "one subject", **res["metrics"]})
+        print(rows[-1])
+    if "subjects" in paths:
+        held = (args.subjects - 1,)
+        config = SurrogateConfig(features=FeatureSpec("explicit", extra_channels=True), split="subjects",
+                                 test_subjects=held, **common)
+        result = _pointnet(paths["subjects"], "subjects", config, models / "subjects", held[0])
+        rows.append({"method": "PointNet++ explicit+extra", "test": f"unseen subject ({args.subjects - 1} trained)",
+                     **result["metrics"]})
+        print(rows[-1])
+    table = pd.DataFrame(rows)
+    table["speedup_vs_fe"] = table.fe_ms / table.inference_ms
+    a, b = per_sample["explicit"], per_sample["implicit"]
+    test = wilcoxon_paired(a, b, names=("explicit", "implicit"))
+    ablation = {"explicit_mean_mm": float(a.mean()), "implicit_mean_mm": float(b.mean()),
+                "wilcoxon_p": float(test.p_value), "n": int(a.size)}
+    print("explicit vs implicit (Wilcoxon signed-rank, paired test samples):", ablation)
+    table.to_csv(RESULTS / f"static_surrogate{args.suffix}.csv", index=False)
+    (RESULTS / f"static_surrogate_ablation{args.suffix}.json").write_text(json.dumps(ablation, indent=2))
+    _plot(table, RESULTS / f"static_surrogate{args.suffix}.png")
+    cols = ["method", "test", "samples", "mean_error_mm", "median_error_mm", "p95_error_mm", "free_mean_error_mm",
+            "train_seconds", "inference_ms", "fe_ms", "speedup_vs_fe"]
+    print(table[cols].to_string(index=False, float_format="%.3g"))
+    for _, r in table.iterrows():
+        goal = GOALS["unseen subject"] if r.test.startswith("unseen") else GOALS["one subject"]
+        if r.method.startswith("PointNet"):
+            print(f"goal mean error <= {goal} mm: {r.method} / {r.test} = {r.mean_error_mm:.3f} -> "
+                  f"{'met' if r.mean_error_mm <= goal else 'NOT met'}; inference {r.inference_ms:.1f} ms -> "
+                  f"{'met' if r.inference_ms < GOALS['inference_ms'] else 'NOT met'}")
+    return table
+
+
+def _plot(table: pd.DataFrame, path: Path) -> None:
+    from matplotlib.figure import Figure
+
+    from toolkit.common.io import atomic_path
+
+    fig = Figure(figsize=(7, 4.5), layout="constrained")
+    ax = fig.subplots()
+    for i, r in table.iterrows():
+        ax.scatter(r.inference_ms, r.mean_error_mm, s=40, color=f"C{i}", label=f"{r.method} ({r.test})")
+    ax.axvline(float(table.fe_ms.median()), color="k", ls="--", lw=1, label="FE per increment")
+    ax.axhspan(*SEED_000, color="0.9", label="seed 000 (GPU, MRI faces)")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("time per prediction (ms, this CPU, batch 1)")
+    ax.set_ylabel("test mean nodal error (mm)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--resolution", default="paper", choices=["coarse", "paper", "fine"])
+    ap.add_argument("--mode", default="full", choices=["sagittal", "full"])
+    ap.add_argument("--plans", type=int, default=100, help="plans on the default face")
+    ap.add_argument("--subjects", type=int, default=4, help="phantom shapes of the held-out-subject database")
+    ap.add_argument("--subject-plans", type=int, default=25, help="plans per subject there")
+    ap.add_argument("--network", default="small", help="NETWORK_PRESETS name")
+    ap.add_argument("--epochs", type=int, default=100)
+    ap.add_argument("--max-minutes", type=float, default=8.0, help="training time limit per model")
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--suffix", default="")
+    ap.add_argument("--stages", nargs="+", default=["database", "models"], choices=["database", "models"])
+    args = ap.parse_args(argv)
+    import torch
+
+    from toolkit.common.runtime import set_threads
+
+    set_threads(None)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    print(json.dumps({"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
+                      "torch": torch.__version__, "torch_threads": torch.get_num_threads()}))
+    paths = stage_database(args) if "database" in args.stages else {
+        "one": RESULTS / f"static_{args.resolution}{args.suffix}.h5",
+        **({"subjects": RESULTS / f"static_{args.resolution}_subjects{args.suffix}.h5"} if args.subjects > 1 else {})}
+    if "models" in args.stages:
+        stage_models(args, paths)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
