@@ -76,3 +76,17 @@ def test_static_simulate_from_a_mesh_file_and_plan(tmp_path):
                  "--sliding", "mucosa", "--no-preview", "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["nodes"] == ph.mesh.n_points and summary["min_scaled_jacobian"] > 0
+
+
+def test_static_dataset_on_a_local_dask_cluster(tmp_path, capsys):
+    """`--dask local` runs the simulations on a LocalCluster and fills the same database index
+    as in-process generation."""
+    pytest.importorskip("distributed")
+    from toolkit.static.dataset import read_samples
+
+    common = ["static", "dataset", "--resolution", "coarse", "--plans", "2"]
+    assert main([*common, "--workers", "1", "--dask", "local", "--out", str(tmp_path / "dask.h5")]) == 0
+    assert main([*common, "--workers", "0", "--out", str(tmp_path / "local.h5")]) == 0
+    a, b = read_samples(tmp_path / "dask.h5"), read_samples(tmp_path / "local.h5")
+    assert len(a) == 6 and (a.status == "ok").all()
+    assert a[["key", "increment", "lefort_tx", "distal_ry"]].equals(b[["key", "increment", "lefort_tx", "distal_ry"]])
