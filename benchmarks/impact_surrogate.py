@@ -128,8 +128,9 @@ def stage_models(args, db) -> pd.DataFrame:
     for split in ("random", "velocity"):
         for name in ("seed", "strong", "baseline"):
             cfg = CONFIGS[name]
-            if args.max_minutes:
-                cfg = cfg.with_(max_seconds=60.0 * args.max_minutes)
+            minutes = args.strong_minutes if name == "strong" and args.strong_minutes else args.max_minutes
+            if minutes:
+                cfg = cfg.with_(max_seconds=60.0 * minutes)
             out = RESULTS / f"impact_models{args.suffix}" / f"{name}_{split}"
             m = _train_eval(db, cfg, split, out, args.seed)
             rows.append({"config": name, "split": split, **{k: m[k] for k in (
@@ -196,6 +197,7 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", type=int, default=1, help="simulation processes (default 1: the machine is shared)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-minutes", type=float, default=None, help="training time limit per model")
+    parser.add_argument("--strong-minutes", type=float, default=None, help="time limit for 'strong' (default: --max-minutes)")
     parser.add_argument("--sweep", action="store_true", help="also run the strong-configuration sweep")
     parser.add_argument("--sweep-seconds", type=float, default=300.0)
     parser.add_argument("--suffix", default="", help="suffix of the result files (e.g. _coarse)")
