@@ -107,12 +107,12 @@ def test_poor_real_meshes_follow_a_mandible_advance(coarse, cell_type):
 
 
 def test_regulation_moves_no_skin_node_and_keeps_mucosa_on_the_bone(paper, monkeypatch):
-    """A full-3D sampled plan (full mode, plan 17 of seed 0: a 4.3 mm lateral Le Fort shift)
-    used to invert the corner element at the lateral end of the Le Fort attachment; mesh
-    regulation now moves a few nodes there instead. It never moves a skin node (the
-    prediction) nor a fixed, attached or lip node; mucosa nodes it moved are put back on
-    their bone (gap < 1e-9 mm after the run)."""
-    plan = sample_plans(18, 0, "full", phantom=paper, max_jaw_closing_mm=None)[17]
+    """A full-3D sampled plan (plan 24 of the paper learning database's subject 0: full mode,
+    drawn from ``default_rng([0, 0])``) brings elements below a scaled Jacobian of 0.1 during
+    its increments; mesh regulation moves ~20 nodes there so that the run completes. It never
+    moves a skin node (the prediction) nor a fixed, attached or lip node; mucosa nodes it moved
+    are put back on their bone (gap < 1e-9 mm after the run)."""
+    plan = sample_plans(25, np.random.default_rng([0, 0]), "full", phantom=paper)[24]
     moved = []
     real = simulate_module.regulate
 
