@@ -58,7 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     st_sub.required = True
     sim = st_sub.add_parser("simulate", help="simulate a surgical plan on a face",
                             description="Run the incremental FE simulation (mucosa and lip sliding) and write "
-                                        "result.vtu (reference mesh + displacement), postop.vtu (post-operative face), increments.xdmf, summary.json and preview.png.")
+                                        "result.vtu (reference mesh + displacement), postop.vtu (post-operative "
+                                        "face), increments.xdmf, summary.json and preview.png.")
     src = sim.add_mutually_exclusive_group()
     src.add_argument("--mesh", type=Path, help="face mesh (.inp/.vtu/.xdmf) with the phantom's node sets")
     src.add_argument("--resolution", default="coarse", choices=["coarse", "paper", "fine"],
@@ -398,11 +399,13 @@ def _dask_client(address: str | None, workers: int):
 
     cluster = LocalCluster(n_workers=max(workers, 1), threads_per_worker=1, dashboard_address=None) \
         if address == "local" else None
-    client = Client(cluster if cluster is not None else address)
+    client = None
     try:
+        client = Client(cluster if cluster is not None else address)
         yield client
     finally:
-        client.close()
+        if client is not None:
+            client.close()
         if cluster is not None:
             cluster.close()
 
