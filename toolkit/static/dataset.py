@@ -120,12 +120,9 @@ def subject_phantom(resolution: str, subject: int):
 
 def _boundary(phantom, sliding: str):
     """The boundary conditions a simulation of ``phantom`` uses (release bands, sliding model)."""
-    from toolkit.static.boundary import BoundaryConditions
-    from toolkit.static.simulate import SimulationOptions
+    from toolkit.static.simulate import boundary_conditions
 
-    options = SimulationOptions()
-    bc = BoundaryConditions.from_mesh(phantom.mesh, phantom.segments, lip_threshold=options.lip_threshold)
-    return bc.with_release_bands(phantom.mesh, options.release_width).with_sliding(sliding)
+    return boundary_conditions(phantom.mesh, phantom.segments, sliding)[0]
 
 
 def plan_features(plan, increments: int) -> np.ndarray:

@@ -546,19 +546,33 @@ def simulate(
                             material_name, sliding)
 
 
-def _build_model(face, material, sliding, segments, options: SimulationOptions) -> _Model:
-    """Mesh, materials, boundary conditions (sliding model, release bands) and bone surfaces."""
+def face_mesh_and_segments(face: Mesh | FacePhantom, segments: Mapping | None = None) -> tuple[Mesh, Mapping]:
+    """The mesh and bony segments of ``face`` (a phantom's own segments unless ``segments`` is given;
+    a bare Mesh needs them)."""
     if isinstance(face, FacePhantom):
-        mesh, segments = face.mesh, segments or face.segments
-    else:
-        mesh = face
+        return face.mesh, segments or face.segments
     if segments is None:
         raise ValueError("a bare Mesh needs segments=... (name -> BoneSegment) for the bony surfaces")
+    return face, segments
+
+
+def boundary_conditions(mesh: Mesh, segments: Mapping, sliding: str,
+                        options: SimulationOptions | None = None) -> tuple[BoundaryConditions, BoundaryConditions]:
+    """The boundary conditions a simulation uses: ``(bc, bc_all)`` where ``bc`` has the release
+    bands and the sliding model applied and ``bc_all`` is as read from the node sets (its lip
+    pairs whatever the sliding model). The surrogate's database and predictions use the same."""
+    options = options or SimulationOptions()
     if sliding not in SLIDING_MODELS:
         raise ValueError(f"unknown sliding model {sliding!r}; expected one of {SLIDING_MODELS}")
-    materials = material_assignment(material, mesh)
     bc_all = BoundaryConditions.from_mesh(mesh, segments, lip_threshold=options.lip_threshold)
-    bc = bc_all.with_release_bands(mesh, options.release_width).with_sliding(sliding)
+    return bc_all.with_release_bands(mesh, options.release_width).with_sliding(sliding), bc_all
+
+
+def _build_model(face, material, sliding, segments, options: SimulationOptions) -> _Model:
+    """Mesh, materials, boundary conditions (sliding model, release bands) and bone surfaces."""
+    mesh, segments = face_mesh_and_segments(face, segments)
+    bc, bc_all = boundary_conditions(mesh, segments, sliding, options)
+    materials = material_assignment(material, mesh)
     surfaces = {name: segments[name].surface for name in bc.segment_names}
     return _Model(mesh, materials, bc, bc_all, surfaces, options, total_lagrangian=not materials.is_linear)
 

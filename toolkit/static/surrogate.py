@@ -238,23 +238,19 @@ class Surrogate:
         -------
         SimulationResult (``.write(out)`` gives the files of ``toolkit static simulate``)
         """
-        from toolkit.common.phantom import FacePhantom
-        from toolkit.static.boundary import BoundaryConditions
         from toolkit.static.dataset import DatasetConfig, jaw_side
-        from toolkit.static.simulate import IncrementReport, SimulationOptions, SimulationResult
+        from toolkit.static.simulate import (
+            IncrementReport,
+            SimulationResult,
+            boundary_conditions,
+            face_mesh_and_segments,
+        )
 
         t0 = time.perf_counter()
         data = DatasetConfig(**self.bundle.data["database"])
-        if isinstance(face, FacePhantom):
-            mesh, segments = face.mesh, segments or face.segments
-        else:
-            mesh = face
-        if segments is None:
-            raise ValueError("a bare Mesh needs segments=... (name -> BoneSegment) for the bony surfaces")
+        mesh, segments = face_mesh_and_segments(face, segments)
         self.check_mesh(mesh.points, dict(mesh.cells))
-        options = SimulationOptions()
-        bc = BoundaryConditions.from_mesh(mesh, segments, lip_threshold=options.lip_threshold)
-        bc = bc.with_release_bands(mesh, options.release_width).with_sliding(data.sliding)
+        bc, _ = boundary_conditions(mesh, segments, data.sliding)
         X = mesh.points
         h = self.hierarchy(X)
         sets = {k: mesh.node_sets[k] for k in ("upper_lip_face", "lower_lip_face") if k in mesh.node_sets}
