@@ -115,7 +115,7 @@ def test_failures_are_recorded_and_foreign_files_refused(tmp_path, monkeypatch):
     with h5py.File(tmp_path / "other.h5", "w") as f:
         f.attrs["format"] = "toolkit.impact.database"
         f.attrs["format_version"] = 1
-    with pytest.raises(DatabaseError, match="not a static database"):
+    with pytest.raises(DatabaseError, match="is not a 'toolkit.static.database' database"):
         StaticDatabase.open(tmp_path / "other.h5")
 
 

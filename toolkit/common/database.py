@@ -148,15 +148,22 @@ class Database:
         except OSError as exc:
             raise DatabaseError(f"cannot read {path} as HDF5 (corrupt, truncated or not HDF5): {exc}") from exc
 
+    @classmethod
+    def verified_attrs(cls, path: str | os.PathLike, kind: str, version: int, remedy: str) -> dict:
+        """Root attributes of the database at ``path``, refusing another format tag (``remedy``
+        says what to do instead) or version with a :class:`DatabaseError`."""
+        attrs = cls.open_attrs(Path(path))
+        if attrs.get("format") != kind:
+            raise DatabaseError(f"{path} is not a {kind!r} database (its format tag is {attrs.get('format')!r}); "
+                                f"{remedy}")
+        if int(attrs.get("format_version", -1)) != version:
+            raise DatabaseError(f"{path} has format version {attrs.get('format_version')}, this toolkit reads "
+                                f"version {version}; regenerate it")
+        return attrs
+
     def check(self) -> None:
         """Refuse an existing file of another kind, version or configuration."""
-        attrs = self.open_attrs(self.path)
-        if attrs.get("format") != self.kind:
-            raise DatabaseError(f"{self.path} is not a {self.kind!r} database (its format tag is "
-                                f"{attrs.get('format')!r}); choose another output file")
-        if int(attrs.get("format_version", -1)) != self.version:
-            raise DatabaseError(f"{self.path} has format version {attrs.get('format_version')}, this toolkit reads "
-                                f"version {self.version}; regenerate it")
+        attrs = self.verified_attrs(self.path, self.kind, self.version, "choose another output file")
         stored = json.loads(attrs.get("config", "{}"))
         require_same(stored, self.config, f"database {self.path}",
                      hint="use the options it was made with, or another output file")

@@ -238,13 +238,7 @@ def load_database(path: str | os.PathLike) -> ImpactDatabase:
     import h5py
 
     path = Path(path)
-    attrs = Database.open_attrs(path)
-    if attrs.get("format") != DATABASE_KIND:
-        raise ValueError(f"{path} is not an impact database (format {attrs.get('format')!r}, expected "
-                         f"{DATABASE_KIND!r}); build one with `toolkit impact dataset`")
-    if int(attrs.get("format_version", -1)) != DATABASE_VERSION:
-        raise ValueError(f"{path} has impact database version {attrs.get('format_version')}, expected "
-                         f"{DATABASE_VERSION}; regenerate it")
+    Database.verified_attrs(path, DATABASE_KIND, DATABASE_VERSION, "build one with `toolkit impact dataset`")
     with h5py.File(path, "r") as f:
         shared = f["shared"]
         scene = Scene.from_dict(_tomllib_loads(shared.attrs["scene_toml"]))

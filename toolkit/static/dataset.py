@@ -377,18 +377,11 @@ class StaticDatabase:
         """Read a database written by :func:`generate` (refuses other files, naming what is wrong)."""
         import h5py
 
-        from toolkit.common.database import DatabaseError
-
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"database {str(path)!r} does not exist; create it with `toolkit static dataset`")
-        attrs = Database.open_attrs(path)
-        if attrs.get("format") != DATABASE_KIND:
-            raise DatabaseError(f"{path} is not a static database (format {attrs.get('format')!r}, expected "
-                                f"{DATABASE_KIND!r})")
-        if int(attrs.get("format_version", -1)) != DATABASE_VERSION:
-            raise DatabaseError(f"{path} has format version {attrs.get('format_version')}; this toolkit reads "
-                                f"version {DATABASE_VERSION}")
+        attrs = Database.verified_attrs(path, DATABASE_KIND, DATABASE_VERSION,
+                                        "create one with `toolkit static dataset`")
         config = DatasetConfig(**json.loads(attrs["config"]))
         samples = read_samples(path)
         samples = samples[samples.status == "ok"].reset_index(drop=True)
