@@ -92,13 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
     ds.add_argument("--sliding", default="mucosa+lip", choices=["none", "mucosa", "mucosa+lip"])
     ds.add_argument("--poisson-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                     help="draw Poisson's ratio per simulation (for models with material channels)")
-    ds.add_argument("--workers", type=int, default=1, help="local processes (0: in this process)")
-    ds.add_argument("--dask", "--scheduler", dest="dask", metavar="ADDRESS", default=None,
-                    help="run on a Dask cluster: a scheduler address (tcp://host:8786) or 'local' for a "
-                         "LocalCluster of --workers processes")
     ds.add_argument("--seed", type=int, default=0)
-    ds.add_argument("--retry-failed", action="store_true", help="rerun simulations recorded as failed")
-    ds.add_argument("--out", required=True, type=Path, help="database file (.h5)")
+    _add_database_run(ds, "simulations")
     _add_common(ds)
     ds.set_defaults(func=_cmd_static_dataset)
 
@@ -186,12 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
     ids.add_argument("--order", type=int, choices=[1, 2], help="tetrahedron order (1: tet4, 2: tet10)")
     ids.add_argument("--mass-scaling", type=float, help="density factor >= 1 (longer stable steps)")
     ids.add_argument("--duration", type=float, help="simulated time, s")
-    ids.add_argument("--workers", type=int, default=1, help="local worker processes (default 1; 0: in this process)")
-    ids.add_argument("--dask", metavar="ADDRESS", default=None,
-                     help="run on a Dask cluster: a scheduler address (tcp://host:8786) or 'local' for a "
-                          "LocalCluster of --workers processes")
-    ids.add_argument("--retry-failed", action="store_true", help="rerun velocities recorded as failed")
-    ids.add_argument("--out", required=True, type=Path, help="database file (.h5)")
+    _add_database_run(ids, "velocities")
     _add_common(ids)
     ids.set_defaults(func=_cmd_impact_dataset)
 
@@ -386,6 +376,16 @@ def _cmd_static_simulate(args) -> int:
     print(f"wrote {args.out}/ (result.vtu: pre-operative face with 'displacement'; postop.vtu: post-operative face; "
           f"increments.xdmf, summary.json{'' if args.no_preview else ', preview.png'})")
     return 0
+
+
+def _add_database_run(parser: argparse.ArgumentParser, items: str) -> None:
+    """Where a learning database's simulations run and where it is written (both workflows)."""
+    parser.add_argument("--workers", type=int, default=1, help="local worker processes (default 1; 0: in this process)")
+    parser.add_argument("--dask", "--scheduler", dest="dask", metavar="ADDRESS", default=None,
+                        help="run on a Dask cluster: a scheduler address (tcp://host:8786) or 'local' for a "
+                             "LocalCluster of --workers processes")
+    parser.add_argument("--retry-failed", action="store_true", help=f"rerun {items} recorded as failed")
+    parser.add_argument("--out", required=True, type=Path, help="database file (.h5)")
 
 
 @contextmanager
