@@ -117,7 +117,8 @@ def test_training_loop_learns_a_smooth_function():
     val_rmse = float(np.sqrt(np.mean((pred - y[1600:]) ** 2)))
     assert y.std() > 0.35 and val_rmse < 0.1 * y.std()
     assert val_rmse**2 == pytest.approx(result.best_val_loss, rel=1e-4)
-    assert list(result.history.columns) == ["epoch", "train_loss", "val_loss", "seconds"]
+    assert list(result.history.columns) == ["epoch", "train_loss", "val_loss", "seconds", "lr"]
+    assert (result.history.lr == 1e-2).all()  # the default schedule is constant
 
 
 def test_early_stopping_stops_when_validation_stalls():
@@ -173,6 +174,45 @@ def test_interrupt_leaves_the_last_checkpoint_valid(tmp_path):
     assert torch.load(ck, weights_only=False)["epoch"] == 2
     result = train(_mlp(), torch.nn.functional.l1_loss, *data, cfg, checkpoint=ck, resume=True)
     assert result.resumed_from == 2 and len(result.history) == 4
+
+
+def test_cosine_schedule_follows_its_closed_form_and_resumes_on_its_curve(tmp_path):
+    """With ``lr_schedule="cosine"`` the rate of epoch k (1-based) of E is
+    lr (f + (1 - f)(1 + cos(pi (k - 1) / E)) / 2) exactly; with a time limit the spent fraction
+    is the larger of the epoch and time fractions; a run interrupted after epoch 3 and resumed
+    ends with the same weights, bit for bit, as one run (the rate depends only on the epoch
+    count and the recorded training time, which for an epoch budget is the epoch count)."""
+    from toolkit.common.training.loop import learning_rate
+
+    x, y = _regression(300)
+    data = ((x[:200], y[:200]), (x[200:], y[200:]))
+    cfg = TrainConfig(epochs=6, batch_size=50, lr=4e-3, patience=None, progress=False, lr_schedule="cosine",
+                      final_lr_fraction=0.05)
+    straight = _mlp()
+    result = train(straight, torch.nn.functional.l1_loss, *data, cfg)
+    k = np.arange(6)
+    expected = 4e-3 * (0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * k / 6)))
+    np.testing.assert_allclose(result.history.lr, expected, rtol=1e-12)
+    timed = TrainConfig(epochs=1000, lr=1.0, max_seconds=10.0, lr_schedule="cosine", final_lr_fraction=0.01)
+    assert learning_rate(timed, 2, 5.0) == pytest.approx(0.01 + 0.99 * 0.5)  # half the time spent
+    assert learning_rate(timed, 2, 50.0) == pytest.approx(0.01)  # past the limit: the final rate
+    with pytest.raises(ValueError, match="lr_schedule 'step'"):
+        TrainConfig(lr_schedule="step")
+
+    ck, calls = tmp_path / "ck.pt", {"n": 0}
+
+    def flaky(pred, target):
+        calls["n"] += pred.requires_grad
+        if calls["n"] == 3 * 4 + 1:  # first training batch of epoch 4
+            raise KeyboardInterrupt
+        return torch.nn.functional.l1_loss(pred, target)
+
+    with pytest.raises(KeyboardInterrupt):
+        train(_mlp(), flaky, *data, cfg, checkpoint=ck)
+    resumed = _mlp(seed=7)
+    train(resumed, torch.nn.functional.l1_loss, *data, cfg, checkpoint=ck, resume=True)
+    for a, b in zip(straight.state_dict().values(), resumed.state_dict().values()):
+        assert torch.equal(a, b)
 
 
 def test_model_bundle_round_trip_and_refusals(tmp_path):

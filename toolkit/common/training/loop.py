@@ -26,11 +26,12 @@ from toolkit.common.compat import jsonable, require_same
 from toolkit.common.training.device import resolve_device
 from toolkit.common.training.seeding import check_seed, generators
 
-__all__ = ["TrainConfig", "TrainResult", "train", "CHECKPOINT_FORMAT"]
+__all__ = ["TrainConfig", "TrainResult", "train", "learning_rate", "CHECKPOINT_FORMAT", "LR_SCHEDULES"]
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = ("toolkit-checkpoint", 1)
+LR_SCHEDULES = ("constant", "cosine")
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,12 @@ class TrainConfig:
     device : ``cpu`` / ``cuda`` / ``auto``
     max_seconds : stop after this much training time (None: no limit)
     grad_clip : clip the gradient norm to this (None: no clipping)
+    lr_schedule : ``constant`` (Adam at ``lr`` throughout) or ``cosine``: before each epoch the
+        rate is ``lr * (f + (1 - f) * (1 + cos(pi p)) / 2)`` with ``f = final_lr_fraction`` and
+        ``p`` the budget spent so far, the larger of ``epoch / epochs`` and (with a time limit)
+        ``seconds / max_seconds``; so a time-limited run ends at the small rate whatever the
+        machine's speed, and a resumed run continues the same curve
+    final_lr_fraction : rate at the end of a ``cosine`` schedule, as a fraction of ``lr``
     progress : tqdm bar over epochs
     """
 
@@ -61,6 +68,8 @@ class TrainConfig:
     device: str = "cpu"
     max_seconds: float | None = None
     grad_clip: float | None = None
+    lr_schedule: str = "constant"
+    final_lr_fraction: float = 0.01
     progress: bool = True
 
     #: settings that may differ when resuming (they do not change what was learned so far)
@@ -72,6 +81,10 @@ class TrainConfig:
         if not self.lr > 0 or self.weight_decay < 0 or self.min_delta < 0:
             raise ValueError(f"lr ({self.lr}) must be > 0, weight_decay ({self.weight_decay}) and min_delta "
                              f"({self.min_delta}) >= 0")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule {self.lr_schedule!r} is not one of {LR_SCHEDULES}")
+        if not 0.0 < self.final_lr_fraction <= 1.0:
+            raise ValueError(f"final_lr_fraction = {self.final_lr_fraction!r}; expected a number in (0, 1]")
         if self.patience is not None and int(self.patience) < 1:
             raise ValueError(f"patience must be >= 1 or None, got {self.patience}")
         check_seed(self.seed)
@@ -84,7 +97,7 @@ class TrainResult:
     Attributes
     ----------
     history : DataFrame, one row per epoch: ``epoch``, ``train_loss``, ``val_loss``, ``seconds``
-        (cumulative training time, s)
+        (cumulative training time, s), ``lr`` (Adam's rate during the epoch)
     best_epoch : epoch (1-based) whose weights the model now holds
     best_val_loss : its validation loss
     seconds : training time, s, summed over resumed sessions
@@ -99,6 +112,17 @@ class TrainResult:
     stopped: str
     resumed_from: int | None = None
     extra: dict = field(default_factory=dict)
+
+
+def learning_rate(config: "TrainConfig", epochs_done: int, seconds: float) -> float:
+    """Adam's rate for the next epoch after ``epochs_done`` epochs and ``seconds`` of training."""
+    if config.lr_schedule == "constant":
+        return config.lr
+    spent = epochs_done / config.epochs
+    if config.max_seconds is not None and config.max_seconds > 0:
+        spent = max(spent, seconds / config.max_seconds)
+    f = config.final_lr_fraction
+    return config.lr * (f + (1.0 - f) * 0.5 * (1.0 + np.cos(np.pi * min(spent, 1.0))))
 
 
 def _tensors(data, device):
@@ -183,6 +207,9 @@ def train(model, loss: Callable, train_data, val_data, config: TrainConfig = Tra
             if stopped != "epochs":
                 break
             t0 = time.perf_counter()
+            rate = learning_rate(config, epoch - 1, elapsed)
+            for group in opt.param_groups:
+                group["lr"] = rate
             model.train()
             perm = torch.randperm(n, generator=gen).to(device)
             total = 0.0
@@ -200,7 +227,7 @@ def train(model, loss: Callable, train_data, val_data, config: TrainConfig = Tra
                 total += float(value.detach()) * idx.numel()
             val = evaluate_loss(model, loss, x_va, y_va, bs)
             elapsed += time.perf_counter() - t0
-            history.append({"epoch": epoch, "train_loss": total / n, "val_loss": val, "seconds": elapsed})
+            history.append({"epoch": epoch, "train_loss": total / n, "val_loss": val, "seconds": elapsed, "lr": rate})
             if val < best_val * (1.0 - config.min_delta) or best_state is None:
                 best_val, best_epoch, best_state, bad = val, epoch, _state_copy(model), 0
             else:
@@ -221,7 +248,7 @@ def train(model, loss: Callable, train_data, val_data, config: TrainConfig = Tra
         bar.close()
     if best_state is not None:
         model.load_state_dict(best_state)
-    return TrainResult(pd.DataFrame(history, columns=["epoch", "train_loss", "val_loss", "seconds"]),
+    return TrainResult(pd.DataFrame(history, columns=["epoch", "train_loss", "val_loss", "seconds", "lr"]),
                        int(best_epoch), float(best_val), float(elapsed), stopped, resumed_from)
 
 
