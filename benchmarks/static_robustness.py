@@ -27,7 +27,8 @@ import pandas as pd
 
 RESULTS = Path(__file__).resolve().parent / "results"
 COLUMNS = ["resolution", "material", "sliding", "mode", "max_jaw_closing_mm", "plan", "jaw_closing_mm", "status",
-           "seconds", "min_scaled_jacobian", "substeps", "linear_solves", "max_displacement_mm", "message"]
+           "seconds", "min_scaled_jacobian", "substeps", "linear_solves", "max_displacement_mm", "release_width_mm",
+           "message"]
 
 
 def run_one(phantom, plan, material, sliding, increments):
@@ -47,7 +48,8 @@ def run_one(phantom, plan, material, sliding, increments):
     s = res.summary()
     return {"status": "ok", "seconds": time.perf_counter() - t0, "min_scaled_jacobian": s["min_scaled_jacobian"],
             "substeps": s["substeps"], "max_displacement_mm": s["max_displacement_mm"],
-            "linear_solves": sum(r["linear_solves"] for r in s["increments_report"]), "message": ""}
+            "linear_solves": sum(r["linear_solves"] for r in s["increments_report"]),
+            "release_width_mm": s["release_width_mm"], "message": ""}
 
 
 def main(argv=None):
@@ -62,12 +64,15 @@ def main(argv=None):
     ap.add_argument("--increments", type=int, default=3)
     ap.add_argument("--max-jaw-closing", type=float, default=10.0,
                     help="sample_plans' max_jaw_closing_mm (mm); a negative value keeps every draw")
+    ap.add_argument("--retry-failed", action="store_true",
+                    help="run again the selected plans that failed (their old rows are dropped)")
     ap.add_argument("--runs", type=Path, default=RESULTS / "static_robustness_runs.csv")
     ap.add_argument("--out", type=Path, default=RESULTS / "static_robustness.csv")
     args = ap.parse_args(argv)
 
     from tqdm import tqdm
 
+    from toolkit.common.io import atomic_path
     from toolkit.common.phantom import face_hex
     from toolkit.common.runtime import set_threads
     from toolkit.static.plan import dental_arch, jaw_closing, sample_plans
@@ -77,6 +82,19 @@ def main(argv=None):
     done = pd.read_csv(args.runs, keep_default_na=False) if args.runs.exists() else pd.DataFrame(columns=COLUMNS)
     closing = None if args.max_jaw_closing < 0 else args.max_jaw_closing
     closing_key = -1.0 if closing is None else closing
+    rewrite = "release_width_mm" not in done.columns  # rows from before the wider-band retry: all 10 mm
+    if rewrite:
+        done["release_width_mm"] = np.where(done.status == "ok", 10.0, np.nan)
+    if args.retry_failed:
+        selected = (done.resolution.isin(args.resolutions) & done.material.isin(args.materials)
+                    & done.sliding.isin(args.slidings) & done["mode"].isin(args.modes)
+                    & (done.max_jaw_closing_mm.astype(float) == closing_key)
+                    & done.plan.astype(int).between(args.first, args.first + args.plans - 1))
+        rewrite |= bool((selected & (done.status != "ok")).any())
+        done = done[~(selected & (done.status != "ok"))]
+    if rewrite:
+        with atomic_path(args.runs) as tmp:
+            done[COLUMNS].to_csv(tmp, index=False)
     key = set(zip(done.resolution, done.material, done.sliding, done["mode"], done.max_jaw_closing_mm.astype(float),
                   done.plan.astype(int)))
     for resolution in args.resolutions:
@@ -103,7 +121,8 @@ def main(argv=None):
     runs["min_scaled_jacobian"] = pd.to_numeric(runs.min_scaled_jacobian, errors="coerce")
     table = runs.groupby(["resolution", "material", "sliding", "mode", "max_jaw_closing_mm"], sort=False).agg(
         plans=("ok", "size"), completed=("ok", "sum"), median_s=("seconds", "median"), max_s=("seconds", "max"),
-        min_sj=("min_scaled_jacobian", "min")).reset_index()
+        min_sj=("min_scaled_jacobian", "min"),
+        wider_band=("release_width_mm", lambda w: int((pd.to_numeric(w, errors="coerce") > 10.0).sum()))).reset_index()
     table["completion"] = table.completed / table.plans
     table.to_csv(args.out, index=False)
     with pd.option_context("display.width", 160, "display.max_rows", 200):

@@ -46,6 +46,25 @@ def test_plans_that_failed_at_paper_resolution_now_complete(paper):
     _ok(simulate(paper, plan), paper)
 
 
+@pytest.mark.slow
+def test_a_plan_that_needs_a_wider_release_band_gets_one(paper):
+    """Full-mode plan 10 of seed 0 lifts the Le Fort I segment ~9 mm at its lateral edge
+    towards the fixed skull, 10 mm away across the default band: without sliding, the band
+    cannot take the compression (measured: 2 elements inverted at increment 3 after 16
+    sub-steps). With the default ``wider_release`` the plan is run again with a 15 mm band
+    and completes, every element positive, the summary reporting the band used; with
+    ``wider_release=()`` it still fails, naming the element."""
+    plan = sample_plans(11, 0, "full", phantom=paper, max_jaw_closing_mm=10.0)[10]
+    with pytest.raises(SimulationError, match=r"increment 3: .*inverted"):
+        simulate(paper, plan, 3, "linear", "none", options=SimulationOptions(wider_release=()))
+    result = simulate(paper, plan, 3, "linear", "none")
+    assert _ok(result, paper)["release_width_mm"] == 15.0 and result.release_width == 15.0
+    assert simulate(paper, default_plan(paper), 3, "linear", "none").release_width == 10.0
+    with pytest.raises(ValueError, match=r"wider_release = \(20.0, 15.0\) mm"):
+        SimulationOptions(wider_release=(20.0, 15.0))
+    assert SimulationOptions(release_width=15.0).wider_release == (15.0, 20.0)  # only 20 mm will be tried
+
+
 def test_failing_steps_are_cut_and_increments_stay_where_they_were(coarse, monkeypatch):
     """A step wider than 0.2 of the plan is made to fail: each of the 3 increments is cut in
     two, reported as 2 sub-steps with 1 failed attempt, and the stored increments are still
@@ -72,7 +91,8 @@ def test_failing_steps_are_cut_and_increments_stay_where_they_were(coarse, monke
 def test_a_plan_that_cannot_be_simulated_names_increment_element_and_remedy(coarse):
     """Driving the mandible 40 mm up into the maxilla (3.5 times the range, forced) crushes
     the tissue between the jaws whatever the step: SimulationError names the increment, the
-    worst element (with its centroid) and a remedy that says the step was cut 2 times."""
+    worst element (with its centroid) and a remedy that says the step was cut 2 times, after
+    trying each wider release band."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         plan = SurgicalPlan.for_phantom(coarse, distal=RigidMotion(translation=(0.0, 0.0, 40.0),
@@ -84,6 +104,7 @@ def test_a_plan_that_cannot_be_simulated_names_increment_element_and_remedy(coar
     assert msg.startswith(f"increment {exc.increment}:") and exc.element is not None
     assert f"element {exc.element}" in msg and "centroid" in msg
     assert "cut 2 times (4 sub-steps)" in exc.suggestion and exc.suggestion in msg
+    assert "with each release band tried: 10, 15, 20 mm" in msg
 
 
 @pytest.mark.parametrize("cell_type", ["tet4", "mixed"])

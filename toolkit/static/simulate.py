@@ -16,7 +16,7 @@ is solved total-Lagrangian from the pre-operative face, the increments acting as
 steps. Every increment's cumulative displacement is kept: each is one learning sample
 (seed 000).
 
-Two safeguards keep the physiological plan space simulable (``benchmarks/static_robustness.py``):
+These safeguards keep the physiological plan space simulable (``benchmarks/static_robustness.py``):
 
 - **release bands** (:meth:`~toolkit.static.boundary.BoundaryConditions.with_release_bands`):
   tissue within ``release_width / 2`` of a border between differently driven regions
@@ -31,7 +31,13 @@ Two safeguards keep the physiological plan space simulable (``benchmarks/static_
 - **automatic increment cutting** (FEBio's auto time stepper): a step that inverts an
   element (even after regulation) or does not converge is retried as two half steps,
   down to ``2 ** max_cuts`` sub-steps per increment. Sub-steps are internal: the stored
-  increments stay at fractions ``k / increments`` of the plan.
+  increments stay at fractions ``k / increments`` of the plan;
+- **wider release bands** for the largest movements: a plan that cannot be simulated with
+  ``release_width`` (even cut) is run again with each of ``wider_release`` in turn. Where a
+  segment moves far towards a differently driven neighbour (a Le Fort I segment lifted
+  ~9 mm at its lateral edge towards the fixed skull 10 mm away) the band between them cannot
+  take the compression; surgically, larger movements need a wider subperiosteal
+  dissection. The result reports the band it used (``release_width_mm``).
 """
 
 from __future__ import annotations
@@ -69,12 +75,13 @@ MATERIALS = ("linear", "neo-hookean")
 class SimulationError(RuntimeError):
     """An increment diverged or inverted elements even after cutting it.
 
-    Attributes: ``increment`` (1-based), ``element`` (worst element or None), ``suggestion``.
+    Attributes: ``increment`` (1-based), ``element`` (worst element or None), ``suggestion``,
+    ``reason`` (what went wrong, without the increment and the suggestion).
     """
 
     def __init__(self, message: str, increment: int, element: int | None, suggestion: str):
         super().__init__(f"increment {increment}: {message}. Suggestion: {suggestion}")
-        self.increment, self.element, self.suggestion = increment, element, suggestion
+        self.reason, self.increment, self.element, self.suggestion = message, increment, element, suggestion
 
 
 class _StepFailure(RuntimeError):
@@ -97,6 +104,9 @@ class SimulationOptions:
         (minimum corner scaled Jacobian) is cut, and the run fails if cutting cannot help
     release_width : mm, width of the bands of tissue bound to neither side along the borders
         between differently driven regions (0: none)
+    wider_release : mm, wider bands to retry a plan with, in turn, when it cannot be simulated
+        with ``release_width`` (those not wider than it are skipped; ``()``: never retry; the
+        result's ``release_width`` says which band was used)
     regulation_below : linear materials: a step that leaves an element below this scaled
         Jacobian, and below half its own pre-operative value, regulates the mesh around it
         (towards twice this value, at most the element's pre-operative quality, so the poor
@@ -110,6 +120,7 @@ class SimulationOptions:
     lip_threshold: float = 0.2
     min_scaled_jacobian: float = 0.0
     release_width: float = DEFAULT_RELEASE_WIDTH
+    wider_release: tuple[float, ...] = (15.0, 20.0)
     regulation_below: float | None = 0.1
     max_cuts: int = 4
     progress: bool = False
@@ -119,6 +130,10 @@ class SimulationOptions:
             raise ValueError(f"max_cuts = {self.max_cuts!r}; expected an integer >= 0")
         if not np.isfinite(self.release_width) or self.release_width < 0:
             raise ValueError(f"release_width = {self.release_width!r} mm; expected a finite number >= 0")
+        wider = tuple(float(w) for w in self.wider_release)
+        if any(not np.isfinite(w) or w <= 0 for w in wider) or list(wider) != sorted(set(wider)):
+            raise ValueError(f"wider_release = {self.wider_release!r} mm; expected increasing positive widths")
+        object.__setattr__(self, "wider_release", wider)
 
 
 @dataclass(frozen=True)
@@ -156,6 +171,8 @@ class SimulationResult:
     reports : list of IncrementReport
     wall_time_s : float
     material, sliding : the options as given
+    release_width : mm, the release band the run used (wider than asked when the plan needed
+        one of ``SimulationOptions.wider_release``; None when not applicable, e.g. a surrogate)
     """
 
     reference: Mesh
@@ -165,6 +182,7 @@ class SimulationResult:
     wall_time_s: float
     material: str
     sliding: str
+    release_width: float | None = None
 
     @property
     def displacement(self) -> np.ndarray:
@@ -202,6 +220,7 @@ class SimulationResult:
             "max_penetration_mm": float(max(r.max_penetration for r in self.reports)),
             "max_mucosa_gap_mm": float(max(r.mucosa_gap_after_projection for r in self.reports)),
             "released_nodes": int(self.boundary.released.size),
+            "release_width_mm": self.release_width,
             "substeps": int(sum(r.substeps for r in self.reports)),
             "increments_cut": int(sum(r.substeps > 1 for r in self.reports)),
             "regulated_nodes": int(sum(r.regulated_nodes for r in self.reports)),
@@ -520,19 +539,41 @@ def simulate(
 
     Raises
     ------
-    SimulationError naming the increment, the worst element and a suggestion.
+    SimulationError naming the increment, the worst element and a suggestion (after the
+    retries with ``options.wider_release``).
     """
-    from tqdm.auto import tqdm
-
     t_start = time.perf_counter()
     options = options or SimulationOptions()
-    model = _build_model(face, material, sliding, segments, options)
     if int(increments) != increments or increments < 1:
         raise ValueError(f"increments must be an integer >= 1, got {increments!r}")
-    n = int(increments)
+    widths = (options.release_width, *(w for w in options.wider_release if w > options.release_width))
+    for attempt, width in enumerate(widths):
+        model = _build_model(face, material, sliding, segments,
+                             replace(options, release_width=width, wider_release=()))
+        try:
+            displacements, reports = _increments(model, plan, int(increments))
+            break
+        except SimulationError as exc:
+            if attempt + 1 == len(widths):
+                if attempt:
+                    tried = ", ".join(f"{w:g}" for w in widths)
+                    raise SimulationError(f"{exc.reason} (with each release band tried: {tried} mm)", exc.increment,
+                                          exc.element, exc.suggestion) from exc
+                raise
+            log.warning("%s; retrying with a %g mm release band", exc, widths[attempt + 1])
+    material_name = material if isinstance(material, str) else "custom"
+    return SimulationResult(model.mesh, displacements, model.bc, reports, time.perf_counter() - t_start,
+                            material_name, sliding, release_width=width)
+
+
+def _increments(model: _Model, plan: SurgicalPlan, n: int) -> tuple[np.ndarray, list]:
+    """The ``n`` increments of ``plan``: cumulative displacements ``(n + 1, nodes, 3)`` mm and
+    the IncrementReports. Raises :class:`SimulationError`."""
+    from tqdm.auto import tqdm
+
     state = _State(0.0, None, np.zeros((model.mesh.n_points, 3)))
     displacements, reports = [state.u], []
-    for k in tqdm(range(1, n + 1), desc="increments", disable=not options.progress, leave=False):
+    for k in tqdm(range(1, n + 1), desc="increments", disable=not model.options.progress, leave=False):
         try:
             state, diags, failed = _advance(model, plan, state, k / n)
         except _StepFailure as exc:
@@ -541,9 +582,7 @@ def simulate(
         displacements.append(state.u)
         log.info("increment %d/%d: %d sub-step(s), min SJ %.3f, max |u| %.2f mm", k, n, len(diags),
                  reports[-1].min_scaled_jacobian, np.linalg.norm(state.u, axis=1).max())
-    material_name = material if isinstance(material, str) else "custom"
-    return SimulationResult(model.mesh, np.stack(displacements), model.bc, reports, time.perf_counter() - t_start,
-                            material_name, sliding)
+    return np.stack(displacements), reports
 
 
 def face_mesh_and_segments(face: Mesh | FacePhantom, segments: Mapping | None = None) -> tuple[Mesh, Mapping]:
