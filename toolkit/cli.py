@@ -107,6 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "boundary values (hard)")
     tr.add_argument("--extra-channels", action="store_true", help="mucosa/lip one-hot, jaw side, mucosa bone motion")
     tr.add_argument("--material-channels", action="store_true", help="Poisson's ratio per node")
+    tr.add_argument("--linear-prior", action="store_true",
+                    help="learn the residual over the linear influence-matrix solution (given as input, added back)")
     tr.add_argument("--network", default="small", choices=["paper", "small", "tiny"])
     tr.add_argument("--test-subjects", type=int, nargs="*", default=None,
                     help="hold these subjects out for testing (default: 70/10/20 split by simulation)")
@@ -430,7 +432,8 @@ def _cmd_static_train(args) -> int:
     from toolkit.static.surrogate import SurrogateConfig, train_surrogate
 
     config = SurrogateConfig(
-        FeatureSpec(args.variant, args.extra_channels, args.material_channels), network=args.network,
+        FeatureSpec(args.variant, args.extra_channels, args.material_channels, args.linear_prior),
+        network=args.network,
         coarse_radii=_database_resolution(args.data) == "coarse",
         split="subjects" if args.test_subjects else "plans", test_subjects=tuple(args.test_subjects or ()),
         epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,

@@ -62,6 +62,42 @@ def test_hard_boundary_values_are_exact(db100, hard_model):
     np.testing.assert_allclose(u[s["types"] == 1], s["s"][s["types"] == 1], rtol=1e-6, atol=1e-6 * scale)
 
 
+def test_a_linear_prior_model_learns_what_the_influence_matrix_misses(db100, tmp_path):
+    """With ``linear_prior`` the network learns the FE minus the influence-matrix solution:
+    after 30 s of training its test error is below the influence matrix's own error on the same
+    samples (so the residual adds to linear superposition) and below a quarter of the mean
+    displacement; with hard boundaries the prediction at fixed and moving nodes is the prior's,
+    exactly 0 and the prescribed value; predicting without the prior is refused. (Measured: 0.27
+    mm against 0.49 mm for the influence matrix, 0.43 mm for the same network without the prior
+    after 45 s, and 1.47 mm mean displacement.)"""
+    from toolkit.common.metrics import nodal_errors
+    from toolkit.common.phantom import face_hex
+    from toolkit.static.features import encode
+    from toolkit.static.surrogate import linear_prior
+
+    config = SurrogateConfig(FeatureSpec("hard", linear_prior=True), network="tiny", coarse_radii=True, epochs=200,
+                             lr=3e-3, max_seconds=30.0)
+    model = train_surrogate(db100, tmp_path / "prior", config, progress=False)
+    db = StaticDatabase.open(db100)
+    result = evaluate_surrogate(model, db)
+    im = linear_prior(face_hex("coarse").mesh, db.types[0])
+    linear = np.stack([im.predict(db.sample(int(i))["s"]) for i in result["rows"]])
+    linear_error = nodal_errors(linear.reshape(-1, 3), result["targets"].reshape(-1, 3)).mean()
+    m = result["metrics"]
+    assert m["mean_error_mm"] < linear_error and m["mean_error_mm"] < 0.25 * m["mean_displacement_mm"]
+
+    s = db.sample(5)
+    prior = im.predict(s["s"])
+    f = encode(model.config.features, s["x"], s["types"], s["s"], s["bone"], s["side"], 0.47, prior)
+    mask = np.isin(s["types"], (1, 2))
+    h = model.hierarchy(db.points[0], 0)
+    u = model.predict(f[None], s["s"][None], mask[None], h, prior[None])[0]
+    assert np.all(u[s["types"] == 2] == 0.0)
+    np.testing.assert_array_equal(u[s["types"] == 1], s["s"][s["types"] == 1])
+    with pytest.raises(ValueError, match="residual over the linear prior"):
+        model.predict(f[None], s["s"][None], mask[None], h)
+
+
 def test_a_model_refuses_what_it_was_not_built_for(db100, hard_model, tmp_path):
     """Another mesh (the paper face: other node count and topology), another model kind, and
     material channels on a database that does not vary the material are refused with errors

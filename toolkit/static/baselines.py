@@ -10,6 +10,10 @@
 - :class:`PODRegression`: the displacements of the training samples are compressed by
   principal components (POD), and the component weights are regressed on the plan's
   parameters (ridge regression on quadratic features). It never sees a mesh, only plans.
+- :class:`LinearPlusPOD`: the two together: the influence-matrix solution, plus a POD
+  regression of what it misses (the FE displacement minus the linear one) on the plan's
+  parameters. The residual (sliding, lip contact, geometry update) is smoother and smaller
+  than the displacement, and it transfers across faces of one topology.
 
 Both predict the displacement of one increment ``(n, 3)`` mm, like the FE and the network.
 """
@@ -23,7 +27,7 @@ import numpy as np
 
 from toolkit.common.mesh import Mesh
 
-__all__ = ["InfluenceMatrix", "PODRegression", "quadratic_features"]
+__all__ = ["InfluenceMatrix", "PODRegression", "LinearPlusPOD", "quadratic_features"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -152,3 +156,34 @@ class PODRegression:
             raise ValueError(f"params have {X.shape[1]} columns; this model was fit on {self.x_scale.shape[1]}")
         W = quadratic_features((X - self.x_scale[0]) / self.x_scale[1]) @ self.coef
         return (self.mean + W @ self.modes).reshape(len(X), -1, 3)
+
+
+@dataclass(frozen=True, eq=False)
+class LinearPlusPOD:
+    """Linear superposition corrected by a POD regression of its residual.
+
+    ``predict(params, linear)`` = ``linear`` (the influence-matrix solution of each sample) +
+    the POD regression of the FE minus linear displacement on ``params``. The influence matrix is per mesh (pass the one
+    of the face being predicted); the residual regression is shared by every face of one
+    topology (node-indexed).
+
+    Attributes
+    ----------
+    residual : PODRegression of the FE minus linear displacement (mm) on the plan parameters
+    """
+
+    residual: PODRegression
+
+    @classmethod
+    def fit(cls, params: np.ndarray, displacements: np.ndarray, linear: np.ndarray, **pod) -> "LinearPlusPOD":
+        """Fit on ``params (s, p)``, the FE ``displacements (s, n, 3)`` mm and the influence-matrix
+        solutions of the same samples ``linear (s, n, 3)`` mm (``pod``: PODRegression.fit options)."""
+        d, lin = np.asarray(displacements, dtype=float), np.asarray(linear, dtype=float)
+        if d.shape != lin.shape:
+            raise ValueError(f"displacements {d.shape} and linear solutions {lin.shape} must have the same shape")
+        return cls(PODRegression.fit(params, d - lin, **pod))
+
+    def predict(self, params: np.ndarray, linear: np.ndarray) -> np.ndarray:
+        """Displacements ``(s, n, 3)`` mm for ``params (s, p)`` given their linear solutions
+        ``(s, n, 3)`` mm (:meth:`InfluenceMatrix.predict` of each sample's prescribed values)."""
+        return np.asarray(linear, dtype=float) + self.residual.predict(params)

@@ -10,7 +10,11 @@ displacement ``s`` (mm; zero at nodes that are not moving). Two switches add cha
   nodes carry the displacement their bone would give them (mm). Without them the two
   copies of a point on the closed mouth slit (and the coincident mucosa nodes at its
   inner edge) get identical inputs although they move millimetres apart;
-- ``material_channels``: Poisson's ratio per node (for databases whose simulations vary it).
+- ``material_channels``: Poisson's ratio per node (for databases whose simulations vary it);
+- ``linear_prior``: the linear influence-matrix solution of the increment
+  (:class:`~toolkit.static.baselines.InfluenceMatrix`, mm) as three channels; the network then
+  learns only what the linear superposition misses (sliding, lip contact, the geometry
+  update), and the surrogate adds the prior back (:mod:`toolkit.static.surrogate`).
 
 :func:`encode` builds the ``(n, C)`` array of one sample; :func:`channel_names` names
 the columns (units in the names).
@@ -37,11 +41,13 @@ class FeatureSpec:
     variant : ``explicit``, ``implicit`` or ``hard`` (hard reads what explicit reads)
     extra_channels : mucosa/lip one-hot, jaw side, mucosa bone displacement
     material_channels : Poisson's ratio
+    linear_prior : the influence-matrix displacement as input, the residual as output
     """
 
     variant: str = "explicit"
     extra_channels: bool = False
     material_channels: bool = False
+    linear_prior: bool = False
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -66,11 +72,13 @@ def channel_names(spec: FeatureSpec) -> tuple[str, ...]:
         names += ["bone_x_mm", "bone_y_mm", "bone_z_mm"]
     if spec.material_channels:
         names += ["poisson_ratio"]
+    if spec.linear_prior:
+        names += ["prior_x_mm", "prior_y_mm", "prior_z_mm"]
     return tuple(names)
 
 
 def encode(spec: FeatureSpec, x: np.ndarray, types: np.ndarray, s: np.ndarray, bone: np.ndarray | None = None,
-           side: np.ndarray | None = None, poisson: float | None = None) -> np.ndarray:
+           side: np.ndarray | None = None, poisson: float | None = None, prior: np.ndarray | None = None) -> np.ndarray:
     """Input channels ``(n, C)`` of one sample.
 
     Parameters
@@ -81,6 +89,7 @@ def encode(spec: FeatureSpec, x: np.ndarray, types: np.ndarray, s: np.ndarray, b
     bone : (n, 3) mm — the bone's displacement at every bone-driven node (extra channels)
     side : (n,) — +1 upper jaw/lip, -1 lower, 0 elsewhere (extra channels)
     poisson : Poisson's ratio of the simulation (material channels)
+    prior : (n, 3) mm — the linear influence-matrix displacement (linear prior)
     """
     x = np.asarray(x, dtype=float)
     n = x.shape[0]
@@ -107,4 +116,9 @@ def encode(spec: FeatureSpec, x: np.ndarray, types: np.ndarray, s: np.ndarray, b
         if poisson is None:
             raise ValueError("material_channels needs the simulation's Poisson's ratio")
         cols.append(np.full((n, 1), float(poisson)))
+    if spec.linear_prior:
+        if prior is None or np.shape(prior) != (n, 3):
+            raise ValueError(f"linear_prior needs the influence-matrix displacement ({n}, 3), got "
+                             f"{None if prior is None else np.shape(prior)}")
+        cols.append(np.asarray(prior, dtype=float))
     return np.hstack(cols)

@@ -16,6 +16,12 @@ mean Euclidean nodal error on all nodes, on free nodes and on the lips, summaris
 median, 95th percentile and max; inference time per prediction against the FE time per
 increment. :meth:`Surrogate.predict_plan` runs a plan increment by increment like the FE
 (CLI ``toolkit static predict``).
+
+With ``FeatureSpec(linear_prior=True)`` the network learns a residual: the linear
+influence-matrix solution of each increment (:class:`~toolkit.static.baselines.InfluenceMatrix`,
+built once per mesh from its boundary types) is an input and is added to the output, so
+the network only has to learn what linear superposition misses (sliding, lip contact, the
+geometry update between increments). Fixed and moving nodes then have a zero residual.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ from toolkit.common.training import train as train_loop
 from toolkit.static.features import FeatureSpec, channel_names, encode
 
 __all__ = ["SurrogateConfig", "Surrogate", "train_surrogate", "evaluate_surrogate", "network_config",
-           "MODEL_KIND", "NETWORK_PRESETS"]
+           "linear_prior", "MODEL_KIND", "NETWORK_PRESETS"]
 
 MODEL_KIND = "toolkit.static.pointnet2"
 #: network sizes: ``paper`` (seed 000's widths), ``small`` (a quarter of the widths; the
@@ -104,6 +110,15 @@ def network_config(config: SurrogateConfig):
     return PointNet2Config.coarse(**preset) if config.coarse_radii else PointNet2Config(**preset)
 
 
+def linear_prior(mesh, types: np.ndarray):
+    """The influence matrix of ``mesh`` for boundary ``types (n,)``: moving nodes (1) driven,
+    fixed nodes (2) held (:class:`~toolkit.static.baselines.InfluenceMatrix`, linear material)."""
+    from toolkit.static.baselines import InfluenceMatrix
+
+    types = np.asarray(types)
+    return InfluenceMatrix.build(mesh, np.flatnonzero(types == 1), np.flatnonzero(types == 2))
+
+
 def _points_key(points: np.ndarray) -> str:
     return hashlib.sha1(np.ascontiguousarray(points, dtype=np.float64).tobytes()).hexdigest()[:20]
 
@@ -166,6 +181,7 @@ class Surrogate:
     module: object
     device: object
     _hierarchy_cache: dict = field(default_factory=dict, repr=False)
+    _prior_cache: dict = field(default_factory=dict, repr=False)
 
     @property
     def out_scale(self) -> float:
@@ -205,11 +221,27 @@ class Surrogate:
             self._hierarchy_cache[key] = PointHierarchy.build(points, network_config(self.config), device=self.device)
         return self._hierarchy_cache[key]
 
-    def predict(self, features: np.ndarray, prescribed: np.ndarray, mask: np.ndarray, hierarchy) -> np.ndarray:
+    def prior(self, mesh, types: np.ndarray):
+        """The influence matrix of a mesh and its boundary types (built once, cached), for
+        models with ``linear_prior``."""
+        key = (_points_key(mesh.points), hashlib.sha1(np.ascontiguousarray(types, np.int64).tobytes()).hexdigest())
+        if key not in self._prior_cache:
+            self._prior_cache[key] = linear_prior(mesh, types)
+        return self._prior_cache[key]
+
+    def predict(self, features: np.ndarray, prescribed: np.ndarray, mask: np.ndarray, hierarchy,
+                prior: np.ndarray | None = None) -> np.ndarray:
         """Displacement ``(B, n, 3)`` mm from raw features ``(B, n, C)``, the prescribed
-        displacement ``(B, n, 3)`` mm and the prescribed mask ``(B, n)``, on one mesh."""
+        displacement ``(B, n, 3)`` mm and the prescribed mask ``(B, n)``, on one mesh; a
+        ``linear_prior`` model also needs the prior ``(B, n, 3)`` mm (the features' last three
+        channels), which it adds to the network's residual."""
         import torch
 
+        if self.config.features.linear_prior:
+            if prior is None:
+                raise ValueError("this model learns a residual over the linear prior: pass prior=(B, n, 3) mm "
+                                 "(Surrogate.prior(mesh, types).predict(s))")
+            prescribed = np.asarray(prescribed) - np.asarray(prior)
         scaler = self.bundle.scalers["inputs"]
         f = torch.as_tensor(scaler.transform(np.asarray(features, dtype=np.float64)), dtype=torch.float32,
                             device=self.device)
@@ -221,7 +253,8 @@ class Surrogate:
         with torch.no_grad():
             boundary = BoundaryTargets(m, p) if net.config.hard_boundary else None
             out = net(f, hierarchy, boundary)
-        return out.double().cpu().numpy() * self.out_scale
+        out = out.double().cpu().numpy() * self.out_scale
+        return out + np.asarray(prior) if self.config.features.linear_prior else out
 
     def predict_plan(self, face, plan, *, segments=None):
         """Run ``plan`` on a face like :func:`~toolkit.static.simulate.simulate`, increment by
@@ -257,6 +290,7 @@ class Surrogate:
         side = jaw_side(bc.segment, sets, X.shape[0], tuple(bc.segment_names))
         driven = np.flatnonzero(bc.segment >= 0)
         mask = np.isin(bc.types, (1, 2))
+        im = self.prior(mesh, bc.types) if self.config.features.linear_prior else None
         U, previous, quality = [np.zeros_like(X)], None, []
         for p in plan.increments(data.increments):
             x = X + U[-1]
@@ -266,8 +300,10 @@ class Surrogate:
                 step = p.motion(name) if previous is None else p.motion(name).after(previous.motion(name).inverted())
                 bone[ids] = step.apply(x[ids]) - x[ids]
             prescribed = np.where((bc.types == 1)[:, None], bone, 0.0)
-            feats = encode(self.config.features, x, bc.types, prescribed, bone, side, 0.47)
-            U.append(U[-1] + self.predict(feats[None], prescribed[None], mask[None], h)[0])
+            prior = im.predict(prescribed) if im is not None else None
+            feats = encode(self.config.features, x, bc.types, prescribed, bone, side, 0.47, prior)
+            U.append(U[-1] + self.predict(feats[None], prescribed[None], mask[None], h,
+                                          None if prior is None else prior[None])[0])
             quality.append(mesh.with_points(X + U[-1]).scaled_jacobian())
             previous = p
         wall = time.perf_counter() - t0
@@ -287,13 +323,35 @@ class _Data:
     subject: np.ndarray  # (m,)
     types: np.ndarray  # (m, n)
     keys: np.ndarray  # (m,) simulation key
+    prior: np.ndarray | None = None  # (m, n, 3) mm, the linear prior (linear_prior models)
+
+    def net_targets(self, scale: float) -> tuple[np.ndarray, np.ndarray]:
+        """What the network sees: prescribed values and targets in the output unit (residuals
+        over the prior when there is one)."""
+        if self.prior is None:
+            return self.prescribed / scale, self.target / scale
+        return (self.prescribed - self.prior) / scale, (self.target - self.prior) / scale
 
 
-def _encode_database(db, spec: FeatureSpec) -> _Data:
-    feats, pres, mask, target, subject, types, keys = [], [], [], [], [], [], []
+def _subject_priors(db, subjects) -> dict:
+    """Influence matrix of each phantom subject of a database (its mesh and boundary types)."""
+    from toolkit.static.dataset import subject_phantom
+
+    return {int(sid): linear_prior(subject_phantom(db.config.resolution, int(sid)).mesh, db.types[int(sid)])
+            for sid in subjects}
+
+
+def _encode_database(db, spec: FeatureSpec, priors: dict | None = None) -> _Data:
+    """Every sample's features, prescribed values, mask, FE target; with ``spec.linear_prior``,
+    ``priors`` (subject -> InfluenceMatrix) gives each sample's prior."""
+    if spec.linear_prior and priors is None:
+        raise ValueError("linear_prior features need the subjects' influence matrices (priors=...)")
+    feats, pres, mask, target, subject, types, keys, prior = [], [], [], [], [], [], [], []
     for i in range(len(db)):
         s = db.sample(i)
-        feats.append(encode(spec, s["x"], s["types"], s["s"], s["bone"], s["side"], s["poisson"]))
+        p = priors[int(s["subject"])].predict(s["s"]) if spec.linear_prior else None
+        feats.append(encode(spec, s["x"], s["types"], s["s"], s["bone"], s["side"], s["poisson"], p))
+        prior.append(p)
         pres.append(s["s"])
         mask.append(np.isin(s["types"], (1, 2)))
         target.append(s["v"])
@@ -302,7 +360,7 @@ def _encode_database(db, spec: FeatureSpec) -> _Data:
         keys.append(s["row"].key)
     f32 = lambda a: np.stack(a).astype(np.float32)  # noqa: E731
     return _Data(np.stack(feats), f32(pres), np.stack(mask), f32(target), np.array(subject), np.stack(types),
-                 np.array(keys))
+                 np.array(keys), f32(prior) if spec.linear_prior else None)
 
 
 def _split(data: _Data, config: SurrogateConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -343,10 +401,14 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
     if config.features.material_channels and db.config.poisson_range is None:
         raise ValueError("material_channels needs a database whose simulations vary Poisson's ratio "
                          "(DatasetConfig.poisson_range); this one uses 0.47 throughout")
-    data = _encode_database(db, config.features)
+    t_prior = time.perf_counter()
+    priors = _subject_priors(db, db.points) if config.features.linear_prior else None
+    t_prior = time.perf_counter() - t_prior
+    data = _encode_database(db, config.features, priors)
     train_idx, val_idx, test_idx = _split(data, config)
     scaler = MinMaxScaler.fit(data.features[train_idx], names=channel_names(config.features))
-    out_scale = float(np.abs(data.target[train_idx]).max()) or 1.0
+    out_scale = float(np.abs(data.net_targets(1.0)[1][train_idx]).max()) or 1.0
+    prescribed_net, target_net = data.net_targets(out_scale)
     net_config = network_config(config)
     device = resolve_device(config.device)
     hierarchies = {s: PointHierarchy.build(db.points[s], net_config, device=device) for s in db.points}
@@ -355,8 +417,7 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
 
     def tensors(idx):
         f = scaler.transform(data.features[idx].astype(np.float64)).astype(np.float32)
-        return ((f, data.subject[idx], data.prescribed[idx] / out_scale, data.mask[idx]),
-                data.target[idx] / out_scale)
+        return ((f, data.subject[idx], prescribed_net[idx], data.mask[idx]), target_net[idx])
 
     tc = TrainConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, patience=config.patience,
                      seed=config.seed, device=config.device, max_seconds=config.max_seconds, progress=progress)
@@ -370,7 +431,8 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
     state = {"net": {k: v.detach().cpu() for k, v in module.net.state_dict().items()},
              "hierarchies": {str(s): {k: v.cpu() for k, v in h.state_dict().items()} for s, h in hierarchies.items()}}
     test_keys = sorted(set(data.keys[test_idx].tolist()))
-    extra = {"out_scale_mm": out_scale, "train_seconds": result.seconds, "best_epoch": result.best_epoch,
+    extra = {"out_scale_mm": out_scale, "train_seconds": result.seconds, "prior_seconds": t_prior,
+             "best_epoch": result.best_epoch,
              "stopped": result.stopped, "history": result.history.to_dict(orient="list"),
              "split": {"train": int(train_idx.size), "validation": int(val_idx.size), "test": int(test_idx.size)},
              "test_keys": test_keys, "parameters": int(sum(p.numel() for p in module.net.parameters())),
@@ -404,14 +466,22 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
     rows = np.flatnonzero(db.samples.key.isin(list(keys)).to_numpy())
     if not rows.size:
         raise ValueError("no sample of the database belongs to the requested simulations")
-    data = _encode_database(_Subset(db, rows), model.config.features)
+    subjects = np.unique(db.samples.subject.to_numpy()[rows])
+    priors = None
+    if model.config.features.linear_prior:
+        from toolkit.static.dataset import subject_phantom
+
+        priors = {int(sid): model.prior(subject_phantom(db.config.resolution, int(sid)).mesh, db.types[int(sid)])
+                  for sid in subjects}
+    data = _encode_database(_Subset(db, rows), model.config.features, priors)
     preds = np.empty_like(data.target, dtype=np.float64)
     for sid in np.unique(data.subject):
         idx = np.flatnonzero(data.subject == sid)
         h = model.hierarchy(db.points[sid], sid)
         for start in range(0, idx.size, 16):
             chunk = idx[start:start + 16]
-            preds[chunk] = model.predict(data.features[chunk], data.prescribed[chunk], data.mask[chunk], h)
+            preds[chunk] = model.predict(data.features[chunk], data.prescribed[chunk], data.mask[chunk], h,
+                                         None if data.prior is None else data.prior[chunk])
     target = data.target.astype(np.float64)
     err = nodal_errors(preds.reshape(-1, 3), target.reshape(-1, 3)).reshape(target.shape[:2])
     lips = np.unique(np.concatenate([db.sets[k] for k in ("lip_sliding", "upper_lip_face", "lower_lip_face")
@@ -424,15 +494,19 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
         "lips_mean_error_mm": err[:, lips].mean(axis=1),
         "max_error_mm": err.max(axis=1),
         "mean_displacement_mm": np.linalg.norm(target, axis=-1).mean(axis=1)})
-    # inference time of one prediction (batch 1), after a warm-up
+    # inference time of one prediction (batch 1, with the linear prior's product), after a warm-up
     sid = int(data.subject[0])
     h = model.hierarchy(db.points[sid], sid)
-    one = (data.features[:1], data.prescribed[:1], data.mask[:1])
-    model.predict(*one, h)
+
+    def one(i):
+        prior = priors[sid].predict(data.prescribed[i])[None] if priors is not None else None
+        return model.predict(data.features[i:i + 1], data.prescribed[i:i + 1], data.mask[i:i + 1], h, prior)
+
+    one(0)
     times = []
     for i in range(min(inference_samples, len(rows))):
         t0 = time.perf_counter()
-        model.predict(data.features[i:i + 1], data.prescribed[i:i + 1], data.mask[i:i + 1], h)
+        one(i)
         times.append(time.perf_counter() - t0)
     m = per_sample.mean_error_mm
     metrics = {"samples": int(len(rows)), "mean_error_mm": float(m.mean()), "median_error_mm": float(m.median()),
