@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import shutil
 import time
 from pathlib import Path
 
@@ -86,12 +87,18 @@ def stage_database(args, db_path: Path) -> pd.DataFrame:
 
 
 def _train_eval(db, cfg, split, out: Path, seed: int) -> dict:
+    from toolkit.common.compat import IncompatibleError
     from toolkit.impact.evaluation import evaluate_surrogate, write_evaluation
     from toolkit.impact.lstm import ImpactSurrogate, train_surrogate
 
+    model = None
     if (out / "config.json").exists():
-        model = ImpactSurrogate.load(out)
-    else:
+        try:
+            model = ImpactSurrogate.load(out, config=cfg)
+        except IncompatibleError as exc:  # the configuration changed since: train afresh
+            print(f"{out}: {exc}; retraining")
+            shutil.rmtree(out)
+    if model is None:
         model = train_surrogate(db, cfg, split, out=out, seed=seed, resume=True, progress=True)
     ev = evaluate_surrogate(model, db)
     write_evaluation(ev, db, model, out / "evaluation")

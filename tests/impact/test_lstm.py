@@ -28,8 +28,10 @@ QUICK = dict(epochs=80, patience=None, max_seconds=60.0)
 
 @pytest.fixture(scope="module")
 def strong_random(tiny_db):
-    return train_surrogate(tiny_db, CONFIGS["strong"].with_(**{**QUICK, "epochs": 200}), "random", seed=0,
-                           progress=False)
+    # at a constant rate: strong's cosine decay is for its 14-minute paper budget; decayed over
+    # these 200 epochs (~17 s) it stops short (measured: RMSE 0.35 of the spread, Pearson 0.937)
+    return train_surrogate(tiny_db, CONFIGS["strong"].with_(**{**QUICK, "epochs": 200}, lr_schedule="constant"),
+                           "random", seed=0, progress=False)
 
 
 def _constant_rmse(truth):
