@@ -7,13 +7,16 @@ Stages (each resumable; rerun the same command to continue):
    mucosa + lip sliding) on the default face -> ``results/static_paper.h5``; and, for the
    held-out-subject goal, ``--subject-plans`` plans on each of ``--subjects`` phantom shapes
    -> ``results/static_paper_subjects.h5``.
-2. ``models``: PointNet++ ``explicit``, ``implicit``, ``hard`` and ``explicit+extra`` (mucosa/lip
-   channels) trained on the 70/10/20 split by plan, each within ``--max-minutes``; a model
-   trained on all subjects but the last and tested on the last; the linear influence matrix
-   (condensed stiffness on the bone-attached nodes) and POD + quadratic ridge regression on the
-   plan parameters, scored on the same test samples. Errors are per-sample mean nodal
-   Euclidean errors (mm); times per prediction at batch 1; ``fe_ms`` is the FE time of the same
-   increments. The explicit-vs-implicit ablation is a Wilcoxon signed-rank test on paired samples.
+2. ``models``: PointNet++ ``explicit``, ``implicit``, ``hard``, ``explicit+extra`` (mucosa/lip
+   channels) and ``hard+prior`` (the residual over the linear influence-matrix solution) trained
+   on the 70/10/20 split by plan, each within ``--max-minutes``; ``explicit+extra`` and
+   ``hard+prior`` trained on all subjects but the last and tested on the last; the baselines
+   (the linear influence matrix, POD + quadratic ridge regression on the plan parameters, and
+   the linear solution plus a POD regression of its residual) fit on the same training samples
+   and scored on the same test samples. Errors are per-sample mean nodal Euclidean errors (mm);
+   times per prediction at batch 1; ``fe_ms`` is the FE time of the same increments. The
+   explicit-vs-implicit ablation is a Wilcoxon signed-rank test on paired samples. A model
+   directory trained with another configuration is retrained.
 
 Writes ``results/static_surrogate.csv``, ``results/static_surrogate.png`` (error vs time) and
 ``results/static_models/<name>/`` (model, metrics.json, per_sample.csv, error_map.png), and
