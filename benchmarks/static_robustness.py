@@ -75,6 +75,7 @@ def main(argv=None):
     from toolkit.common.io import atomic_path
     from toolkit.common.phantom import face_hex
     from toolkit.common.runtime import set_threads
+    from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH
     from toolkit.static.plan import dental_arch, jaw_closing, sample_plans
 
     set_threads(1)
@@ -82,9 +83,9 @@ def main(argv=None):
     done = pd.read_csv(args.runs, keep_default_na=False) if args.runs.exists() else pd.DataFrame(columns=COLUMNS)
     closing = None if args.max_jaw_closing < 0 else args.max_jaw_closing
     closing_key = -1.0 if closing is None else closing
-    rewrite = "release_width_mm" not in done.columns  # rows from before the wider-band retry: all 10 mm
+    rewrite = "release_width_mm" not in done.columns  # rows from before the wider-band retry: the default band
     if rewrite:
-        done["release_width_mm"] = np.where(done.status == "ok", 10.0, np.nan)
+        done["release_width_mm"] = np.where(done.status == "ok", DEFAULT_RELEASE_WIDTH, np.nan)
     if args.retry_failed:
         selected = (done.resolution.isin(args.resolutions) & done.material.isin(args.materials)
                     & done.sliding.isin(args.slidings) & done["mode"].isin(args.modes)
@@ -122,7 +123,8 @@ def main(argv=None):
     table = runs.groupby(["resolution", "material", "sliding", "mode", "max_jaw_closing_mm"], sort=False).agg(
         plans=("ok", "size"), completed=("ok", "sum"), median_s=("seconds", "median"), max_s=("seconds", "max"),
         min_sj=("min_scaled_jacobian", "min"),
-        wider_band=("release_width_mm", lambda w: int((pd.to_numeric(w, errors="coerce") > 10.0).sum()))).reset_index()
+        wider_band=("release_width_mm",
+                    lambda w: int((pd.to_numeric(w, errors="coerce") > DEFAULT_RELEASE_WIDTH).sum()))).reset_index()
     table["completion"] = table.completed / table.plans
     table.to_csv(args.out, index=False)
     with pd.option_context("display.width", 160, "display.max_rows", 200):
