@@ -150,3 +150,33 @@ def test_regulation_moves_no_skin_node_and_keeps_mucosa_on_the_bone(paper, monke
     bc = res.boundary
     assert moved.size and not np.intersect1d(moved, paper.mesh.node_sets["skin"]).size
     assert np.all(np.isin(bc.types[moved], (0, 3)))  # free or mucosa only
+
+
+@pytest.mark.slow
+def test_mucosa_past_the_edge_of_a_bone_is_not_gathered_on_the_edge(paper):
+    """Full-mode plan 11 of seed 0 (distal 10 degrees, 9 mm forward) slides the tissue over the
+    right ramus ~10 mm forward and down, past the lower edge of its bone surface (an open
+    patch). Projected onto the closest point, those mucosa nodes all landed on the edge line:
+    with Neo-Hookean the corner element there collapsed (two of its nodes met; measured on main
+    before: inverted with every release band, 10/15/20 mm). Projected onto the plane of the
+    edge triangle instead, they lie beyond the edge on the extended surface, and the linear run
+    has nodes there: each sits on that plane (normal offset < 1e-9 mm) and off the edge line."""
+    from toolkit.common.surface_distance import beyond_rim_onto_plane, closest_points
+
+    plan = sample_plans(12, 0, "full", phantom=paper, max_jaw_closing_mm=10.0)[11]
+    result = simulate(paper, plan)
+    _ok(result, paper)
+    bc, x = result.boundary, paper.mesh.points + result.displacement
+    beyond_any = 0
+    for s, name in enumerate(bc.segment_names):
+        nodes = np.flatnonzero((bc.types == 3) & (bc.segment == s))
+        if not nodes.size:
+            continue
+        surf = paper.segments[name].surface
+        moved = plan.motion(name).apply(surf.points)
+        cp = closest_points(x[nodes], moved, surf.cells["tri3"])
+        ext, beyond = beyond_rim_onto_plane(x[nodes], cp, moved, surf.cells["tri3"])
+        assert np.abs(ext.distance).max() < 1e-6  # every mucosa node on its (extended) bone
+        assert np.all(cp.distance[beyond] > 1e-3)  # those beyond are off the edge line
+        beyond_any += int(beyond.sum())
+    assert beyond_any > 0

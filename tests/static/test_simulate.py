@@ -194,3 +194,21 @@ def test_more_increments_change_the_answer_less(phantom, plan):
     d_lo = np.linalg.norm(u[3] - u[1])
     assert d_hi < d_lo
     assert 0.2 < d_hi / d_lo < 0.5
+
+
+def test_points_beyond_the_rim_of_an_open_surface_go_onto_the_edge_plane():
+    """Unit square z = 0 in two triangles: a point above the inside projects straight down
+    (unchanged closest point); a point past the edge x = 1 projects onto the plane z = 0 at
+    its own x, y (not onto the edge line); past the corner as well."""
+    from toolkit.common.surface_distance import beyond_rim_onto_plane, closest_points, rim_edges
+
+    pts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    assert sorted(map(tuple, rim_edges(tris).tolist())) == [(0, 1), (0, 3), (1, 2), (2, 3)]
+    q = np.array([[0.3, 0.6, 0.5], [1.4, 0.5, -0.2], [1.5, 1.5, 0.3]])
+    cp = closest_points(q, pts, tris)
+    ext, beyond = beyond_rim_onto_plane(q, cp, pts, tris)
+    assert beyond.tolist() == [False, True, True]
+    np.testing.assert_allclose(ext.point, [[0.3, 0.6, 0.0], [1.4, 0.5, 0.0], [1.5, 1.5, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(ext.distance, [0.5, 0.2, 0.3], atol=1e-12)
+    np.testing.assert_allclose(cp.point[1], [1.0, 0.5, 0.0], atol=1e-12)  # the plain closest point: on the edge

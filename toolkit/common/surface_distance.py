@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from toolkit.common._validate import _as_points, _as_triangles, _region_indices
 
 __all__ = ["vertex_normals", "SurfaceDeviation", "surface_deviation", "ClosestPoints", "closest_points",
-           "barycentric", "interpolate_on_surface"]
+           "barycentric", "interpolate_on_surface", "rim_edges", "beyond_rim_onto_plane"]
 
 
 def vertex_normals(points, triangles) -> np.ndarray:
@@ -297,6 +297,61 @@ def closest_points(points, surface_points, triangles, k: int = 16, tree: cKDTree
     n = np.cross(v1[t_best] - v0[t_best], v2[t_best] - v0[t_best])
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     return ClosestPoints(cp[rows, best], d[rows, best], t_best.astype(np.int64), n)
+
+
+def rim_edges(triangles) -> np.ndarray:
+    """Edges ``(e, 2)`` (ascending node pairs) that belong to one triangle only: the rim of an
+    open surface (empty for a closed one)."""
+    t = np.asarray(triangles, dtype=np.int64)
+    edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    uniq, count = np.unique(edges, axis=0, return_counts=True)
+    return uniq[count == 1]
+
+
+def beyond_rim_onto_plane(points, cp: ClosestPoints, surface_points, triangles, rim: np.ndarray | None = None,
+                          tol: float = 1e-6) -> tuple[ClosestPoints, np.ndarray]:
+    """Closest points on an open surface extended beyond its rim by the planes of its rim triangles.
+
+    A point whose closest point ``cp`` lies on the rim (on a rim edge or at a rim vertex) and
+    off the normal through it has passed the surface's edge: it is projected onto the plane
+    of that closest triangle instead, so points beyond the edge are not all pulled onto the
+    rim line. Other points keep ``cp``.
+
+    Parameters
+    ----------
+    points : (n, 3) float, mm — the query points of ``cp``
+    cp : ClosestPoints of ``points`` on the surface
+    surface_points : (m, 3) float, mm; triangles : (t, 3) int
+    rim : (e, 2) rim edges (:func:`rim_edges`; computed when None)
+    tol : barycentric tolerance for "on an edge", and mm for "off the normal"
+
+    Returns
+    -------
+    (ClosestPoints on the extended surface, (n,) bool — the points beyond the rim)
+    """
+    x = np.asarray(points, dtype=float)
+    sp = np.asarray(surface_points, dtype=float)
+    t = np.asarray(triangles, dtype=np.int64)
+    rim = rim_edges(t) if rim is None else np.asarray(rim, dtype=np.int64)
+    n_nodes = sp.shape[0]
+    rim_codes = rim[:, 0] * n_nodes + rim[:, 1]
+    rim_vertex = np.zeros(n_nodes, dtype=bool)
+    rim_vertex[rim.ravel()] = True
+    tri = t[cp.triangle]
+    b = barycentric(cp.point, sp[tri])
+    on_rim = np.zeros(x.shape[0], dtype=bool)
+    for k in range(3):
+        a, c = tri[:, (k + 1) % 3], tri[:, (k + 2) % 3]
+        code = np.minimum(a, c) * n_nodes + np.maximum(a, c)
+        on_rim |= (b[:, k] < tol) & np.isin(code, rim_codes)  # on the edge opposite vertex k
+        on_rim |= (b[:, k] > 1 - tol) & rim_vertex[tri[:, k]]  # at vertex k
+    offset = x - cp.point
+    normal_part = np.einsum("ij,ij->i", offset, cp.normal)
+    tangential = np.linalg.norm(offset - normal_part[:, None] * cp.normal, axis=1)
+    beyond = on_rim & (tangential > tol)
+    point = np.where(beyond[:, None], x - normal_part[:, None] * cp.normal, cp.point)
+    distance = np.where(beyond, np.abs(normal_part), cp.distance)
+    return ClosestPoints(point, distance, cp.triangle, cp.normal), beyond
 
 
 def barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:

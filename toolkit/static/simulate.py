@@ -8,7 +8,10 @@ The bony movements of a :class:`~toolkit.static.plan.SurgicalPlan` are applied i
    tangential free); **lip** pairs across the mouth slit may not interpenetrate
    craniocaudally but slide otherwise (master-slave, active set);
 2. the mucosa nodes are projected on the closest point of the moved bone surface and
-   the increment is solved again with them prescribed there.
+   the increment is solved again with them prescribed there. A bone surface is an open
+   patch: a node that slid past its edge is projected onto the plane of the edge triangle
+   (the surface extended), not onto the edge line, which would gather every such node on
+   one line and crush the elements between them.
 
 Linear materials follow seed 001: each increment is a small-strain solve on the
 geometry left by the previous one (updated geometry, stress-free start). Neo-Hookean
@@ -54,7 +57,7 @@ import numpy as np
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import FacePhantom
-from toolkit.common.surface_distance import barycentric, closest_points
+from toolkit.common.surface_distance import barycentric, beyond_rim_onto_plane, closest_points, rim_edges
 from toolkit.static.assembly import MaterialAssignment, SparsePattern
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
 from toolkit.static.constraints import Constraints
@@ -285,9 +288,11 @@ class _Model:
     mucosa: np.ndarray = field(init=False)
     movable: np.ndarray = field(init=False)
     quality0: np.ndarray = field(init=False)
+    rims: dict = field(init=False)  # segment name -> rim edges of its bone surface
 
     def __post_init__(self):
         self.quality0 = element_quality(self.mesh, self.mesh.points)
+        self.rims = {name: rim_edges(surf.cells["tri3"]) for name, surf in self.surfaces.items()}
         self.moving = self.bc.nodes(NodeType.MOVING)
         self.fixed = self.bc.nodes(NodeType.FIXED)
         self.mucosa = self.bc.nodes(NodeType.MUCOSA_SLIDING)
@@ -391,8 +396,9 @@ def _sliding_constraints(model: _Model, state: _State, plan: SurgicalPlan, base:
 
 
 def _projection(model: _Model, plan: SurgicalPlan, positions: np.ndarray) -> tuple[np.ndarray, float]:
-    """Step 2: closest points ``(m, 3)`` mm of the mucosa ``positions`` on their moved bone,
-    and the largest distance to them (the gap closed by the projection), mm."""
+    """Step 2: closest points ``(m, 3)`` mm of the mucosa ``positions`` on their moved bone
+    (extended beyond its edge by the planes of its edge triangles), and the largest distance
+    to them (the gap closed by the projection), mm."""
     mucosa = model.mucosa
     proj = np.empty_like(positions)
     dist = np.zeros(mucosa.size)
@@ -401,7 +407,9 @@ def _projection(model: _Model, plan: SurgicalPlan, positions: np.ndarray) -> tup
         sel = np.flatnonzero(seg == s)
         if sel.size:
             surf = model.surfaces[name]
-            cp = closest_points(positions[sel], _apply(plan, name, surf.points), surf.cells["tri3"])
+            moved = _apply(plan, name, surf.points)
+            cp = closest_points(positions[sel], moved, surf.cells["tri3"])
+            cp, _ = beyond_rim_onto_plane(positions[sel], cp, moved, surf.cells["tri3"], model.rims[name])
             proj[sel], dist[sel] = cp.point, cp.distance
     return proj, float(dist.max(initial=0.0))
 
