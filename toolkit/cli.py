@@ -115,6 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--epochs", type=int, default=100)
     tr.add_argument("--batch-size", type=int, default=8)
     tr.add_argument("--lr", type=float, default=1e-3)
+    tr.add_argument("--lr-schedule", default="constant", choices=["constant", "cosine"],
+                    help="cosine: decay to 1%% of --lr over the epochs (or over --max-minutes when given)")
     tr.add_argument("--max-minutes", type=float, default=None)
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--device", default="cpu", help="cpu, cuda or auto")
@@ -437,7 +439,7 @@ def _cmd_static_train(args) -> int:
         coarse_radii=_database_resolution(args.data) == "coarse",
         split="subjects" if args.test_subjects else "plans", test_subjects=tuple(args.test_subjects or ()),
         epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
-        max_seconds=None if args.max_minutes is None else 60 * args.max_minutes)
+        max_seconds=None if args.max_minutes is None else 60 * args.max_minutes, lr_schedule=args.lr_schedule)
     model = train_surrogate(args.data, args.out, config, resume=args.resume)
     x = model.bundle.extra
     print(f"trained {config.features.variant} PointNet++ ({x['parameters']:,} parameters) on {x['split']['train']} "

@@ -110,6 +110,8 @@ def test_a_model_refuses_what_it_was_not_built_for(db100, hard_model, tmp_path):
         _load_as(hard_model, tmp_path, "toolkit.impact.lstm")
     with pytest.raises(ValueError, match="Poisson"):
         train_surrogate(db100, tmp_path / "m", SurrogateConfig(FeatureSpec("explicit", material_channels=True)))
+    with pytest.raises(ValueError, match="lr_schedule = 'step'"):
+        SurrogateConfig(lr_schedule="step")
 
 
 def _load_as(model, tmp_path, kind):

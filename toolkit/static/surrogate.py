@@ -34,7 +34,15 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.training import MinMaxScaler, ModelBundle, TrainConfig, resolve_device, split_groups, torch_seeded
+from toolkit.common.training import (
+    LR_SCHEDULES,
+    MinMaxScaler,
+    ModelBundle,
+    TrainConfig,
+    resolve_device,
+    split_groups,
+    torch_seeded,
+)
 from toolkit.common.training import train as train_loop
 from toolkit.static.features import FeatureSpec, channel_names, encode
 
@@ -69,6 +77,8 @@ class SurrogateConfig:
     epochs, batch_size, lr, patience, seed, device, max_seconds : training (seed 000: Adam
         lr 1e-5, batch 8, 100 epochs; the default lr 1e-3 with early stopping reaches its error in
         fewer epochs here)
+    lr_schedule : ``constant`` (seed 000) or ``cosine`` (decays to 1 % of ``lr`` over the
+        epochs, or over ``max_seconds`` when set; :class:`~toolkit.common.training.TrainConfig`)
     """
 
     features: FeatureSpec = FeatureSpec()
@@ -83,6 +93,7 @@ class SurrogateConfig:
     seed: int = 0
     device: str = "cpu"
     max_seconds: float | None = None
+    lr_schedule: str = "constant"
 
     def __post_init__(self):
         if isinstance(self.features, dict):
@@ -91,6 +102,8 @@ class SurrogateConfig:
             raise ValueError(f"network = {self.network!r}; expected one of {sorted(NETWORK_PRESETS)}")
         if self.split not in ("plans", "subjects"):
             raise ValueError(f"split = {self.split!r}; expected 'plans' or 'subjects'")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule = {self.lr_schedule!r}; expected one of {LR_SCHEDULES}")
         if self.split == "subjects" and not self.test_subjects:
             raise ValueError("split 'subjects' needs test_subjects=(...): the subjects held out for testing")
         object.__setattr__(self, "test_subjects", tuple(int(s) for s in self.test_subjects))
@@ -420,7 +433,8 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
         return ((f, data.subject[idx], prescribed_net[idx], data.mask[idx]), target_net[idx])
 
     tc = TrainConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, patience=config.patience,
-                     seed=config.seed, device=config.device, max_seconds=config.max_seconds, progress=progress)
+                     seed=config.seed, device=config.device, max_seconds=config.max_seconds, progress=progress,
+                     lr_schedule=config.lr_schedule)
     signature = {"database": db.config.as_dict(), "mesh": _mesh_signature(db.points[0], db.cells),
                  "channels": list(channel_names(config.features))}
     identity = {"surrogate": config.as_dict(), "data": signature, "samples": int(len(data.keys)),
