@@ -241,6 +241,34 @@ def test_permuting_the_nodes_permutes_the_output():
     torch.testing.assert_close(out_perm, out[:, perm], rtol=0, atol=1e-6 * out.abs().max().item())
 
 
+def test_folding_the_batch_norms_keeps_the_output():
+    """In eval mode a batch norm is an affine map per channel, folded into the linear layers
+    before it: after a few training steps (non-trivial running statistics and affine
+    parameters) the folded copy gives the same output to float32 round-off, holds no batch
+    norm, and the original still trains."""
+    points = _face_like_cloud(600, seed=6)
+    config = PointNet2Config.coarse(in_channels=9)
+    torch.manual_seed(2)
+    model = PointNet2(config)
+    h = PointHierarchy.build(points, config)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    for _ in range(5):
+        loss = model(torch.rand(4, 600, 9), h).square().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    folded = model.fold_batch_norm()
+    assert not any(isinstance(m, torch.nn.BatchNorm1d) for m in folded.modules())
+    assert sum(isinstance(m, torch.nn.BatchNorm1d) for m in model.modules()) == 22
+    x = torch.rand(2, 600, 9)
+    with torch.no_grad():
+        ref, out = model(x, h), folded(x, h)
+    torch.testing.assert_close(out, ref, rtol=0, atol=1e-5 * ref.abs().max().item())
+    model.train()
+    model(x, h).sum().backward()  # the original keeps its batch norms and trains
+
+
 def test_hard_boundary_values_are_exact(phantom):
     """With ``hard_boundary`` the output is exactly 0 at fixed nodes and exactly s at
     moving nodes (bitwise), per node type or per component; free nodes are the network's."""

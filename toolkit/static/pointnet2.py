@@ -628,7 +628,8 @@ class _NormAct(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         if self.norm is not None:
             x = self.norm(x.reshape(-1, x.shape[-1])).reshape(x.shape)
-        return torch.relu(x)
+        # x is always a fresh layer output here, so without autograd it may be overwritten
+        return torch.relu(x) if torch.is_grad_enabled() else torch.relu_(x)
 
 
 def _mlp(in_channels: int, widths: tuple[int, ...], batch_norm: bool) -> nn.Sequential:
@@ -637,6 +638,11 @@ def _mlp(in_channels: int, widths: tuple[int, ...], batch_norm: bool) -> nn.Sequ
         layers += [nn.Linear(in_channels, w), _NormAct(w, batch_norm)]
         in_channels = w
     return nn.Sequential(*layers)
+
+
+def _mlp_pairs(mlp: nn.Sequential) -> list:
+    """``((linear,), norm-act)`` of every layer of an :func:`_mlp`."""
+    return [((mlp[i],), mlp[i + 1]) for i in range(0, len(mlp), 2)]
 
 
 class SetAbstraction(nn.Module):
@@ -735,6 +741,34 @@ class PointNet2(nn.Module):
             x = fp(x, skips[level], hierarchy.interp_index[level], hierarchy.interp_weight[level])
         out = self.head(x)
         return enforce_boundary(out, boundary) if boundary is not None else out
+
+    def fold_batch_norm(self) -> "PointNet2":
+        """An inference copy with every batch normalisation folded into the linear layers before
+        it (in eval mode a batch norm is the affine map ``s x + t`` per channel, so ``s (W x + b)
+        + t`` is one linear layer). Same outputs up to rounding, fewer operations per call; the
+        copy is in eval mode and is not for training (its norms are gone)."""
+        import copy
+
+        folded = copy.deepcopy(self).eval()
+        pairs = []
+        for sa in folded.set_abstraction:
+            pairs += [((sa.feature, sa.offset), sa.act), *_mlp_pairs(sa.mlp)]
+        for fp in folded.feature_propagation:
+            pairs += [((fp.skip, fp.coarse), fp.act), *_mlp_pairs(fp.mlp)]
+        pairs.append(((folded.head[0],), folded.head[1]))
+        with torch.no_grad():
+            for linears, act in pairs:
+                if act.norm is None:
+                    continue
+                bn = act.norm
+                scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+                shift = bn.bias - bn.running_mean * scale
+                for k, linear in enumerate(linears):
+                    linear.weight.mul_(scale[:, None])
+                    if k == 0:  # the first carries the bias
+                        linear.bias.mul_(scale).add_(shift)
+                act.norm = None
+        return folded
 
     def _check(self, features: Tensor, hierarchy: PointHierarchy, boundary: BoundaryTargets | None) -> None:
         cfg = self.config

@@ -214,6 +214,7 @@ class Surrogate:
         module = _face_module()(network_config(config), hierarchies)
         module.net.load_state_dict(bundle.state_dict["net"])
         module.to(dev).eval()
+        module.net = module.net.fold_batch_norm()  # inference only: the batch norms become part of the weights
         return cls(config, bundle, module, dev)
 
     def check_mesh(self, points: np.ndarray, cells: dict) -> None:
