@@ -131,7 +131,8 @@ def test_cli_dataset_train_evaluate_predict(tmp_path):
 
     db, model, ev, pred = tmp_path / "db.h5", tmp_path / "model", tmp_path / "eval", tmp_path / "pred"
     assert main(["static", "dataset", "--resolution", "coarse", "--plans", "3", "--workers", "0", "--out", str(db)]) == 0
-    assert main(["static", "train", "--data", str(db), "--out", str(model), "--epochs", "1", "--network", "tiny"]) == 0
+    assert main(["static", "train", "--data", str(db), "--out", str(model), "--epochs", "2", "--network", "tiny",
+                 "--lr-schedule", "cosine"]) == 0
     assert main(["static", "evaluate", "--model", str(model), "--data", str(db), "--out", str(ev),
                  "--no-render"]) == 0
     metrics = json.loads((ev / "metrics.json").read_text())
@@ -141,4 +142,6 @@ def test_cli_dataset_train_evaluate_predict(tmp_path):
     ref = io.read(pred / "result.vtu")
     assert ref.point_data["displacement"].shape == (ref.n_points, 3)
     assert json.loads((pred / "summary.json").read_text())["wall_time_s"] > 0
-    assert Surrogate.load(model).config.features.variant == "explicit"
+    loaded = Surrogate.load(model)
+    assert loaded.config.features.variant == "explicit" and loaded.config.lr_schedule == "cosine"
+    assert loaded.bundle.extra["history"]["lr"] == pytest.approx([1e-3, 0.01e-3 + 0.99e-3 * 0.5])  # cosine, 2 epochs
