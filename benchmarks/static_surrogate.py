@@ -161,7 +161,7 @@ def stage_models(args, paths: dict) -> pd.DataFrame:
 
     models = RESULTS / f"static_models{args.suffix}"
     common = dict(network=args.network, coarse_radii=args.resolution == "coarse", seed=args.seed,
-                  max_seconds=60.0 * args.max_minutes, epochs=args.epochs)
+                  max_seconds=60.0 * args.max_minutes, epochs=args.epochs, lr_schedule=args.lr_schedule)
     rows, per_sample = [], {}
     db_path = paths["one"]
     for name, feats in VARIANTS.items():
@@ -245,6 +245,8 @@ def main(argv=None) -> int:
     ap.add_argument("--network", default="small", help="NETWORK_PRESETS name")
     ap.add_argument("--epochs", type=int, default=100)
     ap.add_argument("--max-minutes", type=float, default=8.0, help="training time limit per model")
+    ap.add_argument("--lr-schedule", default="constant", choices=["constant", "cosine"],
+                    help="cosine: decay to 1%% of the rate over each model's time limit")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--suffix", default="")
