@@ -15,9 +15,10 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from toolkit.common._validate import _as_points, _as_triangles, _region_indices
+from toolkit.common.topology import rim_edges
 
 __all__ = ["vertex_normals", "SurfaceDeviation", "surface_deviation", "ClosestPoints", "closest_points",
-           "barycentric", "interpolate_on_surface", "rim_edges", "beyond_rim_onto_plane"]
+           "barycentric", "interpolate_on_surface", "beyond_rim_onto_plane"]
 
 
 def vertex_normals(points, triangles) -> np.ndarray:
@@ -299,15 +300,6 @@ def closest_points(points, surface_points, triangles, k: int = 16, tree: cKDTree
     return ClosestPoints(cp[rows, best], d[rows, best], t_best.astype(np.int64), n)
 
 
-def rim_edges(triangles) -> np.ndarray:
-    """Edges ``(e, 2)`` (ascending node pairs) that belong to one triangle only: the rim of an
-    open surface (empty for a closed one)."""
-    t = np.asarray(triangles, dtype=np.int64)
-    edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    uniq, count = np.unique(edges, axis=0, return_counts=True)
-    return uniq[count == 1]
-
-
 def beyond_rim_onto_plane(points, cp: ClosestPoints, surface_points, triangles, rim: np.ndarray | None = None,
                           tol: float = 1e-6) -> tuple[ClosestPoints, np.ndarray]:
     """Closest points on an open surface extended beyond its rim by the planes of its rim triangles.
@@ -322,7 +314,7 @@ def beyond_rim_onto_plane(points, cp: ClosestPoints, surface_points, triangles, 
     points : (n, 3) float, mm — the query points of ``cp``
     cp : ClosestPoints of ``points`` on the surface
     surface_points : (m, 3) float, mm; triangles : (t, 3) int
-    rim : (e, 2) rim edges (:func:`rim_edges`; computed when None)
+    rim : (e, 2) rim edges (:func:`toolkit.common.topology.rim_edges`; computed when None)
     tol : barycentric tolerance for "on an edge", and mm for "off the normal"
 
     Returns

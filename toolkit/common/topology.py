@@ -23,6 +23,7 @@ __all__ = [
     "boundary_face_blocks",
     "triangulated_boundary",
     "unique_edges",
+    "rim_edges",
     "tet10_from_tet4",
     "kuhn_tets",
     "orient_tets",
@@ -110,6 +111,14 @@ def unique_edges(cells: np.ndarray, local_edges: np.ndarray) -> tuple[np.ndarray
     pairs = np.sort(cells[:, local_edges], axis=2).reshape(-1, 2)
     edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
     return edges, inverse.reshape(cells.shape[0], local_edges.shape[0])
+
+
+def rim_edges(triangles) -> np.ndarray:
+    """Edges ``(e, 2)`` (sorted node pairs) of a triangle surface that belong to one triangle
+    only: the rim of an open surface (empty for a closed one)."""
+    t = np.asarray(triangles, dtype=np.int64)
+    edges, tri_edges = unique_edges(t, REFERENCE_ELEMENTS["tri3"].edges)
+    return edges[np.bincount(tri_edges.ravel(), minlength=edges.shape[0]) == 1]
 
 
 def tet10_from_tet4(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
