@@ -4,7 +4,8 @@ For every combination of resolution x material x sliding model x sampler mode, r
 ``--plans`` plans drawn by :func:`toolkit.static.plan.sample_plans` (seed 001's ranges,
 both segments moved) and records per plan: status (ok / the error's class), wall time,
 minimum corner scaled Jacobian of every increment's deformed mesh, increments cut, the
-error message. Writes ``benchmarks/results/static_robustness_runs.csv`` (one row per run,
+release band used, the fixed nodes of the cut freed (``SimulationOptions.free_cut_radius``),
+the error message. Writes ``benchmarks/results/static_robustness_runs.csv`` (one row per run,
 appended as runs finish, so an interrupted sweep resumes where it stopped) and
 ``static_robustness.csv`` (the summary table), and prints the table.
 
@@ -28,7 +29,7 @@ import pandas as pd
 RESULTS = Path(__file__).resolve().parent / "results"
 COLUMNS = ["resolution", "material", "sliding", "mode", "max_jaw_closing_mm", "plan", "jaw_closing_mm", "status",
            "seconds", "min_scaled_jacobian", "substeps", "linear_solves", "max_displacement_mm", "release_width_mm",
-           "message"]
+           "freed_cut_nodes", "message"]
 
 
 def run_one(phantom, plan, material, sliding, increments):
@@ -49,7 +50,7 @@ def run_one(phantom, plan, material, sliding, increments):
     return {"status": "ok", "seconds": time.perf_counter() - t0, "min_scaled_jacobian": s["min_scaled_jacobian"],
             "substeps": s["substeps"], "max_displacement_mm": s["max_displacement_mm"],
             "linear_solves": sum(r["linear_solves"] for r in s["increments_report"]),
-            "release_width_mm": s["release_width_mm"], "message": ""}
+            "release_width_mm": s["release_width_mm"], "freed_cut_nodes": s["freed_cut_nodes"], "message": ""}
 
 
 def main(argv=None):
@@ -66,6 +67,9 @@ def main(argv=None):
                     help="sample_plans' max_jaw_closing_mm (mm); a negative value keeps every draw")
     ap.add_argument("--retry-failed", action="store_true",
                     help="run again the selected plans that failed (their old rows are dropped)")
+    ap.add_argument("--rerun-retried", action="store_true",
+                    help="run again the selected plans that needed a wider release band (after a change to "
+                         "the retries; their old rows are dropped)")
     ap.add_argument("--runs", type=Path, default=RESULTS / "static_robustness_runs.csv")
     ap.add_argument("--out", type=Path, default=RESULTS / "static_robustness.csv")
     args = ap.parse_args(argv)
@@ -86,13 +90,19 @@ def main(argv=None):
     rewrite = "release_width_mm" not in done.columns  # rows from before the wider-band retry: the default band
     if rewrite:
         done["release_width_mm"] = np.where(done.status == "ok", DEFAULT_RELEASE_WIDTH, np.nan)
-    if args.retry_failed:
+    if "freed_cut_nodes" not in done.columns:  # rows from before the cut could be freed: none was
+        done["freed_cut_nodes"] = np.where(done.status == "ok", 0, np.nan)
+        rewrite = True
+    if args.retry_failed or args.rerun_retried:
         selected = (done.resolution.isin(args.resolutions) & done.material.isin(args.materials)
                     & done.sliding.isin(args.slidings) & done["mode"].isin(args.modes)
                     & (done.max_jaw_closing_mm.astype(float) == closing_key)
                     & done.plan.astype(int).between(args.first, args.first + args.plans - 1))
-        rewrite |= bool((selected & (done.status != "ok")).any())
-        done = done[~(selected & (done.status != "ok"))]
+        again = selected & (((done.status != "ok") & args.retry_failed)
+                            | ((pd.to_numeric(done.release_width_mm, errors="coerce") > DEFAULT_RELEASE_WIDTH)
+                               & args.rerun_retried))
+        rewrite |= bool(again.any())
+        done = done[~again]
     if rewrite:
         with atomic_path(args.runs) as tmp:
             done[COLUMNS].to_csv(tmp, index=False)
@@ -124,7 +134,8 @@ def main(argv=None):
         plans=("ok", "size"), completed=("ok", "sum"), median_s=("seconds", "median"), max_s=("seconds", "max"),
         min_sj=("min_scaled_jacobian", "min"),
         wider_band=("release_width_mm",
-                    lambda w: int((pd.to_numeric(w, errors="coerce") > DEFAULT_RELEASE_WIDTH).sum()))).reset_index()
+                    lambda w: int((pd.to_numeric(w, errors="coerce") > DEFAULT_RELEASE_WIDTH).sum())),
+        freed_cut=("freed_cut_nodes", lambda f: int((pd.to_numeric(f, errors="coerce") > 0).sum()))).reset_index()
     table["completion"] = table.completed / table.plans
     table.to_csv(args.out, index=False)
     with pd.option_context("display.width", 160, "display.max_rows", 200):

@@ -11,8 +11,8 @@ import pytest
 
 from toolkit.common.face_variants import jittered, remeshed
 from toolkit.common.phantom import face_hex
-from toolkit.static import RigidMotion, SimulationOptions, SurgicalPlan, default_plan, simulate
-from toolkit.static.plan import sample_plans
+from toolkit.static import NodeType, RigidMotion, SimulationOptions, SurgicalPlan, default_plan, simulate
+from toolkit.static.plan import PlanRangeWarning, sample_plans
 from toolkit.static.simulate import SimulationError
 
 simulate_module = importlib.import_module("toolkit.static.simulate")
@@ -63,6 +63,49 @@ def test_a_plan_that_needs_a_wider_release_band_gets_one(paper):
     with pytest.raises(ValueError, match=r"wider_release = \(20.0, 15.0\) mm"):
         SimulationOptions(wider_release=(20.0, 15.0))
     assert SimulationOptions(release_width=15.0).wider_release == (15.0, 20.0)  # only 20 mm will be tried
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::toolkit.static.plan.PlanRangeWarning")  # the forced plan's sub-steps
+def test_a_plan_blocked_at_the_held_cut_frees_it(paper):
+    """Full-mode plan 10 of seed 0 at ``fine`` rotates the left proximal segment ~12 degrees
+    and sets the distal mandible back with a ~12 degree yaw: the skin just below the lower
+    end of the held posterior cut (z ~ 31 mm, 10 mm above the condyle) is dragged ~1 mm
+    against its fixed neighbour 1.3 mm above and that element inverts, whatever the
+    release band or the cutting (measured before: 19 of 20 full plans at fine). The same
+    corner blocks paper when the plan's mandibular movements are doubled (Le Fort I kept
+    still): with ``free_cut_radius=0`` it fails there, naming the element, whose nodes
+    include fixed nodes off the bone; by default those cut nodes near it are freed, the plan
+    completes with every element positive, and the result lists the freed nodes (fixed,
+    off the bone, within 6 mm, now free). No bony boundary condition changes."""
+    plan = sample_plans(11, 0, "full", phantom=paper, max_jaw_closing_mm=10.0)[10]
+    motions = dict(plan.motions)
+    motions["lefort"] = RigidMotion.identity(motions["lefort"].pivot)
+    for name in ("distal", "proximal_left", "proximal_right"):
+        motions[name] = motions[name].scaled(2.0)
+    with pytest.warns(PlanRangeWarning, match="beyond the physiological range"):
+        plan = SurgicalPlan(motions, force=True)
+    with pytest.raises(SimulationError, match=r"increment 3: .*inverted") as info:
+        simulate(paper, plan, options=SimulationOptions(max_cuts=2, wider_release=(), free_cut_radius=0.0))
+    mesh = paper.mesh
+    element_nodes = simulate_module._element_nodes(mesh, info.value.element)
+    cut = np.setdiff1d(mesh.node_sets["fixed"], mesh.node_sets["bone"])
+    assert np.isin(element_nodes, cut).any()
+    assert "free_cut_radius" in info.value.suggestion
+
+    result = simulate(paper, plan, options=SimulationOptions(max_cuts=2, wider_release=()))
+    s = _ok(result, paper)
+    freed = result.freed_cut
+    assert s["freed_cut_nodes"] == freed.size >= 1 and s["release_width_mm"] == 10.0
+    assert np.isin(freed, cut).all()
+    centroid = mesh.points[element_nodes].mean(axis=0)
+    assert np.linalg.norm(mesh.points[freed] - centroid, axis=1).max() < 6.0
+    assert (result.boundary.types[freed] == NodeType.FREE).all() and np.isin(freed, result.boundary.released).all()
+    as_built = simulate_module.boundary_conditions(mesh, paper.segments, "mucosa+lip")[0]
+    others = np.setdiff1d(np.arange(mesh.n_points), freed)
+    assert np.array_equal(result.boundary.types[others], as_built.types[others])
+    with pytest.raises(ValueError, match=r"free_cut_radius = -1.0 mm"):
+        SimulationOptions(free_cut_radius=-1.0)
 
 
 def test_failing_steps_are_cut_and_increments_stay_where_they_were(coarse, monkeypatch):

@@ -139,7 +139,8 @@ class BoundaryConditions:
     segment : (n,) int8 — index into ``segment_names`` for moving and mucosa nodes, else -1
     segment_names : tuple of str
     upper_lip, lower_lip : (k,) int64 — lip-sliding nodes on the upper and lower slit faces
-    released : (r,) int64 — nodes freed by :meth:`with_release_bands` (empty otherwise)
+    released : (r,) int64 — nodes freed by :meth:`with_release_bands` or :meth:`with_freed`
+        (empty otherwise)
     """
 
     types: np.ndarray
@@ -280,6 +281,20 @@ class BoundaryConditions:
         segment[release] = -1
         ids = np.union1d(self.released, np.flatnonzero(release))
         return BoundaryConditions(types, segment, self.segment_names, self.upper_lip, self.lower_lip, ids)
+
+    def with_freed(self, nodes: np.ndarray) -> "BoundaryConditions":
+        """Copy in which ``nodes`` ((k,) int; fixed, moving or mucosa nodes, not lip pairs) are
+        free and listed in ``released``."""
+        nodes = np.asarray(nodes, dtype=np.int64).reshape(-1)
+        if nodes.size and (nodes.min() < 0 or nodes.max() >= self.n_nodes):
+            raise ValueError(f"nodes to free must lie in [0, {self.n_nodes}), got {nodes.min()}..{nodes.max()}")
+        if not nodes.size:
+            return self
+        types, segment = self.types.copy(), self.segment.copy()
+        types[nodes] = NodeType.FREE
+        segment[nodes] = -1
+        return BoundaryConditions(types, segment, self.segment_names, self.upper_lip, self.lower_lip,
+                                  np.union1d(self.released, nodes))
 
     def _driver_strength(self) -> np.ndarray:
         """Rank of each driver (index = driver) when one of two neighbours must be freed:

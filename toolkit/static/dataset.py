@@ -178,10 +178,11 @@ def simulate_job(params: dict) -> Record:
     motions = {k: v for k, v in params["motions"].items() if k != "force"}
     plan = SurgicalPlan.from_dict(motions)
     t0 = time.perf_counter()
-    # one release band for every plan: the database stores one set of boundary types per subject,
-    # so a plan that would need a wider band is recorded as failed rather than stored inconsistently
+    # one release band and an intact cut for every plan: the database stores one set of boundary
+    # types per subject, so a plan that would need a wider band or freed cut nodes is recorded as
+    # failed rather than stored inconsistently
     result = simulate(phantom, plan, cfg.increments, material_for(cfg.material, params.get("poisson"), phantom.mesh),
-                      cfg.sliding, options=SimulationOptions(wider_release=()))
+                      cfg.sliding, options=SimulationOptions(wider_release=(), free_cut_radius=0.0))
     seconds = time.perf_counter() - t0
     U = result.displacements
     bc = result.boundary

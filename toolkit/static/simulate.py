@@ -40,7 +40,16 @@ These safeguards keep the physiological plan space simulable (``benchmarks/stati
   segment moves far towards a differently driven neighbour (a Le Fort I segment lifted
   ~9 mm at its lateral edge towards the fixed skull 10 mm away) the band between them cannot
   take the compression; surgically, larger movements need a wider subperiosteal
-  dissection. The result reports the band it used (``release_width_mm``).
+  dissection. The result reports the band it used (``release_width_mm``);
+- **freeing the held cut**: a model of the face is truncated behind the ramus, and the cut is
+  held (fixed) above the condyles. Where a plan drags the tissue just below the held part
+  (a large proximal-segment rotation with a setback and yaw of the distal mandible), the
+  clamped-to-free corner at the lower end of the held cut inverts the skin element there,
+  worse as the mesh is refined (plan 10 of the full sampler at ``fine``). When the element
+  that blocks a plan touches a fixed node off the bone (the ``bone`` node set), the fixed
+  nodes off the bone within ``free_cut_radius`` of it are freed and the plan is run again:
+  the truncation moves locally, the bony boundary conditions do not change. The result
+  lists them (``freed_cut_nodes``).
 """
 
 from __future__ import annotations
@@ -73,6 +82,7 @@ __all__ = ["simulate", "SimulationOptions", "SimulationResult", "IncrementReport
 log = logging.getLogger(__name__)
 
 SLIDING_MODELS = ("none", "mucosa", "mucosa+lip")
+_MAX_CUT_FREEINGS = 3  # retries of one plan that free more of the cut (each a full run)
 MATERIALS = ("linear", "neo-hookean")
 
 
@@ -117,6 +127,10 @@ class SimulationOptions:
         elements of a real mesh are kept from inverting rather than remeshed; None: never;
         Neo-Hookean never regulates)
     max_cuts : how many times a failing increment may be halved (``2 ** max_cuts`` sub-steps)
+    free_cut_radius : mm; when the element that blocks a plan touches a fixed node off the bone
+        (the truncation cut of the face; meshes without a ``bone`` node set have none), the fixed
+        nodes off the bone within this distance of its centroid are freed and the plan is run
+        again, before any wider release band (0: never)
     progress : show a tqdm bar over increments
     """
 
@@ -127,6 +141,7 @@ class SimulationOptions:
     wider_release: tuple[float, ...] = (15.0, 20.0)
     regulation_below: float | None = 0.1
     max_cuts: int = 4
+    free_cut_radius: float = 6.0
     progress: bool = False
 
     def __post_init__(self):
@@ -134,6 +149,8 @@ class SimulationOptions:
             raise ValueError(f"max_cuts = {self.max_cuts!r}; expected an integer >= 0")
         if not np.isfinite(self.release_width) or self.release_width < 0:
             raise ValueError(f"release_width = {self.release_width!r} mm; expected a finite number >= 0")
+        if not np.isfinite(self.free_cut_radius) or self.free_cut_radius < 0:
+            raise ValueError(f"free_cut_radius = {self.free_cut_radius!r} mm; expected a finite number >= 0")
         wider = tuple(float(w) for w in self.wider_release)
         if any(not np.isfinite(w) or w <= 0 for w in wider) or list(wider) != sorted(set(wider)):
             raise ValueError(f"wider_release = {self.wider_release!r} mm; expected increasing positive widths")
@@ -177,6 +194,8 @@ class SimulationResult:
     material, sliding : the options as given
     release_width : mm, the release band the run used (wider than asked when the plan needed
         one of ``SimulationOptions.wider_release``; None when not applicable, e.g. a surrogate)
+    freed_cut : (k,) int64 — fixed nodes of the truncation cut the plan needed freed
+        (``SimulationOptions.free_cut_radius``; empty for almost every plan)
     """
 
     reference: Mesh
@@ -187,6 +206,7 @@ class SimulationResult:
     material: str
     sliding: str
     release_width: float | None = None
+    freed_cut: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def displacement(self) -> np.ndarray:
@@ -225,6 +245,7 @@ class SimulationResult:
             "max_mucosa_gap_mm": float(max(r.mucosa_gap_after_projection for r in self.reports)),
             "released_nodes": int(self.boundary.released.size),
             "release_width_mm": self.release_width,
+            "freed_cut_nodes": int(np.size(self.freed_cut)),
             "substeps": int(sum(r.substeps for r in self.reports)),
             "increments_cut": int(sum(r.substeps > 1 for r in self.reports)),
             "regulated_nodes": int(sum(r.regulated_nodes for r in self.reports)),
@@ -556,23 +577,47 @@ def simulate(
     if int(increments) != increments or increments < 1:
         raise ValueError(f"increments must be an integer >= 1, got {increments!r}")
     widths = (options.release_width, *(w for w in options.wider_release if w > options.release_width))
-    for attempt, width in enumerate(widths):
+    attempt, freeings, freed = 0, 0, np.zeros(0, np.int64)
+    while True:
+        width = widths[attempt]
         model = _build_model(face, material, sliding, segments,
-                             replace(options, release_width=width, wider_release=()))
+                             replace(options, release_width=width, wider_release=()), freed)
         try:
             displacements, reports = _increments(model, plan, int(increments))
             break
         except SimulationError as exc:
+            cut = _cut_near(model, exc.element)
+            if cut.size and freeings < _MAX_CUT_FREEINGS:
+                freed, freeings = np.union1d(freed, cut), freeings + 1
+                log.warning("%s; retrying with %d fixed nodes of the cut near it freed", exc, cut.size)
+                continue
             if attempt + 1 == len(widths):
-                if attempt:
+                if attempt or freed.size:
                     tried = ", ".join(f"{w:g}" for w in widths)
-                    raise SimulationError(f"{exc.reason} (with each release band tried: {tried} mm)", exc.increment,
+                    raise SimulationError(f"{exc.reason} (with each release band tried: {tried} mm; "
+                                          f"{freed.size} fixed nodes of the cut freed)", exc.increment,
                                           exc.element, exc.suggestion) from exc
                 raise
-            log.warning("%s; retrying with a %g mm release band", exc, widths[attempt + 1])
+            attempt += 1
+            log.warning("%s; retrying with a %g mm release band", exc, widths[attempt])
     material_name = material if isinstance(material, str) else "custom"
     return SimulationResult(model.mesh, displacements, model.bc, reports, time.perf_counter() - t_start,
-                            material_name, sliding, release_width=width)
+                            material_name, sliding, release_width=width, freed_cut=freed)
+
+
+def _cut_near(model: _Model, element: int | None) -> np.ndarray:
+    """Fixed nodes off the bone (the truncation cut) not yet freed within
+    ``free_cut_radius`` mm of the centroid of ``element``, when that element touches one;
+    else empty. A mesh without a ``bone`` node set has no such cut."""
+    radius, mesh = model.options.free_cut_radius, model.mesh
+    if element is None or radius <= 0 or "bone" not in mesh.node_sets:
+        return np.zeros(0, np.int64)
+    cut = np.setdiff1d(model.fixed, mesh.node_sets["bone"])
+    nodes = _element_nodes(mesh, element)
+    if not np.isin(nodes, cut).any():
+        return np.zeros(0, np.int64)
+    centroid = mesh.points[nodes].mean(axis=0)
+    return cut[np.linalg.norm(mesh.points[cut] - centroid, axis=1) < radius]
 
 
 def _increments(model: _Model, plan: SurgicalPlan, n: int) -> tuple[np.ndarray, list]:
@@ -616,10 +661,14 @@ def boundary_conditions(mesh: Mesh, segments: Mapping, sliding: str,
     return bc_all.with_release_bands(mesh, options.release_width).with_sliding(sliding), bc_all
 
 
-def _build_model(face, material, sliding, segments, options: SimulationOptions) -> _Model:
-    """Mesh, materials, boundary conditions (sliding model, release bands) and bone surfaces."""
+def _build_model(face, material, sliding, segments, options: SimulationOptions,
+                 freed: np.ndarray | None = None) -> _Model:
+    """Mesh, materials, boundary conditions (sliding model, release bands, ``freed`` nodes of
+    the cut) and bone surfaces."""
     mesh, segments = face_mesh_and_segments(face, segments)
     bc, bc_all = boundary_conditions(mesh, segments, sliding, options)
+    if freed is not None:
+        bc = bc.with_freed(freed)
     materials = material_assignment(material, mesh)
     surfaces = {name: segments[name].surface for name in bc.segment_names}
     return _Model(mesh, materials, bc, bc_all, surfaces, options, total_lagrangian=not materials.is_linear)
@@ -637,8 +686,9 @@ def _element_nodes(mesh: Mesh, element: int) -> np.ndarray:
 def _remedy(model: _Model, increments: int) -> str:
     cuts = model.options.max_cuts
     return (f"the step was already cut {cuts} times ({2 ** cuts} sub-steps); use more increments than {increments}, "
-            f"a wider release band than {model.options.release_width:g} mm, a smaller movement, or check the "
-            f"boundary node sets near that element")
+            f"a wider release band than {model.options.release_width:g} mm, a smaller movement, a larger "
+            f"free_cut_radius than {model.options.free_cut_radius:g} mm if the element is near the fixed cut, "
+            f"or check the boundary node sets near that element")
 
 
 def _penetration(x: np.ndarray, upper: np.ndarray, lower: np.ndarray) -> float:
