@@ -60,6 +60,9 @@ def main(argv=None) -> pd.DataFrame:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "phantoms.csv")
     args = parser.parse_args(argv)
+    from toolkit.common.runtime import set_threads
+
+    set_threads(1)  # one thread is fastest on 2 cores (SPEC); worker processes inherit it
     rows = [{"phantom": name, "resolution": res, **measure(build, args.repeat)} for name, res, build in CASES]
     df = pd.DataFrame(rows)
     with atomic_path(args.out) as tmp:

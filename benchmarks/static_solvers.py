@@ -122,6 +122,9 @@ def main(argv=None) -> pd.DataFrame:
     parser.add_argument("--superlu-max-dofs", type=int, default=60_000)
     parser.add_argument("--out", type=Path, default=RESULTS / "static_solvers.csv")
     args = parser.parse_args(argv)
+    from toolkit.common.runtime import set_threads
+
+    set_threads(1)  # one thread is fastest on 2 cores (SPEC); worker processes inherit it
     from toolkit.common.io import atomic_path
     from toolkit.common.phantom import face_hex
 

@@ -10,22 +10,14 @@ Two workflows on one core of meshes, materials and metrics:
 
 Units everywhere: mm, s, tonne, N, MPa.
 
-On import the numerical libraries default to **one thread**: on the 2-core machines
-this project runs on, multithreaded BLAS and torch were measured several times
-slower (see SPEC.md). Raise it with ``TOOLKIT_NUM_THREADS=n`` in the environment or
-:func:`toolkit.set_threads`.
+Importing the package changes nothing in the process (no environment variable, no thread
+limit). On the 2-core machines this project runs on, multithreaded BLAS and torch were
+measured several times slower (see SPEC.md), so the command line runs on one thread
+(``--threads``); in Python call :func:`toolkit.set_threads` (``set_threads(1)``, or
+``set_threads()`` for ``TOOLKIT_NUM_THREADS``, default 1) before heavy work.
 """
 
-import os as _os
-
-# Must happen before numpy/scipy/torch load their thread pools.
-_threads = _os.environ.get("TOOLKIT_NUM_THREADS", "1")
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    _os.environ.setdefault(_var, _threads)
-
-from toolkit.common.runtime import set_threads  # noqa: E402
-
-set_threads(None)
+from toolkit.common.runtime import set_threads
 
 __version__ = "0.1.0"
 __all__ = ["set_threads", "__version__"]

@@ -1,4 +1,5 @@
-"""Thread defaults (SPEC: one thread is fastest on the 2-core machine) and the user option."""
+"""Thread defaults (SPEC: one thread is fastest on the 2-core machine), the user option, and an
+import that changes nothing in the process."""
 
 import subprocess
 import sys
@@ -38,3 +39,29 @@ def test_bad_thread_counts_are_refused(monkeypatch):
     monkeypatch.setenv("TOOLKIT_NUM_THREADS", "many")
     with pytest.raises(ValueError, match="TOOLKIT_NUM_THREADS='many' is not an integer"):
         default_threads()
+
+
+def test_importing_the_package_changes_no_environment_variable_or_thread_limit():
+    """Issue 11: ``import toolkit`` (and its workflows) used to set OMP/OPENBLAS/MKL_NUM_THREADS and
+    limit every thread pool, surprising a notebook that imports it beside other libraries. Now
+    the environment, torch's thread count and the BLAS pools already loaded are what they were
+    (torch defaults to more than one thread on this 2-core machine, so a limit would show)."""
+    out = _run("import os, numpy, torch, threadpoolctl\n"
+               "env, t = dict(os.environ), torch.get_num_threads()\n"
+               "pools = {p['filepath']: p['num_threads'] for p in threadpoolctl.threadpool_info()}\n"
+               "import toolkit, toolkit.common, toolkit.static, toolkit.impact, toolkit.cli\n"
+               "after = {p['filepath']: p['num_threads'] for p in threadpoolctl.threadpool_info()}\n"
+               "print(dict(os.environ) == env, torch.get_num_threads() == t, "
+               "all(after[k] == v for k, v in pools.items()), t > 1 or os.cpu_count() == 1)")
+    assert out == "True True True True"
+
+
+def test_set_threads_reaches_libraries_loaded_later_and_child_processes():
+    """Called before torch is imported, the count still holds once torch loads (through
+    OMP_NUM_THREADS), and a spawned worker process inherits it."""
+    out = _run("import toolkit; toolkit.set_threads(1)\n"
+               "import torch, subprocess, sys\n"
+               "child = subprocess.run([sys.executable, '-c', 'import torch; print(torch.get_num_threads())'],"
+               " capture_output=True, text=True).stdout.strip()\n"
+               "print(torch.get_num_threads(), child)")
+    assert out == "1 1"

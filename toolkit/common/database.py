@@ -377,8 +377,13 @@ def _resolve_executor(executor, workers: int):
         return InProcessExecutor(), True
     import multiprocessing
 
-    # spawn: the parent may hold threads (tqdm, BLAS, torch) that fork would copy mid-state
-    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")), True
+    from toolkit.common.runtime import default_threads, set_threads
+
+    # spawn: the parent may hold threads (tqdm, BLAS, torch) that fork would copy mid-state; each
+    # worker runs on TOOLKIT_NUM_THREADS threads (1 unless set_threads said otherwise), so W
+    # workers do not each start a pool per core
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=set_threads, initargs=(default_threads(),)), True
 
 
 def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=None, workers: int = 1,

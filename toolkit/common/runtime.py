@@ -1,9 +1,9 @@
 """Process-wide runtime settings: thread counts and headless rendering.
 
 Measured on the 2-core target machine (SPEC.md): with 2 threads a 10k-vector norm
-took 8 ms instead of 3.5 us, pyamg ran 9x and torch ``index_add_`` 30x slower. The
-default is therefore one thread for BLAS/OpenMP and torch; users raise it with
-:func:`set_threads` or the ``TOOLKIT_NUM_THREADS`` environment variable.
+took 8 ms instead of 3.5 us, pyamg ran 9x and torch ``index_add_`` 30x slower. Nothing
+here runs on import: the command line calls :func:`set_threads` (``--threads``, default
+1), and Python users call it themselves.
 """
 
 from __future__ import annotations
@@ -29,7 +29,14 @@ def default_threads() -> int:
 
 
 def set_threads(n: int | None = None) -> int:
-    """Limit BLAS/OpenMP and (if already imported) torch to ``n`` threads.
+    """Limit BLAS/OpenMP and torch to ``n`` threads, in this process and the ones it starts.
+
+    Explicit, because it changes the process: the thread pools already loaded are limited
+    (threadpoolctl, and torch if imported), and ``OMP_NUM_THREADS``,
+    ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS`` and ``TOOLKIT_NUM_THREADS`` are set so
+    that libraries loaded later (torch picks its count when first imported) and worker
+    processes started afterwards (the database's process pool, a Dask ``LocalCluster``)
+    use ``n`` as well. Workers of a remote Dask cluster keep their own settings.
 
     Parameters
     ----------
@@ -45,6 +52,8 @@ def set_threads(n: int | None = None) -> int:
     n = default_threads() if n is None else int(n)
     if n < 1:
         raise ValueError(f"thread count must be >= 1, got {n}")
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "TOOLKIT_NUM_THREADS"):
+        os.environ[var] = str(n)
     try:
         from threadpoolctl import threadpool_limits
 
@@ -54,7 +63,6 @@ def set_threads(n: int | None = None) -> int:
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(n)
-    os.environ["TOOLKIT_NUM_THREADS"] = str(n)
     return n
 
 
