@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from toolkit.common.seeds import LIP_MUSCLE_E_FIBRE, LIP_MUSCLE_E_TRANSVERSE, TISSUE_E, TISSUE_NU
+
 __all__ = ["LinearElastic", "TransverselyIsotropic", "NeoHookean", "IsotropicModuli", "lame", "VOIGT",
            "MaterialWarning"]
 
@@ -73,8 +75,8 @@ class IsotropicModuli:
 class LinearElastic(IsotropicModuli):
     """Isotropic linear elasticity. ``E`` in MPa, ``nu`` dimensionless."""
 
-    E: float = 0.003
-    nu: float = 0.47
+    E: float = TISSUE_E
+    nu: float = TISSUE_NU
 
     def __post_init__(self):
         _check("LinearElastic", self.E, self.nu)
@@ -113,9 +115,9 @@ class TransverselyIsotropic:
         ``E_transverse / (2 (1 + nu))``
     """
 
-    E_fibre: float = 0.009
-    E_transverse: float = 0.003
-    nu: float = 0.47
+    E_fibre: float = LIP_MUSCLE_E_FIBRE
+    E_transverse: float = LIP_MUSCLE_E_TRANSVERSE
+    nu: float = TISSUE_NU
     G_fibre: float | None = None
 
     def __post_init__(self):
@@ -179,8 +181,8 @@ class NeoHookean(IsotropicModuli):
     limit is :class:`LinearElastic` with the same ``E``, ``nu``.
     """
 
-    E: float = 0.003
-    nu: float = 0.47
+    E: float = TISSUE_E
+    nu: float = TISSUE_NU
 
     def __post_init__(self):
         _check("NeoHookean", self.E, self.nu)

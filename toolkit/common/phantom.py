@@ -54,6 +54,7 @@ import numpy as np
 
 from toolkit.common.mesh import Mesh
 from toolkit.common.topology import kuhn_tets, tet10_from_tet4
+from toolkit.common.seeds import BALL_RADIUS, ball_density
 
 __all__ = [
     "FaceShape",
@@ -594,7 +595,7 @@ def _with_midside_nodes(ids: np.ndarray, tets10: np.ndarray, n_corner_nodes: int
     return np.concatenate([ids, mids[member[ends[:, 0]] & member[ends[:, 1]]]])
 
 
-def ball(radius: float = 110.0, resolution: str | int = "coarse", order: int = 2, centre=(0.0, 0.0, 0.0)) -> Mesh:
+def ball(radius: float = BALL_RADIUS, resolution: str | int = "coarse", order: int = 2, centre=(0.0, 0.0, 0.0)) -> Mesh:
     """A tetrahedral ball (size-5 football: radius 110 mm).
 
     A cube grid of ``2n`` cells per axis is mapped radially onto the ball
@@ -689,12 +690,3 @@ def block(axes, cell_type: str = "hex8", jitter: float = 0.0, seed: int | None =
     if cell_type == "tet10":
         P, tets = tet10_from_tet4(P, tets)
     return Mesh(P, {cell_type: tets})
-
-
-def ball_density(mass: float = 0.43e-3, radius: float = 110.0) -> float:
-    """Density (tonne/mm^3) of a solid ball with the mass of a size-5 football.
-
-    ``mass`` in tonne (0.43 kg = 0.43e-3 t), ``radius`` in mm. The real ball is a
-    pressurised shell; a solid ball of this density has the right mass.
-    """
-    return mass / (4.0 / 3.0 * np.pi * radius**3)

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common import seeds
 from toolkit.common.database import Database, Job, Record, RunReport, read_index, run_jobs
 from toolkit.impact.scene import Scene, yielding_scene
 
@@ -42,7 +43,7 @@ __all__ = ["DATABASE_KIND", "DATABASE_VERSION", "SEED_VELOCITIES", "default_held
 DATABASE_KIND = "toolkit.impact.database"
 DATABASE_VERSION = 1
 #: seed 002's six imposed velocities, mm/s (evenly spaced over 20-50)
-SEED_VELOCITIES = (20.0, 26.0, 32.0, 38.0, 44.0, 50.0)
+SEED_VELOCITIES = seeds.BALL_VELOCITIES
 
 
 def default_held_out(velocities) -> list[float]:

@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from toolkit.common import seeds
 from toolkit.common.materials import IsotropicModuli, _check
-from toolkit.common.phantom import ball_density
 from toolkit.impact.jit import njit, use_jit
 
 __all__ = [
@@ -108,6 +108,16 @@ class HardeningTable:
         object.__setattr__(self, "plastic_strain", e)
         object.__setattr__(self, "_work", work)
 
+    @classmethod
+    def from_pairs(cls, pairs) -> HardeningTable:
+        """The table of ``((yield stress MPa, plastic strain), ...)`` rows, as the seed and
+        :class:`~toolkit.impact.scene.MaterialSpec` write it."""
+        arr = np.asarray(pairs, dtype=np.float64)
+        if arr.ndim != 2 or arr.shape[1] != 2:
+            raise ValueError(f"HardeningTable.from_pairs: expected rows of (yield stress MPa, plastic strain), "
+                             f"got an array of shape {arr.shape}")
+        return cls(arr[:, 0], arr[:, 1])
+
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, HardeningTable):
             return NotImplemented
@@ -142,16 +152,10 @@ class HardeningTable:
         return HardeningTable(self.yield_stress * factor, self.plastic_strain)
 
 
-#: seed 002's face yield table (SPEC: MPa, kPa-scale values)
-FACE_TABLE = HardeningTable(
-    yield_stress=[0.015, 0.020, 0.025, 0.028, 0.030, 0.031],
-    plastic_strain=[0.0, 0.03, 0.032, 0.05, 0.06, 0.07],
-)
-#: seed 002's ball yield table (MPa)
-BALL_TABLE = HardeningTable(
-    yield_stress=[0.034, 0.035, 0.036, 0.037, 0.038, 0.039],
-    plastic_strain=[0.0, 0.03, 0.032, 0.05, 0.06, 0.07],
-)
+#: seed 002's face yield table (:data:`toolkit.common.seeds.FACE_YIELD`, MPa)
+FACE_TABLE = HardeningTable.from_pairs(seeds.FACE_YIELD)
+#: seed 002's ball yield table (:data:`toolkit.common.seeds.BALL_YIELD`, MPa)
+BALL_TABLE = HardeningTable.from_pairs(seeds.BALL_YIELD)
 
 
 @dataclass(frozen=True)
@@ -626,7 +630,7 @@ class J2Plasticity(IsotropicModuli):
 
 #: seed 002's face: E = 0.015 MPa, nu = 0.49, 1000 kg/m^3, yield table :data:`FACE_TABLE`
 #: (first yield at a uniaxial Hencky strain of 1: effectively hyperelastic)
-SEED002_FACE = J2Plasticity(E=0.015, nu=0.49, density=1e-9, table=FACE_TABLE)
+SEED002_FACE = J2Plasticity(E=seeds.FACE_E, nu=seeds.FACE_NU, density=seeds.FACE_DENSITY, table=FACE_TABLE)
 #: seed 002's ball: E = 0.38 MPa, nu = 0.39, density of a solid 110 mm sphere of 0.43 kg,
 #: yield table :data:`BALL_TABLE`
-SEED002_BALL = J2Plasticity(E=0.38, nu=0.39, density=ball_density(), table=BALL_TABLE)
+SEED002_BALL = J2Plasticity(E=seeds.BALL_E, nu=seeds.BALL_NU, density=seeds.ball_density(), table=BALL_TABLE)

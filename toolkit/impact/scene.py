@@ -22,19 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common import seeds
+from toolkit.common.seeds import BALL_YIELD, FACE_YIELD
+
 __all__ = ["MaterialSpec", "FaceSpec", "BallSpec", "ContactSpec", "Fidelity", "Scene", "default_scene",
            "yielding_scene", "FACE_YIELD", "BALL_YIELD", "SUPPORTS", "YIELDING_DURATION"]
-
-#: seed 002 yield tables: (yield stress MPa, equivalent plastic strain)
-FACE_YIELD = ((0.015, 0.0), (0.020, 0.03), (0.025, 0.032), (0.028, 0.05), (0.030, 0.06), (0.031, 0.07))
-BALL_YIELD = ((0.034, 0.0), (0.035, 0.03), (0.036, 0.032), (0.037, 0.05), (0.038, 0.06), (0.039, 0.07))
-
-
-def _ball_density() -> float:
-    from toolkit.common.phantom import ball_density
-
-    return ball_density()
-
 
 @dataclass(frozen=True)
 class MaterialSpec:
@@ -83,7 +75,7 @@ class FaceSpec:
 
     resolution: str = "paper"
     mesh: str | None = None
-    material: MaterialSpec = MaterialSpec(0.015, 0.49, 1e-9, FACE_YIELD)
+    material: MaterialSpec = MaterialSpec(seeds.FACE_E, seeds.FACE_NU, seeds.FACE_DENSITY, FACE_YIELD)
     fixed_set: str = "fixed"
     lower_fixed_fraction: float = 0.05
     support: str = "band"
@@ -119,11 +111,11 @@ class BallSpec:
         the centre (away from the face) are driven; the front deforms freely
     """
 
-    radius: float = 110.0
+    radius: float = seeds.BALL_RADIUS
     rigid: bool = False
     resolution: str = "coarse"
-    material: MaterialSpec = field(default_factory=lambda: MaterialSpec(0.38, 0.39, _ball_density(), BALL_YIELD))
-    velocity: float = 30.0
+    material: MaterialSpec = MaterialSpec(seeds.BALL_E, seeds.BALL_NU, seeds.ball_density(), BALL_YIELD)
+    velocity: float = seeds.BALL_VELOCITY
     direction: tuple = (0.0, -1.0, 0.0)
     target: tuple | None = None
     target_offset: tuple = (0.0, 0.0, 30.0)
@@ -155,7 +147,7 @@ class ContactSpec:
     """Ball-skin contact: Coulomb ``friction``; penalty chosen so the stable step stays above
     ``dt_fraction`` of the structural one."""
 
-    friction: float = 0.2
+    friction: float = seeds.FRICTION
     dt_fraction: float = 0.9
 
 
@@ -188,7 +180,7 @@ class Scene:
     ball: BallSpec = field(default_factory=BallSpec)
     contact: ContactSpec = ContactSpec()
     fidelity: Fidelity = Fidelity()
-    duration: float = 1.8
+    duration: float = seeds.IMPACT_DURATION
     n_frames: int = 18
 
     def __post_init__(self):
@@ -284,7 +276,7 @@ def _toml_value(v) -> str:
     return repr(float(v)) if isinstance(v, float) else repr(v)
 
 
-def default_scene(velocity: float = 30.0) -> Scene:
+def default_scene(velocity: float = seeds.BALL_VELOCITY) -> Scene:
     """Seed 002's scene: paper-resolution tet10 face (lower part fixed), deformable rubber ball
     driven at ``velocity`` mm/s (default 30) for 1.8 s."""
     return Scene().with_ball(velocity=velocity)

@@ -43,10 +43,7 @@ class SceneGeometryWarning(UserWarning):
 
 
 def _material(spec: MaterialSpec, mass_scaling: float) -> J2Plasticity:
-    table = None
-    if spec.yield_table is not None:
-        arr = np.asarray(spec.yield_table, dtype=float)
-        table = HardeningTable(arr[:, 0], arr[:, 1])
+    table = None if spec.yield_table is None else HardeningTable.from_pairs(spec.yield_table)
     return J2Plasticity(spec.E, spec.nu, spec.density * mass_scaling, table)
 
 

@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common.database import Database, Job, Record, RunReport, read_index, run_jobs
+from toolkit.common.seeds import TISSUE_NU
 from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES
 
 __all__ = ["DatasetConfig", "generate", "StaticDatabase", "read_samples", "subject_phantom", "plan_features",
@@ -205,7 +206,7 @@ def simulate_job(params: dict) -> Record:
              "substeps": summary["substeps"], "regulated_nodes": summary["regulated_nodes"],
              "max_displacement_mm": summary["max_displacement_mm"], "max_penetration_mm": s["max_penetration_mm"],
              "jaw_closing_mm": jaw_closing(plan, dental_arch(phantom)),
-             "poisson": 0.47 if params.get("poisson") is None else float(params["poisson"]),
+             "poisson": TISSUE_NU if params.get("poisson") is None else float(params["poisson"]),
              "max_input_displacement_mm": float(np.linalg.norm(bone[:, moving], axis=-1).max(initial=0.0))}
     return Record({"displacements": U.astype(np.float32), "bone": bone.astype(np.float32),
                    "seconds_per_increment": np.array(summary["seconds_per_increment"]),

@@ -46,6 +46,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from toolkit.common import seeds
 from toolkit.common.io import atomic_path
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -96,8 +97,10 @@ class MotionRange:
 #: rotate about their condyle to follow the distal one, which at the edge of the distal
 #: range takes up to ~20 degrees (400 sampled plans), so their bound is twice the distal angle.
 PHYSIOLOGICAL_RANGES: Mapping[str, MotionRange] = MappingProxyType(
-    {"lefort": MotionRange((0.0, 6.3), (0.0, 9.8)), "distal": MotionRange((2.1, 11.5), (0.5, 13.3)),
-     "proximal_left": MotionRange((0.0, 11.5), (0.0, 26.6)), "proximal_right": MotionRange((0.0, 11.5), (0.0, 26.6))}
+    {"lefort": MotionRange(seeds.LEFORT_TRANSLATION_MM, seeds.LEFORT_ROTATION_DEG),
+     "distal": MotionRange(seeds.DISTAL_TRANSLATION_MM, seeds.DISTAL_ROTATION_DEG),
+     **{name: MotionRange((0.0, seeds.DISTAL_TRANSLATION_MM[1]), (0.0, 2.0 * seeds.DISTAL_ROTATION_DEG[1]))
+        for name in ("proximal_left", "proximal_right")}}
 )
 #: directions of sampled movements: ``sagittal`` translations in the y-z plane and rotations
 #: about the lateral x axis (seed 001's advancements, setbacks, impactions and pitch);

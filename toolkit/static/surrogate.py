@@ -29,11 +29,12 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from toolkit.common.seeds import TISSUE_NU
 from toolkit.common.training import (
     LR_SCHEDULES,
     MinMaxScaler,
@@ -315,7 +316,7 @@ class Surrogate:
                 bone[ids] = step.apply(x[ids]) - x[ids]
             prescribed = np.where((bc.types == 1)[:, None], bone, 0.0)
             prior = im.predict(prescribed) if im is not None else None
-            feats = encode(self.config.features, x, bc.types, prescribed, bone, side, 0.47, prior)
+            feats = encode(self.config.features, x, bc.types, prescribed, bone, side, TISSUE_NU, prior)
             U.append(U[-1] + self.predict(feats[None], prescribed[None], mask[None], h,
                                           None if prior is None else prior[None])[0])
             quality.append(mesh.with_points(X + U[-1]).scaled_jacobian())
@@ -414,7 +415,7 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
     out.mkdir(parents=True, exist_ok=True)
     if config.features.material_channels and db.config.poisson_range is None:
         raise ValueError("material_channels needs a database whose simulations vary Poisson's ratio "
-                         "(DatasetConfig.poisson_range); this one uses 0.47 throughout")
+                         f"(DatasetConfig.poisson_range); this one uses {TISSUE_NU} throughout")
     t_prior = time.perf_counter()
     priors = _subject_priors(db, db.points) if config.features.linear_prior else None
     t_prior = time.perf_counter() - t_prior
