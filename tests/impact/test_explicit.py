@@ -44,7 +44,8 @@ from toolkit.impact.elements import (
     lumped_mass,
     tet_kinematics,
 )
-from toolkit.impact.explicit import Body, ExplicitModel, InstabilityError, moving_sphere_contact, run_explicit
+from toolkit.impact.explicit import (Body, ContactResponse, ExplicitModel, InstabilityError, moving_sphere_contact,
+                                     run_explicit)
 from toolkit.impact.plasticity import FACE_TABLE, J2Plasticity
 
 RHO = 1e-9  # tonne/mm^3 (1000 kg/m^3)
@@ -576,7 +577,8 @@ def test_block_on_rigid_sphere_follows_coulomb_friction(push_ratio):
         f = np.zeros_like(x)
         f[bottom] = res.force
         history.append((t, res.slipping.copy(), res.active.copy()))
-        return f, res.elastic_energy, res.friction_dissipation, res.force.sum(axis=0), float(res.penetration.max()), 0.0
+        return ContactResponse(f, res.elastic_energy, res.friction_dissipation, res.force.sum(axis=0),
+                               float(res.penetration.max()))
 
     V_n = 1.0
     body = Body("block", kin, J2Plasticity(E, nu, RHO), 0, n, driven=top,

@@ -31,7 +31,7 @@ import numpy as np
 from toolkit.impact.elements import TetKinematics, deformation_gradient, internal_force
 
 __all__ = ["Body", "ExplicitModel", "Frame", "InstabilityError", "EnergyBalanceWarning", "run_explicit", "Energies",
-           "moving_sphere_contact"]
+           "moving_sphere_contact", "ContactResponse"]
 
 log = logging.getLogger(__name__)
 
@@ -130,13 +130,35 @@ class Frame:
     plastic_volume_fraction: float = 0.0
 
 
+@dataclass(frozen=True, eq=False)
+class ContactResponse:
+    """What a contact callback returns for one time step.
+
+    Attributes
+    ----------
+    forces : (n, 3) float, N — contact force on every node of the model
+    elastic_energy : float, mJ — energy stored in the penalty springs now
+    friction_dissipation : float, mJ — friction work dissipated during this step
+    force_on_face : (3,) float, N — total contact force on the face's nodes
+    max_penetration : float, mm
+    drive_work : float, mJ — work the imposed motion of a rigid ball did on the model during
+        this step (0 for a deformable ball, whose driven nodes' reactions count instead)
+    """
+
+    forces: np.ndarray
+    elastic_energy: float
+    friction_dissipation: float
+    force_on_face: np.ndarray
+    max_penetration: float
+    drive_work: float = 0.0
+
+
 @dataclass(eq=False)
 class ExplicitModel:
     """Bodies, masses and contact, ready to integrate.
 
-    ``contact(x, v, t, dt)`` returns ``(forces (n,3) N on all nodes, elastic energy mJ,
-    friction dissipation increment mJ, force on the face (3,) N, max penetration mm,
-    rigid-drive work increment mJ)``; ``None`` for no contact.
+    ``contact(x, v, t, dt) -> ContactResponse`` (positions and velocities ``(n, 3)`` mm and
+    mm/s, time and step s); ``None`` for no contact.
     """
 
     points: np.ndarray  # (n, 3) reference coordinates, all bodies
@@ -166,7 +188,7 @@ def moving_sphere_contact(pair, slaves: np.ndarray, centre0: np.ndarray, velocit
         work = float(0.5 * (on_body + previous["force"]) @ (centre - previous["centre"]))
         previous["force"], previous["centre"] = on_body, centre
         pen = float(res.penetration.max()) if res.penetration.size else 0.0
-        return f, res.elastic_energy, res.friction_dissipation, on_body, pen, work
+        return ContactResponse(f, res.elastic_energy, res.friction_dissipation, on_body, pen, work)
 
     return contact
 
@@ -243,7 +265,9 @@ def run_explicit(model: ExplicitModel, duration: float, n_frames: int, on_frame:
     contact_prev = np.zeros((n, 3))
     e_contact, penetration, f_face = 0.0, 0.0, np.zeros(3)
     if model.contact is not None:
-        contact_prev, e_contact, d_fric, f_face, penetration, _ = model.contact(model.points + u, v, t, dt)
+        first = model.contact(model.points + u, v, t, dt)
+        contact_prev, e_contact, f_face, penetration = (first.forces, first.elastic_energy, first.force_on_face,
+                                                        first.max_penetration)
     reaction_prev = np.zeros(driven.size)
     frames = []
     stats = {"steps": n_steps, "dt_s": dt, "max_contact_force_n": 0.0, "max_penetration_mm": 0.0}
@@ -270,7 +294,9 @@ def run_explicit(model: ExplicitModel, duration: float, n_frames: int, on_frame:
                                    exc.element, "lower the time-step safety factor, the ball velocity or the mass "
                                    "scaling; or refine the mesh where it inverted") from None
         if model.contact is not None:
-            c_new, e_contact, d_fric, f_face, penetration, w_drive = model.contact(model.points + u_new, v_new, t, dt)
+            res = model.contact(model.points + u_new, v_new, t, dt)
+            c_new, e_contact, d_fric = res.forces, res.elastic_energy, res.friction_dissipation
+            f_face, penetration, w_drive = res.force_on_face, res.max_penetration, res.drive_work
         else:
             c_new, d_fric, w_drive = np.zeros((n, 3)), 0.0, 0.0
         # energies (trapezoidal work increments)

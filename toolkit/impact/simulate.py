@@ -26,7 +26,7 @@ from toolkit.common.mesh import Mesh
 from toolkit.common.topology import boundary_faces
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact, penalty_stiffness
 from toolkit.impact.elements import critical_time_step, lumped_mass, tet_kinematics
-from toolkit.impact.explicit import Body, ExplicitModel, moving_sphere_contact, run_explicit
+from toolkit.impact.explicit import Body, ContactResponse, ExplicitModel, moving_sphere_contact, run_explicit
 from toolkit.impact.plasticity import HardeningTable, J2Plasticity
 from toolkit.impact.scene import MaterialSpec, Scene
 
@@ -136,10 +136,10 @@ def build_model(scene: Scene) -> BuiltScene:
 
         def contact(x, v, t, dt_):
             res = pair.step(x, v, dt_)
-            f = res.master_force.copy() if res.master_force.shape == x.shape else _dense(res, x.shape)
+            f = res.master_force.copy()  # the reaction on every node (the ball's surface)
             f[skin] += res.force
             pen = float(res.penetration.max()) if res.penetration.size else 0.0
-            return f, res.elastic_energy, res.friction_dissipation, res.force.sum(axis=0), pen, 0.0
+            return ContactResponse(f, res.elastic_energy, res.friction_dissipation, res.force.sum(axis=0), pen)
     model = ExplicitModel(points, mass, bodies, dt, contact)
     return BuiltScene(model, face, ball, centre0, dt_crit, dt_elem, ms - 1.0, clearance)
 
@@ -202,13 +202,6 @@ def sweep_travel(points: np.ndarray, centre0: np.ndarray, direction: np.ndarray,
     hit = perp2 < radius**2
     out[hit] = along[hit] - np.sqrt(radius**2 - perp2[hit])
     return out
-
-
-def _dense(res, shape):
-    f = np.zeros(shape)
-    idx, forces = res.master_force
-    np.add.at(f, idx, forces)
-    return f
 
 
 @dataclass(frozen=True, eq=False)
