@@ -211,74 +211,145 @@ def _to_nodes(kin: TetKinematics, values: np.ndarray, n_nodes: int) -> np.ndarra
     return num / np.maximum(den, 1e-300)
 
 
+@dataclass(frozen=True, eq=False)
+class _InternalForces:
+    """Internal forces ``(n, 3)`` N and the material response of every body at one instant."""
+
+    force: np.ndarray
+    states: list
+    cauchy: list  # per body (E*Q, 3, 3) MPa; von Mises is computed at output frames only
+    eps_p: list  # per body (E, Q)
+    dissipation: float  # mJ, plastic work of the step
+
+
+def _internal_forces(model: ExplicitModel, u: np.ndarray, states: list) -> _InternalForces:
+    """Every body's internal force and new material state at displacement ``u (n, 3)`` mm.
+    Raises :class:`_Inverted` where ``det F <= 0``."""
+    f = np.zeros_like(model.points)
+    new_states, cauchy, eps_p, diss = [], [], [], 0.0
+    for b, st in zip(model.bodies, states):
+        F = deformation_gradient(b.kin, u[b.offset:b.offset + b.n_nodes])
+        E, Q = F.shape[:2]
+        try:  # the material checks det F > 0 (and NaN) at every point
+            upd = b.material.update(F.reshape(-1, 3, 3), st)
+        except FloatingPointError as exc:
+            point = getattr(exc, "point", None)
+            raise _Inverted(b.name, None if point is None else int(point) // Q) from exc
+        f[b.offset:b.offset + b.n_nodes] = internal_force(b.kin, upd.first_piola.reshape(E, Q, 3, 3), b.n_nodes)
+        new_states.append(upd.state)
+        cauchy.append(upd.cauchy)
+        eps_p.append(np.asarray(upd.state.eps_p).reshape(E, Q))
+        diss += float(np.sum(np.asarray(upd.dissipation).reshape(E, Q) * b.kin.weight))
+    return _InternalForces(f, new_states, cauchy, eps_p, diss)
+
+
+def _contact(model: ExplicitModel, u: np.ndarray, v: np.ndarray, t: float, dt: float) -> ContactResponse:
+    """The model's contact response at ``u``, ``v`` (no contact: zero forces)."""
+    if model.contact is None:
+        return ContactResponse(np.zeros_like(model.points), 0.0, 0.0, np.zeros(3), 0.0)
+    return model.contact(model.points + u, v, t, dt)
+
+
+def _prescribed(model: ExplicitModel) -> tuple[np.ndarray, np.ndarray]:
+    """Flat prescribed dofs of every body and their velocities, mm/s."""
+    pres = [b.prescribed_dofs() for b in model.bodies]
+    if not pres:
+        return np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate([p[0] for p in pres]), np.concatenate([p[1] for p in pres])
+
+
+class _EnergyLedger:
+    """Energies (mJ) accumulated step by step with trapezoidal work increments; the initial
+    kinetic energy counts as work put in. Raises :class:`InstabilityError` when the kinetic
+    energy exceeds 100x the work done (an unstable step)."""
+
+    def __init__(self, m: np.ndarray, v0: np.ndarray, driven: np.ndarray, drive_v: np.ndarray):
+        self.m, self.driven, self.drive_v = m, driven, drive_v
+        self.ke_start = 0.5 * float(np.sum(m * v0**2))
+        self.energies = Energies(external=self.ke_start)
+        self.reaction = np.zeros(driven.size)
+        self.scale = 0.0
+
+    def record(self, t: float, dt: float, du: np.ndarray, v_half: np.ndarray, old: _InternalForces,
+               new: _InternalForces, contact: ContactResponse) -> None:
+        """Book one step: displacement increment ``du``, half-step velocity ``v_half`` (n, 3)."""
+        e = self.energies
+        e.internal += float(np.sum(du * 0.5 * (old.force + new.force)))
+        e.plastic += new.dissipation
+        e.friction += contact.friction_dissipation
+        e.contact_elastic = contact.elastic_energy
+        # work of contact forces on the free nodes is inside the contact energies; the part
+        # acting on driven nodes is balanced by their reactions
+        reaction = (new.force - contact.forces).reshape(-1)[self.driven]
+        e.external += float(np.sum(du.reshape(-1)[self.driven] * 0.5 * (self.reaction + reaction))) + contact.drive_work
+        self.reaction = reaction
+        # velocity at t(n+1) (the half-step velocity plus half a step of the new acceleration),
+        # so that the kinetic energy is taken at the same time as the internal energy
+        v_full = v_half + 0.5 * dt * (contact.forces - new.force) / self.m
+        v_full.reshape(-1)[self.driven] = self.drive_v
+        e.kinetic = 0.5 * float(np.sum(self.m * v_full**2))
+        self.scale = max(self.scale, abs(e.external), e.internal)
+        if e.kinetic > 100.0 * (self.scale + self.ke_start) + 1e-12:
+            raise InstabilityError(f"kinetic energy {e.kinetic:.3g} mJ exceeds 100x the work done",
+                                   t, None, None, "the time step is unstable: lower the safety factor")
+
+
+def _frame(model: ExplicitModel, t: float, u: np.ndarray, internal: _InternalForces, energies: Energies,
+           contact: ContactResponse) -> tuple[Frame, list]:
+    """The output frame at ``t`` (the face's fields) and every body's nodal fields."""
+    bodies_fields = []
+    for b, sig, epb in zip(model.bodies, internal.cauchy, internal.eps_p):
+        bodies_fields.append({
+            "displacement": u[b.offset:b.offset + b.n_nodes].copy(),
+            "von_mises": _to_nodes(b.kin, _von_mises(sig).reshape(epb.shape), b.n_nodes),
+            "equivalent_plastic_strain": _to_nodes(b.kin, epb, b.n_nodes),
+            "plastic_volume_fraction": float(_volume_share(b.kin, epb > 0.0)),
+        })
+    face = bodies_fields[0]
+    frame = Frame(t, face["displacement"], face["von_mises"], face["equivalent_plastic_strain"],
+                  Energies(**energies.__dict__), contact.force_on_face.copy(), float(contact.max_penetration),
+                  face["plastic_volume_fraction"])
+    return frame, bodies_fields
+
+
 def run_explicit(model: ExplicitModel, duration: float, n_frames: int, on_frame: Callable | None = None,
                  progress: bool = False, energy_tolerance: float = 0.05) -> tuple[list, dict]:
     """Integrate ``model`` for ``duration`` s, returning ``n_frames`` frames (t > 0) and statistics.
 
-    ``on_frame(frame, body_fields)`` is called as each frame completes (to write it at once).
-    Raises :class:`InstabilityError` on NaN, inverted elements or an energy blow-up; warns
-    :class:`EnergyBalanceWarning` when the final balance error exceeds ``energy_tolerance``.
+    Central differences (leapfrog): each step takes the half-step velocity from the last
+    forces, moves, computes the internal forces and the contact (:func:`_internal_forces`,
+    :func:`_contact`), books the energies (:class:`_EnergyLedger`) and writes a frame when
+    one is due (:func:`_frame`). ``on_frame(frame, body_fields)`` is called as each frame
+    completes (to write it at once). Raises :class:`InstabilityError` on NaN, inverted
+    elements or an energy blow-up; warns :class:`EnergyBalanceWarning` when the final
+    balance error exceeds ``energy_tolerance``.
     """
     from tqdm.auto import tqdm
 
-    dt = model.dt
-    n_steps = int(np.ceil(duration / dt - 1e-9))
+    n_steps = int(np.ceil(duration / model.dt - 1e-9))
     dt = duration / n_steps
     frame_steps = set(np.unique(np.round(np.linspace(0, n_steps, n_frames + 1)[1:]).astype(int)).tolist())
     n = model.points.shape[0]
     m = model.mass[:, None]
     u = np.zeros((n, 3))
     v = np.zeros((n, 3)) if model.initial_velocity is None else np.array(model.initial_velocity, dtype=float)
-    pres = [b.prescribed_dofs() for b in model.bodies]
-    driven = np.concatenate([p[0] for p in pres]) if pres else np.zeros(0, np.int64)  # flat dofs
-    drive_v = np.concatenate([p[1] for p in pres]) if pres else np.zeros(0)
+    driven, drive_v = _prescribed(model)
     v.reshape(-1)[driven] = drive_v
-    states = [b.material.initial_state(b.kin.n_points) for b in model.bodies]
-    energies = Energies()
-
-    def forces(u_now, states_now):
-        f = np.zeros((n, 3))
-        new_states, vm, eps_p, diss = [], [], [], 0.0
-        for b, st in zip(model.bodies, states_now):
-            ub = u_now[b.offset:b.offset + b.n_nodes]
-            F = deformation_gradient(b.kin, ub)
-            E, Q = F.shape[:2]
-            try:  # the material checks det F > 0 (and NaN) at every point
-                upd = b.material.update(F.reshape(-1, 3, 3), st)
-            except FloatingPointError as exc:
-                point = getattr(exc, "point", None)
-                raise _Inverted(b.name, None if point is None else int(point) // Q) from exc
-            P = upd.first_piola.reshape(E, Q, 3, 3)
-            f[b.offset:b.offset + b.n_nodes] = internal_force(b.kin, P, b.n_nodes)
-            new_states.append(upd.state)
-            vm.append(upd.cauchy)  # von Mises is computed at output frames only
-            eps_p.append(np.asarray(upd.state.eps_p).reshape(E, Q))
-            diss += float(np.sum(np.asarray(upd.dissipation).reshape(E, Q) * b.kin.weight))
-        return f, new_states, vm, eps_p, diss
-
     t = 0.0
     try:
-        f_int, states, vm, eps_p, _ = forces(u, states)
+        internal = _internal_forces(model, u, [b.material.initial_state(b.kin.n_points) for b in model.bodies])
     except _Inverted as exc:
         raise InstabilityError(f"{exc.body} element {exc.element} is inverted in the initial state", 0.0,
                                exc.body, exc.element, "check the mesh") from None
-    contact_prev = np.zeros((n, 3))
-    e_contact, penetration, f_face = 0.0, 0.0, np.zeros(3)
-    if model.contact is not None:
-        first = model.contact(model.points + u, v, t, dt)
-        contact_prev, e_contact, f_face, penetration = (first.forces, first.elastic_energy, first.force_on_face,
-                                                        first.max_penetration)
-    reaction_prev = np.zeros(driven.size)
+    contact = _contact(model, u, v, t, dt)
+    ledger = _EnergyLedger(m, v, driven, drive_v)
     frames = []
     stats = {"steps": n_steps, "dt_s": dt, "max_contact_force_n": 0.0, "max_penetration_mm": 0.0}
-    ke0_scale = 0.0
-    ke_start = 0.5 * float(np.sum(m * v**2))
-    energies.external = ke_start  # the initial kinetic energy counts as work put in
     bar = tqdm(total=n_steps, desc="simulated time (steps)", disable=not progress, leave=False,
                mininterval=1.0)
     t0 = time.perf_counter()
     for step in range(1, n_steps + 1):
-        a = (contact_prev - f_int) / m
+        a = (contact.forces - internal.force) / m
         v_new = v + dt * a if step > 1 else v + 0.5 * dt * a
         v_new.reshape(-1)[driven] = drive_v
         du = dt * v_new
@@ -288,54 +359,23 @@ def run_explicit(model: ExplicitModel, duration: float, n_frames: int, on_frame:
             raise InstabilityError("displacements became NaN/inf", t, None, None,
                                    "lower the time-step safety factor or the mass scaling")
         try:
-            f_new, states_new, vm, eps_p, diss = forces(u_new, states)
+            internal_new = _internal_forces(model, u_new, internal.states)
         except _Inverted as exc:
             raise InstabilityError(f"{exc.body} element {exc.element} inverted (det F <= 0)", t, exc.body,
                                    exc.element, "lower the time-step safety factor, the ball velocity or the mass "
                                    "scaling; or refine the mesh where it inverted") from None
-        if model.contact is not None:
-            res = model.contact(model.points + u_new, v_new, t, dt)
-            c_new, e_contact, d_fric = res.forces, res.elastic_energy, res.friction_dissipation
-            f_face, penetration, w_drive = res.force_on_face, res.max_penetration, res.drive_work
-        else:
-            c_new, d_fric, w_drive = np.zeros((n, 3)), 0.0, 0.0
-        # energies (trapezoidal work increments)
-        energies.internal += float(np.sum(du * 0.5 * (f_int + f_new)))
-        energies.plastic += diss
-        energies.friction += d_fric
-        energies.contact_elastic = e_contact
-        reaction_new = (f_new - c_new).reshape(-1)[driven]
-        energies.external += float(np.sum(du.reshape(-1)[driven] * 0.5 * (reaction_prev + reaction_new))) + w_drive
-        # work of contact forces on the free nodes is inside the contact energies; the part
-        # acting on driven nodes is balanced by their reactions
-        # velocity at t(n+1) (the half-step velocity plus half a step of the new acceleration),
-        # so that the kinetic energy is taken at the same time as the internal energy
-        v_full = v_new + 0.5 * dt * (c_new - f_new) / m
-        v_full.reshape(-1)[driven] = drive_v
-        energies.kinetic = 0.5 * float(np.sum(m * v_full**2))
-        ke0_scale = max(ke0_scale, abs(energies.external), energies.internal)
-        if energies.kinetic > 100.0 * (ke0_scale + ke_start) + 1e-12:
-            raise InstabilityError(f"kinetic energy {energies.kinetic:.3g} mJ exceeds 100x the work done",
-                                   t, None, None, "the time step is unstable: lower the safety factor")
-        stats["max_contact_force_n"] = max(stats["max_contact_force_n"], float(np.linalg.norm(f_face)))
-        stats["max_penetration_mm"] = max(stats["max_penetration_mm"], float(penetration))
-        u, v, f_int, states, contact_prev, reaction_prev = u_new, v_new, f_new, states_new, c_new, reaction_new
+        contact_new = _contact(model, u_new, v_new, t, dt)
+        ledger.record(t, dt, du, v_new, internal, internal_new, contact_new)
+        stats["max_contact_force_n"] = max(stats["max_contact_force_n"],
+                                           float(np.linalg.norm(contact_new.force_on_face)))
+        stats["max_penetration_mm"] = max(stats["max_penetration_mm"], float(contact_new.max_penetration))
+        u, v, internal, contact = u_new, v_new, internal_new, contact_new
         if step in frame_steps:
-            bodies_fields = []
-            for b, sig, epb in zip(model.bodies, vm, eps_p):
-                bodies_fields.append({
-                    "displacement": u[b.offset:b.offset + b.n_nodes].copy(),
-                    "von_mises": _to_nodes(b.kin, _von_mises(sig).reshape(epb.shape), b.n_nodes),
-                    "equivalent_plastic_strain": _to_nodes(b.kin, epb, b.n_nodes),
-                    "plastic_volume_fraction": float(_volume_share(b.kin, epb > 0.0)),
-                })
-            e = Energies(**energies.__dict__)
-            face = bodies_fields[0]
-            frame = Frame(t, face["displacement"], face["von_mises"], face["equivalent_plastic_strain"],
-                          e, f_face.copy(), float(penetration), face["plastic_volume_fraction"])
+            frame, bodies_fields = _frame(model, t, u, internal, ledger.energies, contact)
             frames.append(frame)
             if on_frame is not None:
                 on_frame(frame, bodies_fields)
+            e = frame.energies
             log.info("t = %.4g s: KE %.3g, internal %.3g, external %.3g mJ, energy error %.2e", t, e.kinetic,
                      e.internal, e.external, e.balance_error)
         bar.update(1)
