@@ -66,57 +66,94 @@ class BuiltScene:
 
 
 def build_model(scene: Scene) -> BuiltScene:
-    """Meshes, materials, masses, time step and contact for ``scene``."""
-    from toolkit.common.phantom import ball as ball_mesh
-
-    fid = scene.fidelity
+    """Meshes, materials, masses, time step and contact for ``scene``: the face, the ball aimed
+    at it (:func:`ball_start`, and a warning if its path reaches fixed nodes), each body with
+    its lumped masses and stable step, the run's time step, and the contact callback."""
     face = face_mesh(scene)
-    face_kin = tet_kinematics(face)
-    ms = fid.mass_scaling
-    face_mat = _material(scene.face.material, ms)
+    centre0 = ball_start(scene, face.points[face.node_set("skin")])
+    clearance = _path_clearance(scene, face, centre0)
+    face_body, face_mass, (dt_crit, dt_elem) = _face_body(scene, face)
+    bodies, masses, ball = [face_body], [face_mass], None
+    if not scene.ball.rigid:
+        ball_body, ball, ball_mass, (dt_ball, el_ball) = _ball_body(scene, centre0, face.n_points)
+        bodies.append(ball_body)
+        masses.append(ball_mass)
+        if dt_ball < dt_crit:
+            dt_crit, dt_elem = dt_ball, el_ball
+    mass = np.concatenate(masses)
+    points = face.points if ball is None else np.vstack([face.points, ball.points])
+    dt = _time_step(scene, dt_crit, dt_elem)
+    contact = _contact_callback(scene, face, ball, mass, dt_crit, centre0)
+    model = ExplicitModel(points, mass, bodies, dt, contact)
+    return BuiltScene(model, face, ball, centre0, dt_crit, dt_elem, scene.fidelity.mass_scaling - 1.0, clearance)
+
+
+def _path_clearance(scene: Scene, face: Mesh, centre0: np.ndarray) -> float:
+    """Travel (mm) left between the end of the ball's path and the first fixed node (negative:
+    the path reaches them, and :class:`SceneGeometryWarning` says when)."""
     d = np.asarray(scene.ball.direction, dtype=float)
-    skin = face.node_set("skin")
-    R = scene.ball.radius
-    centre0 = ball_start(scene, face.points[skin])
     travel = scene.ball.velocity * scene.duration
-    fixed_ids = fixed_nodes(scene, face)
-    clearance = float(sweep_travel(face.points[fixed_ids], centre0, d, R).min(initial=np.inf)) - travel
+    clearance = float(sweep_travel(face.points[fixed_nodes(scene, face)], centre0, d,
+                                   scene.ball.radius).min(initial=np.inf)) - travel
     if clearance < 0:
         warnings.warn(f"the ball's path reaches the fixed region after {travel + clearance:.1f} mm of its "
                       f"{travel:.1f} mm travel (t = {(travel + clearance) / scene.ball.velocity:.2f} s): tissue "
                       "will be crushed against fixed nodes and elements may invert; aim higher "
                       "(ball.target_offset), shorten the duration or fix less of the face",
-                      SceneGeometryWarning, stacklevel=2)
-    bodies = [Body("face", face_kin, face_mat, 0, face.n_points, fixed=fixed_ids)]
-    masses = [lumped_mass(face_kin, scene.face.material.density * ms, face.n_points)]
+                      SceneGeometryWarning, stacklevel=3)
+    return clearance
+
+
+def _face_body(scene: Scene, face: Mesh) -> tuple[Body, np.ndarray, tuple]:
+    """The face body (fixed nodes held), its lumped masses (n,) tonne and ``(stable step s,
+    ("face", element))``."""
+    ms = scene.fidelity.mass_scaling
+    kin = tet_kinematics(face)
+    body = Body("face", kin, _material(scene.face.material, ms), 0, face.n_points, fixed=fixed_nodes(scene, face))
+    mass = lumped_mass(kin, scene.face.material.density * ms, face.n_points)
     lam, mu = _lame(scene.face.material)
-    dt_face, el_face, _ = critical_time_step(face_kin, lam, mu, scene.face.material.density * ms)
-    dt_crit, dt_elem = dt_face, ("face", el_face)
-    ball = None
-    if not scene.ball.rigid:
-        ball = ball_mesh(R, scene.ball.resolution, order=fid.order, centre=centre0)
-        ball_kin = tet_kinematics(ball)
-        back = np.flatnonzero((ball.points - centre0) @ d < -scene.ball.driven_fraction * R)
-        bodies.append(Body("ball", ball_kin, _material(scene.ball.material, ms), face.n_points, ball.n_points,
-                           driven=back, drive_velocity=scene.ball.velocity * d))
-        masses.append(lumped_mass(ball_kin, scene.ball.material.density * ms, ball.n_points))
-        lam_b, mu_b = _lame(scene.ball.material)
-        dt_ball, el_ball, _ = critical_time_step(ball_kin, lam_b, mu_b, scene.ball.material.density * ms)
-        if dt_ball < dt_crit:
-            dt_crit, dt_elem = dt_ball, ("ball", el_ball)
-    mass = np.concatenate(masses)
-    points = face.points if ball is None else np.vstack([face.points, ball.points])
-    fraction = scene.contact.dt_fraction
+    dt, element, _ = critical_time_step(kin, lam, mu, scene.face.material.density * ms)
+    return body, mass, (dt, ("face", element))
+
+
+def _ball_body(scene: Scene, centre0: np.ndarray, offset: int) -> tuple[Body, Mesh, np.ndarray, tuple]:
+    """The deformable ball at ``centre0``: its body (the back, beyond ``driven_fraction`` of the
+    radius, driven at the ball's velocity; the front free), mesh, masses and stable step."""
+    from toolkit.common.phantom import ball as ball_mesh
+
+    ms, R = scene.fidelity.mass_scaling, scene.ball.radius
+    d = np.asarray(scene.ball.direction, dtype=float)
+    ball = ball_mesh(R, scene.ball.resolution, order=scene.fidelity.order, centre=centre0)
+    kin = tet_kinematics(ball)
+    back = np.flatnonzero((ball.points - centre0) @ d < -scene.ball.driven_fraction * R)
+    body = Body("ball", kin, _material(scene.ball.material, ms), offset, ball.n_points,
+                driven=back, drive_velocity=scene.ball.velocity * d)
+    mass = lumped_mass(kin, scene.ball.material.density * ms, ball.n_points)
+    lam, mu = _lame(scene.ball.material)
+    dt, element, _ = critical_time_step(kin, lam, mu, scene.ball.material.density * ms)
+    return body, ball, mass, (dt, ("ball", element))
+
+
+def _time_step(scene: Scene, dt_crit: float, dt_elem: tuple) -> float:
+    """The run's step, s: the fidelity's ``dt`` (refused above the stable limit unless allowed)
+    or its ``safety`` times the stable step the contact penalty keeps."""
+    fid, fraction = scene.fidelity, scene.contact.dt_fraction
     dt_stable = fraction * dt_crit  # the contact penalty keeps the step above this
-    if fid.dt is not None:
-        if fid.dt > dt_stable and not fid.allow_unstable_dt:
-            raise UnstableTimeStepError(
-                f"time step {fid.dt:.3g} s exceeds the stable limit {dt_stable:.3g} s ({dt_elem[0]} element "
-                f"{dt_elem[1]}, contact fraction {fraction}); use dt <= {dt_stable:.3g} s, mass scaling, or drop "
-                f"Fidelity.dt to let the solver choose")
-        dt = fid.dt
-    else:
-        dt = fid.safety * dt_stable
+    if fid.dt is None:
+        return fid.safety * dt_stable
+    if fid.dt > dt_stable and not fid.allow_unstable_dt:
+        raise UnstableTimeStepError(
+            f"time step {fid.dt:.3g} s exceeds the stable limit {dt_stable:.3g} s ({dt_elem[0]} element "
+            f"{dt_elem[1]}, contact fraction {fraction}); use dt <= {dt_stable:.3g} s, mass scaling, or drop "
+            f"Fidelity.dt to let the solver choose")
+    return fid.dt
+
+
+def _contact_callback(scene: Scene, face: Mesh, ball: Mesh | None, mass: np.ndarray, dt_crit: float,
+                      centre0: np.ndarray):
+    """Penalty contact of the skin against the rigid sphere or the deformable ball's surface,
+    with Coulomb friction; the penalty keeps the stable step at ``dt_fraction`` of ``dt_crit``."""
+    skin = face.node_set("skin")
     friction = CoulombFriction(scene.contact.friction) if scene.contact.friction > 0 else None
     # a penalty spring joins a skin node to the ball: its stable step depends on the lighter end.
     # Deformable tet10 balls put only 1/36 of an element's mass on each corner (HRZ), and the
@@ -126,22 +163,22 @@ def build_model(scene: Scene) -> BuiltScene:
         corners = np.unique(boundary_faces(ball.volume_type, ball.volume_cells)) + face.n_points
         m_master = float(mass[corners].min())
         m_contact = 1.0 / (1.0 / m_contact + 1.0 / m_master)
-    k_pen = penalty_stiffness(m_contact, dt_crit, fraction)
-    velocity = scene.ball.velocity * d
+    k_pen = penalty_stiffness(m_contact, dt_crit, scene.contact.dt_fraction)
+    d = np.asarray(scene.ball.direction, dtype=float)
     if scene.ball.rigid:
-        contact = moving_sphere_contact(RigidSphereContact(R, k_pen, friction, skin), skin, centre0, velocity)
-    else:
-        tris = boundary_faces(ball.volume_type, ball.volume_cells) + face.n_points
-        pair = SurfaceContact(skin, tris, k_pen, friction)
+        return moving_sphere_contact(RigidSphereContact(scene.ball.radius, k_pen, friction, skin), skin, centre0,
+                                     scene.ball.velocity * d)
+    tris = boundary_faces(ball.volume_type, ball.volume_cells) + face.n_points
+    pair = SurfaceContact(skin, tris, k_pen, friction)
 
-        def contact(x, v, t, dt_):
-            res = pair.step(x, v, dt_)
-            f = res.master_force.copy()  # the reaction on every node (the ball's surface)
-            f[skin] += res.force
-            pen = float(res.penetration.max()) if res.penetration.size else 0.0
-            return ContactResponse(f, res.elastic_energy, res.friction_dissipation, res.force.sum(axis=0), pen)
-    model = ExplicitModel(points, mass, bodies, dt, contact)
-    return BuiltScene(model, face, ball, centre0, dt_crit, dt_elem, ms - 1.0, clearance)
+    def contact(x, v, t, dt_):
+        res = pair.step(x, v, dt_)
+        f = res.master_force.copy()  # the reaction on every node (the ball's surface)
+        f[skin] += res.force
+        pen = float(res.penetration.max()) if res.penetration.size else 0.0
+        return ContactResponse(f, res.elastic_energy, res.friction_dissipation, res.force.sum(axis=0), pen)
+
+    return contact
 
 
 def ball_start(scene: Scene, skin_points: np.ndarray) -> np.ndarray:
