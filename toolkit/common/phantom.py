@@ -435,9 +435,22 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
     geom = _Geometry(shape)
     g = _grid(geom, n_u, n_v, n_w)
     hexes = _hex_connectivity(g.hexes)
-    n_points = g.points.shape[0]
+    node_sets = _face_node_sets(geom, g)
+    fibre, lip_muscle = _lip_muscle(g, hexes, shape, (n_u, n_v, n_w))
+    mesh = Mesh(
+        g.points,
+        {"hex8": hexes},
+        node_sets=node_sets,
+        element_sets={"lip_muscle": lip_muscle},
+        cell_data={"fibre_direction": fibre},
+    )
+    segments, condyles = _bony_segments(geom, g, shape, g.points[node_sets["maxilla"]].mean(axis=0))
+    return FacePhantom(mesh, MappingProxyType(segments), condyles, shape, resolution)
 
-    # ---- node sets
+
+def _face_node_sets(geom: _Geometry, g: _Grid) -> dict:
+    """The boundary node sets of the module docstring on the grid ``g``: name -> (k,) int."""
+    n_points = g.points.shape[0]
     all_ids = np.concatenate([g.lower.reshape(-1), g.upper_slit[g.slit_cols].reshape(-1)])
     nu1, nv1, nw1 = g.lower.shape
     I, J, K = np.meshgrid(np.arange(nu1), np.arange(nv1), np.arange(nw1), indexing="ij")
@@ -480,17 +493,7 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
     }
     lip = in_slit & ~inner
 
-    # ---- element sets and fibre direction
-    x = g.points[hexes]
-    sup = (x[:, [1, 2, 5, 6]] - x[:, [0, 3, 4, 7]]).mean(axis=1)  # +v (superior) edges
-    fibre = sup / np.linalg.norm(sup, axis=1, keepdims=True)
-    ei, ej, _ = np.meshgrid(np.arange(n_u), np.arange(n_v), np.arange(n_w), indexing="ij")
-    e_theta = 0.5 * (g.theta[ei] + g.theta[ei + 1]).reshape(-1)
-    e_z = 0.5 * (g.z[ej] + g.z[ej + 1]).reshape(-1)
-    theta_c = g.theta[g.slit_cols[-1] + 1]
-    lip_muscle = np.flatnonzero((np.abs(e_theta) < 1.25 * theta_c) & (np.abs(e_z) < 18.0 * shape.face_height / 90.0))
-
-    node_sets = {
+    return {
         "fixed": np.flatnonzero(fixed),
         "maxilla": np.flatnonzero(maxilla),
         "mandible": np.flatnonzero(distal),
@@ -502,15 +505,28 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
         "upper_lip_face": np.flatnonzero(in_slit & is_upper_copy),
         "lower_lip_face": np.flatnonzero(in_slit & ~is_upper_copy),
     }
-    mesh = Mesh(
-        g.points,
-        {"hex8": hexes},
-        node_sets=node_sets,
-        element_sets={"lip_muscle": lip_muscle},
-        cell_data={"fibre_direction": fibre},
-    )
 
-    # ---- bony segments on the mesh's grid lines (extended by two cells)
+
+def _lip_muscle(g: _Grid, hexes: np.ndarray, shape: FaceShape,
+                counts: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-element fibre direction ``(E, 3)`` (superior, along the grid's v lines) and the
+    elements of the lip muscle around the mouth slit ``(m,)`` int; ``counts`` are the element
+    counts ``(n_u, n_v, n_w)``."""
+    n_u, n_v, n_w = counts
+    x = g.points[hexes]
+    sup = (x[:, [1, 2, 5, 6]] - x[:, [0, 3, 4, 7]]).mean(axis=1)  # +v (superior) edges
+    fibre = sup / np.linalg.norm(sup, axis=1, keepdims=True)
+    ei, ej, _ = np.meshgrid(np.arange(n_u), np.arange(n_v), np.arange(n_w), indexing="ij")
+    e_theta = 0.5 * (g.theta[ei] + g.theta[ei + 1]).reshape(-1)
+    e_z = 0.5 * (g.z[ej] + g.z[ej + 1]).reshape(-1)
+    theta_c = g.theta[g.slit_cols[-1] + 1]
+    lip_muscle = np.flatnonzero((np.abs(e_theta) < 1.25 * theta_c) & (np.abs(e_z) < 18.0 * shape.face_height / 90.0))
+    return fibre, lip_muscle
+
+
+def _bony_segments(geom: _Geometry, g: _Grid, shape: FaceShape, maxilla_centre: np.ndarray) -> tuple[dict, np.ndarray]:
+    """The bony segments on the mesh's grid lines (extended by two cells) and the condyles
+    ``(2, 3)`` mm; the Le Fort I segment pivots about ``maxilla_centre`` (3,) mm."""
     th_all = _extend(g.theta, g.theta[0], g.theta[-1])
     pos_condyle = np.array([geom.a0 + 6.0, -18.0 * shape.face_height / 90.0, 0.6 * geom.z_top])
     condyles = np.stack([pos_condyle, pos_condyle * [-1, 1, 1]])
@@ -518,7 +534,7 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
     th_distal = _extend(g.theta, -geom.theta_osteo, geom.theta_osteo)
     z_mand = _extend(g.z, g.z[0], 0.0)
     segments = {
-        "lefort": BoneSegment("lefort", lefort_surface, g.points[node_sets["maxilla"]].mean(axis=0), "maxilla",
+        "lefort": BoneSegment("lefort", lefort_surface, maxilla_centre, "maxilla",
                               "mucosa_lefort"),
         "distal": BoneSegment("distal", _segment_surface(geom, th_distal, z_mand), condyles.mean(axis=0), "mandible",
                               "mucosa_distal"),
@@ -531,7 +547,7 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
         "skull": BoneSegment("skull", _segment_surface(geom, th_all, _extend(g.z, geom.z_lefort, g.z[-1])),
                              np.zeros(3), None, "mucosa_skull"),
     }
-    return FacePhantom(mesh, MappingProxyType(segments), condyles, shape, resolution)
+    return segments, condyles
 
 
 def face_tet(
