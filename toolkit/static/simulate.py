@@ -82,8 +82,8 @@ __all__ = ["simulate", "SimulationOptions", "SimulationResult", "IncrementReport
 log = logging.getLogger(__name__)
 
 SLIDING_MODELS = ("none", "mucosa", "mucosa+lip")
-_MAX_CUT_FREEINGS = 3  # retries of one plan that free more of the cut (each a full run)
 MATERIALS = ("linear", "neo-hookean")
+_MAX_CUT_FREEINGS = 3  # retries of one plan that free more of the cut (each a full run)
 
 
 class SimulationError(RuntimeError):
@@ -570,7 +570,8 @@ def simulate(
     Raises
     ------
     SimulationError naming the increment, the worst element and a suggestion (after the
-    retries with ``options.wider_release``).
+    retries: fixed nodes of the cut freed near an element that touches it,
+    ``options.free_cut_radius``; then each of ``options.wider_release``).
     """
     t_start = time.perf_counter()
     options = options or SimulationOptions()
