@@ -21,7 +21,7 @@ import numpy as np
 from toolkit.common.seeds import LIP_MUSCLE_E_FIBRE, LIP_MUSCLE_E_TRANSVERSE, TISSUE_E, TISSUE_NU
 
 __all__ = ["LinearElastic", "TransverselyIsotropic", "NeoHookean", "IsotropicModuli", "lame", "VOIGT",
-           "MaterialWarning"]
+           "MaterialWarning", "von_mises"]
 
 #: Voigt index pairs
 VOIGT = np.array([[0, 0], [1, 1], [2, 2], [1, 2], [0, 2], [0, 1]])
@@ -37,6 +37,15 @@ class MaterialWarning(UserWarning):
 def lame(E: float, nu: float) -> tuple[float, float]:
     """Lame parameters ``(lam, mu)`` in MPa from Young's modulus (MPa) and Poisson's ratio."""
     return E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+
+
+def von_mises(stress: np.ndarray) -> np.ndarray:
+    """Von Mises equivalent stress ``sqrt(3/2 s:s)`` (MPa, shape ``(...)``) of symmetric
+    stresses ``(..., 3, 3)`` MPa, with ``s`` the deviator."""
+    stress = np.asarray(stress, dtype=np.float64)
+    tr = np.trace(stress, axis1=-2, axis2=-1)
+    ss = np.einsum("...ij,...ij->...", stress, stress) - tr**2 / 3.0
+    return np.sqrt(1.5 * np.maximum(ss, 0.0))
 
 
 def _check(name: str, E: float, nu: float) -> None:

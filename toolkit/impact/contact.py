@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from toolkit.common.surface_distance import closest_points
+from toolkit.common.surface_distance import barycentric, closest_points
 
 __all__ = [
     "ContactStep",
@@ -518,16 +518,11 @@ def orient_outward(triangles, points, inside_point) -> np.ndarray:
     return t
 
 
-def _barycentric(p, a, b, c) -> np.ndarray:
-    """Barycentric weights (n, 3) of points ``p`` on triangles ``(a, b, c)``, clipped to >= 0 and
-    normalised to sum to 1 (the points lie on the triangles up to round-off)."""
-    v0, v1, v2 = b - a, c - a, p - a
-    d00, d01, d11 = _dot(v0, v0), _dot(v0, v1), _dot(v1, v1)
-    d20, d21 = _dot(v2, v0), _dot(v2, v1)
-    denom = d00 * d11 - d01 * d01
-    v = (d11 * d20 - d01 * d21) / denom
-    w = (d00 * d21 - d01 * d20) / denom
-    weights = np.clip(np.stack([1.0 - v - w, v, w], axis=1), 0.0, None)
+def _contact_weights(p, a, b, c) -> np.ndarray:
+    """Barycentric weights (n, 3) of points ``p`` on triangles ``(a, b, c)``
+    (:func:`~toolkit.common.surface_distance.barycentric`), clipped to >= 0 and normalised to
+    sum to 1 (the points lie on the triangles up to round-off)."""
+    weights = np.clip(barycentric(p, np.stack([a, b, c], axis=1)), 0.0, None)
     return weights / weights.sum(axis=1, keepdims=True)
 
 
@@ -653,7 +648,7 @@ class SurfaceContact(_PenaltyContact):
         normal = cp.normal[hit]
         t_hit = cp.triangle[hit]
         corners = tri[t_hit]  # (n_a, 3) master node ids
-        weights = _barycentric(cp.point[hit], a[t_hit], b[t_hit], c[t_hit])
+        weights = _contact_weights(cp.point[hit], a[t_hit], b[t_hit], c[t_hit])
         if self.friction is not None:
             v = np.asarray(v, dtype=np.float64)
             if v.shape != x.shape:

@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from toolkit.common.materials import von_mises
 from toolkit.impact.elements import TetKinematics, deformation_gradient, internal_force
 
 __all__ = ["Body", "ExplicitModel", "Frame", "InstabilityError", "EnergyBalanceWarning", "run_explicit", "Energies",
@@ -193,11 +194,6 @@ def moving_sphere_contact(pair, slaves: np.ndarray, centre0: np.ndarray, velocit
     return contact
 
 
-def _von_mises(sigma: np.ndarray) -> np.ndarray:
-    s = sigma - np.trace(sigma, axis1=-2, axis2=-1)[..., None, None] * np.eye(3) / 3.0
-    return np.sqrt(1.5 * np.einsum("...ij,...ij->...", s, s))
-
-
 def _volume_share(kin: TetKinematics, mask: np.ndarray) -> float:
     """Share of the body's volume at the integration points where ``mask (E, Q)`` holds."""
     return float(np.sum(kin.weight[mask]) / np.sum(kin.weight))
@@ -301,7 +297,7 @@ def _frame(model: ExplicitModel, t: float, u: np.ndarray, internal: _InternalFor
     for b, sig, epb in zip(model.bodies, internal.cauchy, internal.eps_p):
         bodies_fields.append({
             "displacement": u[b.offset:b.offset + b.n_nodes].copy(),
-            "von_mises": _to_nodes(b.kin, _von_mises(sig).reshape(epb.shape), b.n_nodes),
+            "von_mises": _to_nodes(b.kin, von_mises(sig).reshape(epb.shape), b.n_nodes),
             "equivalent_plastic_strain": _to_nodes(b.kin, epb, b.n_nodes),
             "plastic_volume_fraction": float(_volume_share(b.kin, epb > 0.0)),
         })

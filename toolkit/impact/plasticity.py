@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from toolkit.common import seeds
-from toolkit.common.materials import IsotropicModuli, _check
+from toolkit.common.materials import IsotropicModuli, _check, von_mises
 from toolkit.impact.jit import njit, use_jit
 
 __all__ = [
@@ -215,15 +215,6 @@ class StressUpdate:
     state: PlasticState
     dissipation: np.ndarray
     plastic: np.ndarray
-
-
-def von_mises(stress: np.ndarray) -> np.ndarray:
-    """Von Mises equivalent stress ``sqrt(3/2 s:s)`` (MPa, shape ``(...)``) of symmetric
-    stresses ``(..., 3, 3)`` MPa, with ``s`` the deviator."""
-    stress = np.asarray(stress, dtype=np.float64)
-    tr = np.trace(stress, axis1=-2, axis2=-1)
-    ss = np.einsum("...ij,...ij->...", stress, stress) - tr**2 / 3.0
-    return np.sqrt(1.5 * np.maximum(ss, 0.0))
 
 
 def _cofactor_det(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
