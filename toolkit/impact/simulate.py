@@ -70,9 +70,10 @@ def build_model(scene: Scene) -> BuiltScene:
     at it (:func:`ball_start`, and a warning if its path reaches fixed nodes), each body with
     its lumped masses and stable step, the run's time step, and the contact callback."""
     face = face_mesh(scene)
+    fixed = fixed_nodes(scene, face)
     centre0 = ball_start(scene, face.points[face.node_set("skin")])
-    clearance = _path_clearance(scene, face, centre0)
-    face_body, face_mass, (dt_crit, dt_elem) = _face_body(scene, face)
+    clearance = _path_clearance(scene, face.points[fixed], centre0)
+    face_body, face_mass, (dt_crit, dt_elem) = _face_body(scene, face, fixed)
     bodies, masses, ball = [face_body], [face_mass], None
     if not scene.ball.rigid:
         ball_body, ball, ball_mass, (dt_ball, el_ball) = _ball_body(scene, centre0, face.n_points)
@@ -88,13 +89,13 @@ def build_model(scene: Scene) -> BuiltScene:
     return BuiltScene(model, face, ball, centre0, dt_crit, dt_elem, scene.fidelity.mass_scaling - 1.0, clearance)
 
 
-def _path_clearance(scene: Scene, face: Mesh, centre0: np.ndarray) -> float:
-    """Travel (mm) left between the end of the ball's path and the first fixed node (negative:
-    the path reaches them, and :class:`SceneGeometryWarning` says when)."""
+def _path_clearance(scene: Scene, fixed_points: np.ndarray, centre0: np.ndarray) -> float:
+    """Travel (mm) left between the end of the ball's path and the first of the fixed nodes at
+    ``fixed_points (k, 3)`` mm (negative: the path reaches them, and
+    :class:`SceneGeometryWarning` says when)."""
     d = np.asarray(scene.ball.direction, dtype=float)
     travel = scene.ball.velocity * scene.duration
-    clearance = float(sweep_travel(face.points[fixed_nodes(scene, face)], centre0, d,
-                                   scene.ball.radius).min(initial=np.inf)) - travel
+    clearance = float(sweep_travel(fixed_points, centre0, d, scene.ball.radius).min(initial=np.inf)) - travel
     if clearance < 0:
         warnings.warn(f"the ball's path reaches the fixed region after {travel + clearance:.1f} mm of its "
                       f"{travel:.1f} mm travel (t = {(travel + clearance) / scene.ball.velocity:.2f} s): tissue "
@@ -104,12 +105,12 @@ def _path_clearance(scene: Scene, face: Mesh, centre0: np.ndarray) -> float:
     return clearance
 
 
-def _face_body(scene: Scene, face: Mesh) -> tuple[Body, np.ndarray, tuple]:
-    """The face body (fixed nodes held), its lumped masses (n,) tonne and ``(stable step s,
-    ("face", element))``."""
+def _face_body(scene: Scene, face: Mesh, fixed: np.ndarray) -> tuple[Body, np.ndarray, tuple]:
+    """The face body (the ``fixed`` nodes held), its lumped masses (n,) tonne and ``(stable
+    step s, ("face", element))``."""
     ms = scene.fidelity.mass_scaling
     kin = tet_kinematics(face)
-    body = Body("face", kin, _material(scene.face.material, ms), 0, face.n_points, fixed=fixed_nodes(scene, face))
+    body = Body("face", kin, _material(scene.face.material, ms), 0, face.n_points, fixed=fixed)
     mass = lumped_mass(kin, scene.face.material.density * ms, face.n_points)
     lam, mu = _lame(scene.face.material)
     dt, element, _ = critical_time_step(kin, lam, mu, scene.face.material.density * ms)
@@ -160,15 +161,14 @@ def _contact_callback(scene: Scene, face: Mesh, ball: Mesh | None, mass: np.ndar
     # rubber is 13x lighter than tissue, so the master nodes, not the skin, set the limit.
     m_contact = mass[skin]
     if ball is not None:
-        corners = np.unique(boundary_faces(ball.volume_type, ball.volume_cells)) + face.n_points
-        m_master = float(mass[corners].min())
+        tris = boundary_faces(ball.volume_type, ball.volume_cells) + face.n_points
+        m_master = float(mass[np.unique(tris)].min())
         m_contact = 1.0 / (1.0 / m_contact + 1.0 / m_master)
     k_pen = penalty_stiffness(m_contact, dt_crit, scene.contact.dt_fraction)
     d = np.asarray(scene.ball.direction, dtype=float)
     if scene.ball.rigid:
         return moving_sphere_contact(RigidSphereContact(scene.ball.radius, k_pen, friction, skin), skin, centre0,
                                      scene.ball.velocity * d)
-    tris = boundary_faces(ball.volume_type, ball.volume_cells) + face.n_points
     pair = SurfaceContact(skin, tris, k_pen, friction)
 
     def contact(x, v, t, dt_):
