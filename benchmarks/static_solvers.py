@@ -7,7 +7,7 @@ split into tetrahedra (``paper-tet4``), and on a bulky tetrahedral block of ~8,8
 (``bulk-tet4``: 26k dofs like a real volumetric tet mesh, bottom fixed, top pushed), and
 solves it with every available method, each in a fresh process (peak resident memory is
 per process). Each row also gives the factor size ``auto`` expects
-(:func:`~toolkit.static.solvers.estimate_factor_entries`) and its choice, and the time of
+(:func:`~toolkit.common.fem.solvers.estimate_factor_entries`) and its choice, and the time of
 a second solve after tying 5 more pairs (the next lip-contact iteration) by CG preconditioned
 with the first factorization (``reuse_s``, ``reuse_iterations``). CHOLMOD needs
 ``scikit-sparse`` and the system SuiteSparse and is skipped when missing; SuperLU is
@@ -87,7 +87,7 @@ def run_one(name: str, method: str) -> dict:
     from dataclasses import replace
 
     from toolkit.static.fem import _node_graph
-    from toolkit.static.solvers import LinearSolver, SolverError, choose_method, estimate_factor_entries
+    from toolkit.common.fem.solvers import LinearSolver, SolverError, choose_method, estimate_factor_entries
 
     t0 = time.perf_counter()
     problem, c, ties = _system(name)

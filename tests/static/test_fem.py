@@ -28,7 +28,7 @@ from toolkit.static.assembly import (
 )
 from toolkit.static.constraints import Constraints
 from toolkit.static.fem import StaticProblem, solve_with_lip_contact
-from toolkit.static.solvers import solve
+from toolkit.common.fem.solvers import solve
 
 # VTK hex8 corner order by local (i, j, k) bits
 _ORDER = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]

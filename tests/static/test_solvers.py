@@ -10,7 +10,7 @@ from toolkit.common.phantom import block, face_hex
 from toolkit.static.assembly import MaterialAssignment
 from toolkit.static.constraints import Constraints
 from toolkit.static.fem import StaticProblem, _node_graph
-from toolkit.static.solvers import AUTO_DIRECT_MAX_ENTRIES, LinearSolver, choose_method, estimate_factor_entries
+from toolkit.common.fem.solvers import AUTO_DIRECT_MAX_ENTRIES, LinearSolver, choose_method, estimate_factor_entries
 
 
 def _entries(mesh):

@@ -25,7 +25,7 @@ from toolkit.static.simulate import (
     material_assignment,
     simulate,
 )
-from toolkit.static.solvers import SolverError
+from toolkit.common.fem.solvers import SolverError
 
 __all__ = [
     "simulate",

@@ -32,7 +32,7 @@ from toolkit.static.assembly import (
     neo_hookean_system,
 )
 from toolkit.static.constraints import Constraints
-from toolkit.static.solvers import LinearSolver, SolveInfo, estimate_factor_entries, rigid_body_modes
+from toolkit.common.fem.solvers import LinearSolver, SolveInfo, estimate_factor_entries, rigid_body_modes
 
 __all__ = ["StaticProblem", "Solution", "ConvergenceError", "solve_with_lip_contact", "ContactResult"]
 
@@ -75,7 +75,7 @@ class StaticProblem:
     mesh : Mesh with one or several volume blocks (hex8 and wedge6 with mean dilatation;
         tet4, tet10); element sets of ``materials`` may span blocks
     materials : MaterialAssignment (all linear, or all Neo-Hookean)
-    solver : ``auto``, ``superlu``, ``amg`` or ``cholmod`` (see :mod:`toolkit.static.solvers`)
+    solver : ``auto``, ``superlu``, ``amg`` or ``cholmod`` (see :mod:`toolkit.common.fem.solvers`)
     pattern : a SparsePattern of the same topology to reuse
     rtol : Newton stops when the free-dof residual falls below ``rtol`` times the
         largest nodal force (reactions included)

@@ -74,7 +74,7 @@ from toolkit.static.constraints import Constraints
 from toolkit.static.fem import ConvergenceError, StaticProblem, solve_with_lip_contact
 from toolkit.static.plan import SurgicalPlan
 from toolkit.static.regulation import element_quality, regulate
-from toolkit.static.solvers import SolverError
+from toolkit.common.fem.solvers import SolverError
 
 __all__ = ["simulate", "SimulationOptions", "SimulationResult", "IncrementReport", "SimulationError",
            "material_assignment", "SLIDING_MODELS", "MATERIALS"]

@@ -1,4 +1,5 @@
-"""Sparse symmetric positive definite solvers for the static FE systems.
+"""Sparse symmetric positive definite solvers for the FE systems of both workflows (the static
+face and the quasi-static impact path).
 
 Options (measured in ``benchmarks/static_solvers.py``; SPEC.md has this machine's figures):
 
