@@ -255,6 +255,15 @@ class ContactStep:
         :class:`SurfaceContact` only: reaction on every mesh node (non-zero on the master
         triangles' nodes), ``force`` distributed with the contact point's barycentric weights
         and reversed; ``force.sum(0) + master_force.sum(0) == 0`` to round-off.
+    normal : (n_slave, 3) float or None
+        Unit contact normal of the active slaves (zero rows elsewhere); what an implicit
+        solver linearises the penalty force with.
+    corners : (n_slave, 3) int or None
+        :class:`SurfaceContact` only: the master triangle's node ids of each active slave.
+    weights : (n_slave, 3) float or None
+        :class:`SurfaceContact` only: the barycentric weights of the contact point on it.
+    slip : (n_slave,) float, mm, or None
+        This step's slip increment of each slipping slave (0 where sticking or apart).
     """
 
     force: np.ndarray
@@ -269,6 +278,10 @@ class ContactStep:
     tangential_force: np.ndarray
     slipping: np.ndarray
     master_force: np.ndarray | None = None
+    normal: np.ndarray | None = None
+    corners: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    slip: np.ndarray | None = None
 
 
 def _as_index_array(a, name: str) -> np.ndarray:
@@ -314,6 +327,11 @@ class _PenaltyContact:
         """Forget the tangential state (all slaves start the next step out of contact)."""
         self._traction[:] = 0.0
 
+    def restore(self, tangential_state: np.ndarray) -> None:
+        """Set the stored friction force ``(n_slave, 3)`` N, e.g. back to a converged step's
+        :attr:`tangential_state` before an implicit solver evaluates another trial state."""
+        self._traction[:] = self._check_slave_points(tangential_state, "tangential_state")
+
     def _check_slave_points(self, a, name: str) -> np.ndarray:
         arr = np.asarray(a, dtype=np.float64)
         if arr.shape != (self.n_slaves, 3):
@@ -336,6 +354,7 @@ class _PenaltyContact:
             tangential_force=np.zeros((n, 3)),
             slipping=np.zeros(n, dtype=bool),
             master_force=None if n_nodes is None else np.zeros((n_nodes, 3)),
+            normal=np.zeros((n, 3)),
         )
 
     def _respond(self, ids, normal, gap, increment, n_candidates):
@@ -351,6 +370,7 @@ class _PenaltyContact:
         f_normal = fn[:, None] * normal
         tangential = np.zeros((n, 3))
         slipping = np.zeros(n, dtype=bool)
+        slip = np.zeros(n)
         energy = 0.5 * float(np.dot(k, gap * gap))
         dissipation = 0.0
         previous = self._traction[ids]
@@ -360,6 +380,7 @@ class _PenaltyContact:
             self._traction[ids] = upd.force
             tangential[ids] = upd.force
             slipping[ids] = upd.slipping
+            slip[ids] = upd.slip
             energy += float(upd.energy.sum())
             dissipation = float(upd.dissipation.sum())
         f_active = f_normal + tangential[ids]
@@ -369,7 +390,11 @@ class _PenaltyContact:
         penetration[ids] = -gap
         active = np.zeros(n, dtype=bool)
         active[ids] = True
+        normals = np.zeros((n, 3))
+        normals[ids] = normal
         fields = {
+            "normal": normals,
+            "slip": slip,
             "force": force,
             "normal_force_total": -f_normal.sum(axis=0),
             "master_force_total": -f_active.sum(axis=0),
@@ -667,4 +692,6 @@ class SurfaceContact(_PenaltyContact):
         master_force = np.stack(
             [np.bincount(flat_ids, weights=flat[:, i], minlength=n_nodes) for i in range(3)], axis=1
         )
-        return ContactStep(**fields, master_force=master_force)
+        full_corners, full_weights = np.zeros((self.n_slaves, 3), np.int64), np.zeros((self.n_slaves, 3))
+        full_corners[ids], full_weights[ids] = corners, weights
+        return ContactStep(**fields, master_force=master_force, corners=full_corners, weights=full_weights)

@@ -26,7 +26,7 @@ from toolkit.common import seeds
 from toolkit.common.seeds import BALL_YIELD, FACE_YIELD
 
 __all__ = ["MaterialSpec", "FaceSpec", "BallSpec", "ContactSpec", "Fidelity", "Scene", "default_scene",
-           "yielding_scene", "FACE_YIELD", "BALL_YIELD", "SUPPORTS", "YIELDING_DURATION"]
+           "yielding_scene", "FACE_YIELD", "BALL_YIELD", "SUPPORTS", "YIELDING_DURATION", "INTEGRATORS"]
 
 @dataclass(frozen=True)
 class MaterialSpec:
@@ -47,6 +47,9 @@ class MaterialSpec:
         if self.yield_table is not None:
             object.__setattr__(self, "yield_table", tuple(tuple(float(x) for x in row) for row in self.yield_table))
 
+
+#: time integration of :class:`Fidelity`: explicit dynamics or quasi-static equilibrium
+INTEGRATORS = ("explicit", "implicit")
 
 #: how the face is held: ``band`` (seed 002: only the lower band) or ``skull`` (also the bone-side surface)
 SUPPORTS = ("band", "skull")
@@ -153,19 +156,34 @@ class ContactSpec:
 
 @dataclass(frozen=True)
 class Fidelity:
-    """Speed/accuracy options: element ``order`` (1 tet4, 2 tet10), ``mass_scaling`` factor on
-    every density (>= 1), time-step ``safety`` factor on the critical step, or a fixed ``dt`` (s),
-    refused when above the stable limit unless ``allow_unstable_dt``."""
+    """Speed/accuracy options: element ``order`` (1 tet4, 2 tet10) and the ``integrator``.
+
+    ``"explicit"`` (central differences, :mod:`toolkit.impact.explicit`): ``mass_scaling``
+    factor on every density (>= 1), time-step ``safety`` factor on the critical step, or a fixed
+    ``dt`` (s), refused when above the stable limit unless ``allow_unstable_dt``.
+
+    ``"implicit"`` (quasi-static equilibrium per load step, :mod:`toolkit.impact.implicit`):
+    ``load_steps`` over the duration at the start (cut and regrown adaptively) and the Newton
+    ``tolerance`` (relative residual); no inertia, so mass scaling and ``dt`` do not apply.
+    """
 
     order: int = 2
     mass_scaling: float = 1.0
     safety: float = 0.9
     dt: float | None = None
     allow_unstable_dt: bool = False  # run a too-large dt anyway (the blow-up detector then stops it)
+    integrator: str = "explicit"
+    load_steps: int = 36
+    tolerance: float = 1e-5
 
     def __post_init__(self):
         if self.order not in (1, 2):
             raise ValueError(f"order must be 1 or 2, got {self.order}")
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"integrator {self.integrator!r} is not one of {list(INTEGRATORS)}")
+        if int(self.load_steps) < 1 or not 0 < self.tolerance < 1:
+            raise ValueError(f"implicit load_steps {self.load_steps} must be >= 1 and tolerance {self.tolerance} "
+                             "in (0, 1)")
         if not self.mass_scaling >= 1.0:
             raise ValueError(f"mass_scaling must be >= 1, got {self.mass_scaling}")
         if not 0 < self.safety <= 1.0:

@@ -63,6 +63,7 @@ class BuiltScene:
     dt_element: tuple
     added_mass_fraction: float
     fixed_clearance_mm: float = float("inf")  # travel left between the ball's path and the fixed nodes
+    contact_pair: object = None  # the RigidSphereContact or SurfaceContact behind model.contact
 
 
 def build_model(scene: Scene) -> BuiltScene:
@@ -84,9 +85,10 @@ def build_model(scene: Scene) -> BuiltScene:
     mass = np.concatenate(masses)
     points = face.points if ball is None else np.vstack([face.points, ball.points])
     dt = _time_step(scene, dt_crit, dt_elem)
-    contact = _contact_callback(scene, face, ball, mass, dt_crit, centre0)
-    model = ExplicitModel(points, mass, bodies, dt, contact)
-    return BuiltScene(model, face, ball, centre0, dt_crit, dt_elem, scene.fidelity.mass_scaling - 1.0, clearance)
+    pair = _contact_pair(scene, face, ball, mass, dt_crit)
+    model = ExplicitModel(points, mass, bodies, dt, _contact_callback(scene, pair, centre0))
+    return BuiltScene(model, face, ball, centre0, dt_crit, dt_elem, scene.fidelity.mass_scaling - 1.0, clearance,
+                      pair)
 
 
 def _path_clearance(scene: Scene, fixed_points: np.ndarray, centre0: np.ndarray) -> float:
@@ -140,7 +142,7 @@ def _time_step(scene: Scene, dt_crit: float, dt_elem: tuple) -> float:
     or its ``safety`` times the stable step the contact penalty keeps."""
     fid, fraction = scene.fidelity, scene.contact.dt_fraction
     dt_stable = fraction * dt_crit  # the contact penalty keeps the step above this
-    if fid.dt is None:
+    if fid.dt is None or fid.integrator == "implicit":
         return fid.safety * dt_stable
     if fid.dt > dt_stable and not fid.allow_unstable_dt:
         raise UnstableTimeStepError(
@@ -150,10 +152,10 @@ def _time_step(scene: Scene, dt_crit: float, dt_elem: tuple) -> float:
     return fid.dt
 
 
-def _contact_callback(scene: Scene, face: Mesh, ball: Mesh | None, mass: np.ndarray, dt_crit: float,
-                      centre0: np.ndarray):
+def _contact_pair(scene: Scene, face: Mesh, ball: Mesh | None, mass: np.ndarray, dt_crit: float):
     """Penalty contact of the skin against the rigid sphere or the deformable ball's surface,
-    with Coulomb friction; the penalty keeps the stable step at ``dt_fraction`` of ``dt_crit``."""
+    with Coulomb friction; the penalty keeps the stable step at ``dt_fraction`` of ``dt_crit``
+    (the implicit path uses the same penalty, so both paths solve the same contact problem)."""
     skin = face.node_set("skin")
     friction = CoulombFriction(scene.contact.friction) if scene.contact.friction > 0 else None
     # a penalty spring joins a skin node to the ball: its stable step depends on the lighter end.
@@ -165,11 +167,17 @@ def _contact_callback(scene: Scene, face: Mesh, ball: Mesh | None, mass: np.ndar
         m_master = float(mass[np.unique(tris)].min())
         m_contact = 1.0 / (1.0 / m_contact + 1.0 / m_master)
     k_pen = penalty_stiffness(m_contact, dt_crit, scene.contact.dt_fraction)
-    d = np.asarray(scene.ball.direction, dtype=float)
     if scene.ball.rigid:
-        return moving_sphere_contact(RigidSphereContact(scene.ball.radius, k_pen, friction, skin), skin, centre0,
-                                     scene.ball.velocity * d)
-    pair = SurfaceContact(skin, tris, k_pen, friction)
+        return RigidSphereContact(scene.ball.radius, k_pen, friction, skin)
+    return SurfaceContact(skin, tris, k_pen, friction)
+
+
+def _contact_callback(scene: Scene, pair, centre0: np.ndarray):
+    """The explicit model's contact callback for ``pair`` (:func:`_contact_pair`)."""
+    if scene.ball.rigid:
+        d = np.asarray(scene.ball.direction, dtype=float)
+        return moving_sphere_contact(pair, pair.slaves, centre0, scene.ball.velocity * d)
+    skin = pair.slaves
 
     def contact(x, v, t, dt_):
         res = pair.step(x, v, dt_)
@@ -298,6 +306,20 @@ class ImpactResult:
         }
 
 
+def _run(scene: Scene, built: BuiltScene, on_frame, progress: bool) -> tuple[list, dict]:
+    """The scene's integrator over its duration: frames and statistics."""
+    if scene.fidelity.integrator == "explicit":
+        return run_explicit(built.model, scene.duration, scene.n_frames, on_frame=on_frame, progress=progress)
+    from toolkit.impact.implicit import ImplicitOptions, StepContact, run_quasistatic
+
+    fid = scene.fidelity
+    contact = StepContact(built.contact_pair, built.model.points.shape[0], built.ball_centre,
+                          scene.ball.velocity * np.asarray(scene.ball.direction, dtype=float))
+    options = ImplicitOptions(steps=fid.load_steps, tolerance=fid.tolerance)
+    return run_quasistatic(built.model, contact, scene.duration, scene.n_frames, options, on_frame=on_frame,
+                           progress=progress)
+
+
 def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False, preview: bool = True) -> ImpactResult:
     """Run ``scene``; with ``out``, stream frames to ``out/face.xdmf`` (and ``ball.xdmf``) and write
     ``history.h5``, ``summary.json`` and ``preview.png``.
@@ -321,8 +343,7 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
             w.append(frame.time, displacement=f["displacement"], von_mises=f["von_mises"])
 
     try:
-        frames, stats = run_explicit(built.model, scene.duration, scene.n_frames, on_frame=on_frame,
-                                     progress=progress)
+        frames, stats = _run(scene, built, on_frame, progress)
     finally:
         for w in writers:
             w.close()

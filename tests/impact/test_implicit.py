@@ -1,0 +1,151 @@
+"""The quasi-static (implicit) impact path and the shared pieces it stands on: the material
+tangent, the fixed-pattern assembly and the contact tangent (Hertz contact solved by Newton is
+in test_explicit.py, beside the explicit Hertz test whose model it shares).
+
+Expected values are closed forms (the isotropic elasticity tensor, the Hertz force with the
+bonded-layer factor) or exact derivatives checked by central differences with a stated step.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from toolkit.common.fem.assembly import SparsePattern, element_tangent
+from toolkit.common.fem.tangent import algorithmic_tangent
+from toolkit.common.phantom import block
+from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact
+from toolkit.impact.elements import _element_stiffness, tet_kinematics
+from toolkit.impact.implicit import ImplicitOptions, StepContact
+from toolkit.impact.plasticity import FACE_TABLE, HardeningTable, J2Plasticity
+from toolkit.impact.scene import Fidelity, Scene
+
+EYE = np.eye(3)
+
+
+def _isotropic(lam, mu):
+    return lam * np.einsum("ij,kl->ijkl", EYE, EYE) + mu * (np.einsum("ik,jl->ijkl", EYE, EYE)
+                                                           + np.einsum("il,jk->ijkl", EYE, EYE))
+
+
+def test_the_tangent_at_rest_is_the_isotropic_elasticity_tensor():
+    """At F = I, dP/dF of Hencky elasticity is lam I(x)I + 2 mu I_sym (closed form). Forward
+    differences with step h err by ~h relative (the stress is smooth); central ones by ~h^2."""
+    mat = J2Plasticity(0.015, 0.49, 1e-9, FACE_TABLE)
+    F = np.broadcast_to(EYE, (5, 3, 3)).copy()
+    C = _isotropic(mat.lam, mat.mu)
+    _, A = algorithmic_tangent(mat, F, mat.initial_state(5), step=1e-7)
+    assert np.abs(A - C).max() <= 1e-6 * np.abs(C).max()
+    _, A = algorithmic_tangent(mat, F, mat.initial_state(5), step=1e-5, central=True)
+    assert np.abs(A - C).max() <= 1e-8 * np.abs(C).max()
+
+
+@pytest.mark.parametrize("plastic", [False, True])
+def test_the_tangent_is_the_derivative_of_the_update(plastic):
+    """At finite strain (stretch 1.4 with shear, from a state that has yielded or not), the
+    directional derivative of P along random dF (central differences, step 1e-4, error ~1e-8)
+    equals A : dF to 1e-5; an elastic (hyperelastic) tangent also has major symmetry."""
+    rng = np.random.default_rng(3)
+    table = HardeningTable.from_pairs([(0.002, 0.0), (0.004, 1.0)]) if plastic else None
+    mat = J2Plasticity(0.015, 0.45, 1e-9, table)
+    F = np.array([[1.4, 0.2, 0.0], [0.05, 0.8, 0.1], [0.0, 0.0, 0.95]])[None] + 0.02 * rng.standard_normal((6, 3, 3))
+    state = mat.initial_state(6)
+    base, A = algorithmic_tangent(mat, F, state, step=1e-7)
+    assert bool(base.plastic.all()) is plastic
+    dF = rng.standard_normal((6, 3, 3))
+    h = 1e-4
+    fd = (mat.update(F + h * dF, state).first_piola - mat.update(F - h * dF, state).first_piola) / (2 * h)
+    assert np.abs(np.einsum("pijkl,pkl->pij", A, dF) - fd).max() <= 1e-5 * np.abs(fd).max()
+    if not plastic:
+        assert np.abs(A - A.transpose(0, 3, 4, 1, 2)).max() <= 1e-6 * np.abs(A).max()
+
+
+def test_element_tangent_of_the_isotropic_tensor_is_the_linear_stiffness():
+    """element_tangent with the constant isotropic tensor equals the small-strain stiffness
+    written out by hand (impact.elements._element_stiffness) on tet4 and tet10."""
+    for order in (1, 2):
+        kin = tet_kinematics(block([np.linspace(0, 2, 3)] * 3, "tet4" if order == 1 else "tet10", jitter=0.1))
+        E, Q = kin.weight.shape
+        K = element_tangent(kin.grad, kin.weight, np.broadcast_to(_isotropic(0.4, 0.3), (E, Q, 3, 3, 3, 3)))
+        K0 = _element_stiffness(kin, 0.4, 0.3)
+        assert np.abs(K - K0).max() <= 1e-13 * np.abs(K0).max()
+
+
+def test_sparse_pattern_assembles_and_constrains_like_a_dense_loop():
+    rng = np.random.default_rng(1)
+    n = 30
+    blocks = [np.array([rng.choice(n, 4, replace=False) for _ in range(20)]),
+              np.array([rng.choice(n, 10, replace=False) for _ in range(7)])]
+    mats = [rng.standard_normal((b.shape[0], 3 * b.shape[1], 3 * b.shape[1])) for b in blocks]
+    pattern = SparsePattern(blocks, n)
+    dense = np.zeros((3 * n, 3 * n))
+    for conn, Ke in zip(blocks, mats):
+        for e in range(conn.shape[0]):
+            dofs = (3 * conn[e][:, None] + np.arange(3)).ravel()
+            dense[np.ix_(dofs, dofs)] += Ke[e]
+    K = pattern.assemble(mats)
+    assert np.array_equal(K.toarray(), dense) or np.abs(K.toarray() - dense).max() < 1e-12
+    held = np.array([0, 4, 17])
+    expected = dense.copy()
+    expected[held], expected[:, held] = 0.0, 0.0
+    expected[held, held] = 1.0
+    assert np.abs(pattern.constrain(K, held).toarray() - expected).max() < 1e-12
+
+
+def _contact_check(pair, x0, step_contact, t, h):
+    """Relative error of the contact tangent against central differences of the forces."""
+    rng = np.random.default_rng(0)
+    d = 1e-3 * rng.standard_normal(x0.shape)
+    _, K = step_contact.evaluate(x0, x0 - 0.01, t, h)
+    eps = 1e-3
+    plus, _ = step_contact.evaluate(x0 + eps * d, x0 - 0.01, t, h)
+    minus, _ = step_contact.evaluate(x0 - eps * d, x0 - 0.01, t, h)
+    fd = -(plus.forces - minus.forces).ravel() / (2 * eps)
+    return np.linalg.norm(K @ d.ravel() - fd) / np.linalg.norm(fd)
+
+
+def test_the_contact_tangent_is_the_derivative_of_the_contact_forces():
+    """Frictionless, the rigid sphere's tangent (normal spring and the turning normal) is exact
+    (central differences, error 1e-8); against a surface the turning of the triangle's normal
+    and the sliding of the contact point over it (the weights) are left out: 2 % here, where
+    the corners move as much as the slaves. With friction the slip secant is not the derivative: the
+    test holds only that Newton converges with it (the Hertz and face runs)."""
+    rng = np.random.default_rng(2)
+    slaves = np.arange(40)
+    # slaves 0.05-0.3 mm inside a sphere whose lowest point is the origin
+    x = np.column_stack([rng.uniform(-1, 1, 40), rng.uniform(-1, 1, 40), rng.uniform(0.07, 0.3, 40)])
+    pair = RigidSphereContact(50.0, 2.0, None, slaves)
+    sc = StepContact(pair, 40, centre0=np.array([0.0, 0.0, 50.0]), velocity=np.zeros(3))
+    assert _contact_check(pair, x, sc, 1.0, 1.0) < 1e-6
+    # a flat triangle pair below the slaves (outward normal +z), slaves slightly inside
+    tri_pts = np.array([[-10, -10, 0.05], [10, -10, 0.05], [10, 10, 0.05], [-10, 10, 0.05]], float)
+    x_all = np.vstack([x - [0.0, 0.0, 0.35], tri_pts])  # 0.0-0.3 mm behind the surface
+    tris = np.array([[40, 41, 42], [40, 42, 43]])
+    surf = SurfaceContact(slaves, tris, 2.0, None)
+    sc = StepContact(surf, 44)
+    assert _contact_check(surf, x_all, sc, 1.0, 1.0) < 0.05  # measured 0.019
+    fric = StepContact(RigidSphereContact(50.0, 2.0, CoulombFriction(0.2), slaves), 40,
+                       centre0=np.array([0.0, 0.0, 50.0]), velocity=np.array([0.0, 0.0, -1.0]))
+    response, K = fric.evaluate(x, x, 0.0, 1.0)
+    assert response.max_penetration > 0.05 and np.abs((K - K.T).toarray()).max() < 1e-12
+
+
+def test_the_integrator_is_a_fidelity_option():
+    scene = Scene().with_fidelity(integrator="implicit", load_steps=20)
+    assert Scene.from_dict(scene.as_dict()).fidelity == scene.fidelity
+    with pytest.raises(ValueError, match="integrator 'newmark'"):
+        Fidelity(integrator="newmark")
+    with pytest.raises(ValueError, match="load_steps 0"):
+        Fidelity(integrator="implicit", load_steps=0)
+    with pytest.raises(ValueError, match="min_step"):
+        ImplicitOptions(min_step=0.0)
+
+
+def test_a_rigid_sphere_needs_its_motion():
+    pair = RigidSphereContact(10.0, 1.0, None, np.arange(3))
+    with pytest.raises(ValueError, match="centre0"):
+        StepContact(pair, 3)
+    apart = np.full((3, 3), 20.0)
+    response, K = StepContact(pair, 3, np.zeros(3), np.zeros(3)).evaluate(apart, apart, 0.0, 1.0)
+    assert sp.issparse(K) and K.nnz == 0 and not response.forces.any()

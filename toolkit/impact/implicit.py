@@ -1,0 +1,385 @@
+"""Quasi-static (implicit) impact: equilibrium at every load step, Newton's method, no inertia.
+
+Why: seed 002's ball moves at 20-50 mm/s, about 1 % of the tissue's shear-wave speed
+(~2,200 mm/s), so the face is in equilibrium with the ball at every instant and inertia is
+negligible (the explicit runs measure kinetic energy at ~2 % of the internal energy even with
+10x mass scaling). Explicit central differences must still resolve the stress waves (~20,000
+stable steps for tet10 at nu = 0.49); a quasi-static solve takes as few load steps as the
+nonlinearity allows.
+
+Each load step ``t -> t + h``:
+
+1. **Targets**: prescribed dofs take their imposed displacement (fixed 0, driven ``v t``); the
+   free dofs start from the last increment scaled to ``h`` (a linear predictor).
+2. **Newton** on ``r(u) = f_int(u) - f_contact(u) = 0`` over the free dofs. ``f_int`` comes from
+   every body's material update from the last converged state (finite-strain J2 with its
+   return mapping), the tangent from the material's algorithmic ``dP/dF``
+   (:func:`~toolkit.common.fem.tangent.algorithmic_tangent`) assembled by
+   :class:`~toolkit.common.fem.assembly.SparsePattern`, plus the penalty contact's: ``k n n^T``
+   normal and ``k_t (I - n n^T)`` for sticking friction, shared with the master triangle's
+   corners by the barycentric weights for a deformable ball. A backtracking line search
+   halves the correction until the residual decreases. The contact laws are those of the
+   explicit path (:mod:`toolkit.impact.contact`, same penalties, same Coulomb return mapping);
+   the friction state is restored before every trial and kept when the step converges.
+3. **Converged** when the free-dof residual is below ``tolerance`` times the force scale (the
+   reactions at the prescribed dofs plus the contact force), or when it is worth less than
+   ``displacement_tolerance`` mm at every dof (the residual over the tangent's diagonal), or
+   when a Newton correction moves no dof by more than that. The displacement tests matter at
+   first touch, when the forces are too small for a relative force test.
+4. **Adaptive steps**: a step that does not converge in ``max_iterations``, inverts an element
+   or breaks the material update is cut in half; one that converges in at most
+   ``easy_iterations`` lets the next grow by ``growth`` up to the initial step. Steps end
+   exactly at the output frames.
+
+Energies are booked as in the explicit path (internal work by the trapezoidal rule, plastic
+dissipation, contact elastic energy, friction dissipation; external work done by the
+reactions at the prescribed dofs and by a rigid ball's imposed motion), with zero kinetic
+energy; their balance error measures the load-step size.
+
+Units: mm, s, tonne, N, MPa, mJ.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from toolkit.common.fem.assembly import SparsePattern, element_tangent
+from toolkit.common.fem.solvers import LinearSolver, SolverError, estimate_factor_entries, rigid_body_modes
+from toolkit.common.fem.tangent import algorithmic_tangent
+from toolkit.impact.contact import RigidSphereContact
+from toolkit.impact.elements import deformation_gradient
+from toolkit.impact.explicit import (ContactResponse, Energies, ExplicitModel, _frame, _internal_forces,
+                                     _Inverted, _prescribed)
+
+__all__ = ["ImplicitOptions", "StepContact", "ConvergenceError", "run_quasistatic"]
+
+log = logging.getLogger(__name__)
+
+
+class ConvergenceError(RuntimeError):
+    """A load step did not converge even at the smallest allowed step (``time`` s)."""
+
+    def __init__(self, message: str, time_s: float):
+        super().__init__(f"t = {time_s:.5g} s: {message}")
+        self.time = time_s
+
+
+@dataclass(frozen=True)
+class ImplicitOptions:
+    """Load stepping and Newton controls of :func:`run_quasistatic`.
+
+    Attributes
+    ----------
+    steps : load steps over the duration at the start (the largest step is ``duration / steps``)
+    tolerance : relative residual (to the reactions plus the contact force) of a converged step
+    displacement_tolerance : mm, a residual or Newton correction worth less than this at every
+        dof also ends the iterations
+    max_iterations : Newton iterations before a step is cut
+    easy_iterations : a step converged within this many lets the next grow by ``growth``
+    growth : step growth factor after an easy step (> 1)
+    min_step : s, the smallest step before :class:`ConvergenceError`
+    solver : linear solver (:data:`toolkit.common.fem.solvers.METHODS`)
+    """
+
+    steps: int = 36
+    tolerance: float = 1e-5
+    displacement_tolerance: float = 1e-4
+    max_iterations: int = 25
+    easy_iterations: int = 4
+    growth: float = 1.5
+    min_step: float = 1e-5
+    solver: str = "auto"
+
+    def __post_init__(self):
+        if int(self.steps) < 1 or not 0 < self.tolerance < 1 or int(self.max_iterations) < 1:
+            raise ValueError(f"implicit options: steps {self.steps} must be >= 1, tolerance {self.tolerance} in "
+                             f"(0, 1), max_iterations {self.max_iterations} >= 1")
+        if not self.growth > 1 or not self.min_step > 0:
+            raise ValueError(f"implicit options: growth {self.growth} must be > 1 and min_step {self.min_step} s > 0")
+
+
+class StepContact:
+    """Penalty contact evaluated at trial states of a load step, with its tangent.
+
+    ``pair`` is a :class:`~toolkit.impact.contact.RigidSphereContact` (then ``centre0`` (3,) mm
+    and ``velocity`` (3,) mm/s move the sphere) or a
+    :class:`~toolkit.impact.contact.SurfaceContact` on the model's nodes. Every
+    :meth:`evaluate` starts from the friction state of the last :meth:`commit`.
+    """
+
+    def __init__(self, pair, n_nodes: int, centre0=None, velocity=None):
+        self.pair, self.n_nodes = pair, int(n_nodes)
+        self.rigid = isinstance(pair, RigidSphereContact)
+        if self.rigid and (centre0 is None or velocity is None):
+            raise ValueError("a rigid sphere contact needs the sphere's centre0 (mm) and velocity (mm/s)")
+        self.centre0 = None if centre0 is None else np.asarray(centre0, float)
+        self.velocity = None if velocity is None else np.asarray(velocity, float)
+        self._committed = pair.tangential_state
+        self._force_on_body, self._centre = np.zeros(3), self.centre0
+        self._pending = None
+
+    def evaluate(self, x: np.ndarray, x_start: np.ndarray, t: float, h: float) -> tuple[ContactResponse, sp.csr_matrix]:
+        """Contact at positions ``x (n, 3)`` mm at time ``t`` s, the step having started at
+        ``x_start`` a step ``h`` s earlier; returns the response and the tangent
+        ``(3n, 3n)`` N/mm (minus the derivative of the contact forces)."""
+        pair = self.pair
+        pair.restore(self._committed)
+        v = (x - x_start) / h  # the step's mean velocity: v h is the step's displacement increment
+        if self.rigid:
+            centre = self.centre0 + self.velocity * t
+            res = pair.step(x[pair.slaves], v[pair.slaves], centre, self.velocity, h)
+            forces = np.zeros_like(x)
+            forces[pair.slaves] = res.force
+            on_body = res.force.sum(axis=0)
+            work = float(0.5 * (on_body + self._force_on_body) @ (centre - self._centre))
+            self._pending = (on_body, centre)
+        else:
+            res = pair.step(x, v, h)
+            forces = res.master_force.copy()
+            forces[pair.slaves] += res.force
+            on_body, work = res.force.sum(axis=0), 0.0
+        pen = float(res.penetration.max()) if res.penetration.size else 0.0
+        response = ContactResponse(forces, res.elastic_energy, res.friction_dissipation, on_body, pen, work)
+        return response, self._tangent(res)
+
+    def commit(self) -> None:
+        """Keep the friction state of the last :meth:`evaluate` (its step converged)."""
+        self._committed = self.pair.tangential_state
+        if self._pending is not None:
+            self._force_on_body, self._centre = self._pending
+
+    def _tangent(self, res) -> sp.csr_matrix:
+        """``k n n^T`` per active slave, plus ``k_t (I - n n^T)`` for friction (the secant
+        ``k_t |t| / |t_trial|`` of the radial return where slipping) and, against the rigid sphere,
+        the turning of the normal; for a surface, spread over the slave and its triangle's
+        corners with weights ``(1, -w1, -w2, -w3)`` (the normal's turning with the triangle is
+        left out)."""
+        pair = self.pair
+        active = np.flatnonzero(res.active)
+        size = 3 * self.n_nodes
+        if active.size == 0:
+            return sp.csr_matrix((size, size))
+        n = res.normal[active]
+        k = pair.penalty[active]
+        nn = n[:, :, None] * n[:, None, :]
+        local = k[:, None, None] * nn
+        if pair.friction is not None:
+            # sticking: k_t; slipping: the secant of the radial return, k_t |t| / |t_trial|
+            k_t = pair.friction.stiffness_ratio * k
+            held = np.linalg.norm(res.tangential_force[active], axis=1)
+            k_t = k_t * np.divide(held, held + k_t * res.slip[active], out=np.ones_like(held),
+                                  where=res.slipping[active])
+            local = local + k_t[:, None, None] * (np.eye(3) - nn)
+        nodes = pair.slaves[active][:, None]
+        coef = np.ones((active.size, 1))
+        if self.rigid:  # the normal turns with the slave about the centre: -k g / r (I - n n^T), g < 0
+            gap = -res.penetration[active]
+            local = local + (k * gap / (pair.radius + gap))[:, None, None] * (np.eye(3) - nn)
+        else:
+            nodes = np.concatenate([nodes, res.corners[active]], axis=1)
+            coef = np.concatenate([coef, -res.weights[active]], axis=1)
+        m = nodes.shape[1]
+        dofs = (3 * nodes[:, :, None] + np.arange(3)).reshape(-1, 3 * m)  # (a, 3m)
+        block = (coef[:, :, None, None, None] * coef[:, None, None, :, None]
+                 * local[:, None, :, None, :])  # (a, m, 3, m, 3)
+        rows = np.broadcast_to(dofs[:, :, None], (active.size, 3 * m, 3 * m))
+        cols = np.broadcast_to(dofs[:, None, :], (active.size, 3 * m, 3 * m))
+        return sp.csr_matrix((block.ravel(), (rows.ravel(), cols.ravel())), shape=(size, size))
+
+
+class _StepFailed(Exception):
+    """A load step must be cut (the reason is the message)."""
+
+
+class _Ledger:
+    """Energies (mJ) of the quasi-static run, booked per converged step (kinetic energy 0)."""
+
+    def __init__(self, prescribed: np.ndarray):
+        self.prescribed = prescribed
+        self.energies = Energies()
+        self.reaction = np.zeros(prescribed.size)
+
+    def record(self, du: np.ndarray, old, new, contact: ContactResponse) -> None:
+        e = self.energies
+        e.internal += float(np.sum(du * 0.5 * (old.force + new.force)))
+        e.plastic += new.dissipation
+        e.friction += contact.friction_dissipation
+        e.contact_elastic = contact.elastic_energy
+        reaction = (new.force - contact.forces).reshape(-1)[self.prescribed]
+        e.external += float(np.sum(du.reshape(-1)[self.prescribed] * 0.5 * (self.reaction + reaction)))
+        e.external += contact.drive_work
+        self.reaction = reaction
+
+
+class _Newton:
+    """The pieces every Newton iteration of a run shares: prescribed dofs, the sparse pattern
+    and the linear solver (whose factorization later systems reuse as a preconditioner)."""
+
+    def __init__(self, model: ExplicitModel, contact: StepContact | None, options: ImplicitOptions):
+        self.model, self.contact, self.options = model, contact, options
+        n = model.points.shape[0]
+        self.prescribed, self.rates = _prescribed(model)
+        self.free = np.ones(3 * n, dtype=bool)
+        self.free[self.prescribed] = False
+        self.pattern = SparsePattern([b.kin.conn + b.offset for b in model.bodies], n)
+        nodes = sp.csr_matrix((np.ones(self.pattern.nnz), (self.pattern.rows // 3, self.pattern.cols // 3)),
+                              shape=(n, n))
+        # an inexact Newton: later systems are solved by CG preconditioned with the last
+        # factorization to 1e-8, far below what the Newton iteration needs
+        self.solver = LinearSolver(options.solver, factor_entries=estimate_factor_entries(nodes, 3), rtol=1e-8,
+                                   reuse_rtol=1e-8)
+        self.modes = rigid_body_modes(model.points)
+        self.solves, self.factorizations = 0, 0
+
+    def forces(self, u: np.ndarray, states: list, x_start: np.ndarray, t: float, h: float):
+        """Internal forces, contact (response, tangent) and the free-dof residual at ``u``."""
+        try:
+            internal = _internal_forces(self.model, u, states)
+        except _Inverted as exc:
+            raise _StepFailed(f"{exc.body} element {exc.element} inverted") from None
+        if self.contact is None:
+            contact = ContactResponse(np.zeros_like(u), 0.0, 0.0, np.zeros(3), 0.0)
+            k_c = None
+        else:
+            contact, k_c = self.contact.evaluate(self.model.points + u, x_start, t, h)
+        r = (internal.force - contact.forces).reshape(-1).copy()
+        r[~self.free] = 0.0
+        return internal, contact, k_c, r
+
+    def tangent(self, u: np.ndarray, states: list, k_contact) -> sp.csr_matrix:
+        """The constrained tangent ``(3n, 3n)`` N/mm at ``u``: material and contact."""
+        blocks = []
+        for b, st in zip(self.model.bodies, states):
+            F = deformation_gradient(b.kin, u[b.offset:b.offset + b.n_nodes])
+            E, Q = F.shape[:2]
+            try:
+                _, A = algorithmic_tangent(b.material, F.reshape(-1, 3, 3), st)
+            except FloatingPointError as exc:
+                raise _StepFailed(f"{b.name}: {exc}") from None
+            Ke = element_tangent(b.kin.grad, b.kin.weight, A.reshape(E, Q, 3, 3, 3, 3))
+            blocks.append(0.5 * (Ke + np.swapaxes(Ke, 1, 2)))
+        K = self.pattern.constrain(self.pattern.assemble(blocks), self.prescribed)
+        if k_contact is not None and k_contact.nnz:
+            k_contact = k_contact.tocoo()
+            keep = self.free[k_contact.row] & self.free[k_contact.col]
+            K = K + sp.csr_matrix((k_contact.data[keep], (k_contact.row[keep], k_contact.col[keep])), shape=K.shape)
+        return K
+
+    def solve_step(self, u: np.ndarray, states: list, guess: np.ndarray, t: float, h: float):
+        """Equilibrium at ``t`` from the converged ``u`` (``guess`` sets the free dofs' start);
+        returns ``(u_new, internal, contact, iterations)`` or raises :class:`_StepFailed`."""
+        opt = self.options
+        x_start = self.model.points + u
+        u_try = guess.copy()
+        u_try.reshape(-1)[self.prescribed] = self.rates * t
+        internal, contact, k_c, r = self.forces(u_try, states, x_start, t, h)
+        for it in range(1, opt.max_iterations + 1):
+            scale = np.linalg.norm((internal.force - contact.forces).reshape(-1)[self.prescribed]) \
+                + np.linalg.norm(contact.forces)
+            norm = np.linalg.norm(r)
+            if norm <= opt.tolerance * scale or norm < 1e-9:
+                return u_try, internal, contact, it - 1
+            log.debug("t = %.5g s, iteration %d: residual %.3g N (scale %.3g N) at node %d", t, it, norm, scale,
+                      int(np.argmax(np.abs(r))) // 3)
+            K = self.tangent(u_try, states, k_c)
+            if np.max(np.abs(r) / K.diagonal()) <= opt.displacement_tolerance:
+                return u_try, internal, contact, it - 1
+            try:
+                du, info = self.solver.solve(K, -r, near_nullspace=self.modes)
+            except SolverError as exc:
+                raise _StepFailed(f"linear solve failed: {exc}") from None
+            self.solves += 1
+            best = None
+            for alpha in (1.0, 0.5, 0.25, 0.125):
+                trial = u_try + alpha * du.reshape(-1, 3)
+                try:
+                    got = self.forces(trial, states, x_start, t, h)
+                except _StepFailed:
+                    continue
+                if best is None or np.linalg.norm(got[3]) < np.linalg.norm(best[1][3]):
+                    best = (trial, got)
+                if np.linalg.norm(got[3]) < norm:
+                    break
+            if best is None:
+                raise _StepFailed("every line-search trial inverted an element")
+            u_try, (internal, contact, k_c, r) = best
+            if np.abs(du).max() <= opt.displacement_tolerance:
+                return u_try, internal, contact, it
+        raise _StepFailed(f"no convergence in {opt.max_iterations} iterations (residual {np.linalg.norm(r):.3g} N)")
+
+
+def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration: float, n_frames: int,
+                    options: ImplicitOptions = ImplicitOptions(), on_frame: Callable | None = None,
+                    progress: bool = False) -> tuple[list, dict]:
+    """Quasi-static equilibrium path of ``model`` over ``duration`` s with ``n_frames`` frames
+    (t > 0), the same :class:`~toolkit.impact.explicit.Frame` output as
+    :func:`~toolkit.impact.explicit.run_explicit` (``model.mass``, ``model.dt`` and
+    ``model.contact`` are not used; ``contact`` is the step contact). Raises
+    :class:`ConvergenceError` when a step fails at ``options.min_step``.
+    """
+    from tqdm.auto import tqdm
+
+    newton = _Newton(model, contact, options)
+    n = model.points.shape[0]
+    states = [b.material.initial_state(b.kin.n_points) for b in model.bodies]
+    u = np.zeros((n, 3))
+    last_increment, last_step = np.zeros((n, 3)), None
+    internal, contact_now, _, _ = newton.forces(u, states, model.points, 0.0, duration)
+    ledger = _Ledger(newton.prescribed)
+    frame_times = np.linspace(0.0, duration, n_frames + 1)[1:]
+    h_max = duration / options.steps
+    h, t, frames = h_max, 0.0, []
+    stats = {"steps": 0, "iterations": 0, "cuts": 0, "max_contact_force_n": 0.0, "max_penetration_mm": 0.0}
+    bar = tqdm(total=n_frames, desc="frames (quasi-static)", disable=not progress, leave=False)
+    t0 = time.perf_counter()
+    for t_frame in frame_times:
+        while t < t_frame - 1e-12 * duration:
+            step = min(h, t_frame - t)
+            t_new = t_frame if t_frame - t - step < 1e-9 * duration else t + step
+            step = t_new - t
+            guess = u + (step / last_step) * last_increment if last_step else u.copy()
+            try:
+                u_new, internal_new, contact_new, its = newton.solve_step(u, states, guess, t_new, step)
+            except _StepFailed as exc:
+                stats["cuts"] += 1
+                h = 0.5 * step
+                log.info("t = %.4g s: step %.3g s cut (%s)", t_new, step, exc)
+                if h < options.min_step:
+                    raise ConvergenceError(f"load step {step:.3g} s failed ({exc}) and the next would be below "
+                                           f"min_step {options.min_step:g} s; try more load steps or a smaller "
+                                           "tolerance", t_new) from None
+                continue
+            if contact is not None:  # the friction state of the accepted iterate (a line search may have tried others)
+                contact_new, _ = contact.evaluate(model.points + u_new, model.points + u, t_new, step)
+                contact.commit()
+            ledger.record(u_new - u, internal, internal_new, contact_new)
+            last_increment, last_step = u_new - u, step
+            u, internal, contact_now, t = u_new, internal_new, contact_new, t_new
+            states = internal.states
+            stats["steps"] += 1
+            stats["iterations"] += its
+            stats["max_contact_force_n"] = max(stats["max_contact_force_n"],
+                                               float(np.linalg.norm(contact_now.force_on_face)))
+            stats["max_penetration_mm"] = max(stats["max_penetration_mm"], float(contact_now.max_penetration))
+            if its <= options.easy_iterations:
+                h = min(h * options.growth, h_max)
+        frame, bodies_fields = _frame(model, t, u, internal, ledger.energies, contact_now)
+        frames.append(frame)
+        if on_frame is not None:
+            on_frame(frame, bodies_fields)
+        bar.update(1)
+    bar.close()
+    stats["wall_time_s"] = time.perf_counter() - t0
+    stats["dt_s"] = duration / max(stats["steps"], 1)
+    stats["linear_solves"] = newton.solves
+    stats["factorizations"] = newton.solver.factorizations
+    stats["energy_error"] = frames[-1].energies.balance_error if frames else 0.0
+    stats["max_energy_error"] = max((f.energies.balance_error for f in frames if f.energies.external > 1e-12),
+                                    default=0.0)
+    return frames, stats
