@@ -1,17 +1,18 @@
 """Speed/accuracy ladder of the impact simulation (seed 002's scene, 30 mm/s).
 
 Each fidelity option (element order, rigid or deformable ball, mass scaling, time-step
-safety factor) runs in a fresh process that reports wall time, peak resident memory and
-steps. Every run is compared with the highest-fidelity run of its resolution that
-finished (tet10, deformable ball, no mass scaling, safety 0.9 — or the next best) by the
-difference in maximum displacement and maximum von Mises stress, and by the RMSE and
-Pearson correlation of the skin displacement time series (on the corner nodes, which
-tet4 and tet10 faces share).
+safety factor, and the integrator: explicit dynamics or quasi-static Newton) runs in a
+fresh process that reports wall time, peak resident memory and steps. Every run is compared
+with the highest-fidelity run of its resolution that finished (explicit, tet10, deformable
+ball, no mass scaling, safety 0.9 — or the next best) by the difference in maximum
+displacement and maximum von Mises stress, and by the RMSE and Pearson correlation of the
+skin displacement time series (on the corner nodes, which tet4 and tet10 faces share).
 
 Rows are written atomically after each run; a rerun skips finished rows (resume).
 
     python benchmarks/impact_ladder.py --resolutions coarse --duration 1.8
     python benchmarks/impact_ladder.py --resolutions paper --orders 1 2 --balls rigid --mass-scaling 100
+    python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators implicit
 """
 
 from __future__ import annotations
@@ -28,27 +29,29 @@ import numpy as np
 import pandas as pd
 
 RESULTS = Path(__file__).parent / "results"
-FIDELITY = ["order", "ball", "mass_scaling", "safety"]
+FIDELITY = ["integrator", "order", "ball", "mass_scaling", "safety"]
 
 
 def _key(r) -> str:
+    implicit = "_implicit" if r.get("integrator", "explicit") == "implicit" else ""
     return f"{r['resolution']}_tet{4 if int(r['order']) == 1 else 10}_{r['ball']}_ms{float(r['mass_scaling']):g}" \
-           f"_s{float(r['safety']):g}_{float(r['duration']):g}s"
+           f"_s{float(r['safety']):g}_{float(r['duration']):g}s{implicit}"
 
 
-def run_one(resolution, order, ball, mass_scaling, safety, duration, out) -> dict:
+def run_one(resolution, order, ball, mass_scaling, safety, duration, out, integrator="explicit") -> dict:
     from toolkit.impact import InstabilityError, default_scene, simulate
+    from toolkit.impact.implicit import ConvergenceError
 
     scene = default_scene().with_face(resolution=resolution).with_ball(rigid=ball == "rigid")
-    scene = replace(scene.with_fidelity(order=order, mass_scaling=mass_scaling, safety=safety), duration=duration,
-                    n_frames=18)
+    scene = replace(scene.with_fidelity(order=order, mass_scaling=mass_scaling, safety=safety, integrator=integrator),
+                    duration=duration, n_frames=18)
     row = {"resolution": resolution, "order": order, "ball": ball, "mass_scaling": mass_scaling, "safety": safety,
-           "duration": duration}
+           "duration": duration, "integrator": integrator}
     t0 = time.perf_counter()
     try:
         r = simulate(scene, preview=False)
-    except InstabilityError as exc:
-        row.update(status="unstable", error=str(exc)[:200])
+    except (InstabilityError, ConvergenceError) as exc:
+        row.update(status="unstable" if isinstance(exc, InstabilityError) else "not converged", error=str(exc)[:200])
     else:
         s = r.summary()
         n_corner = int(r.face.volume_cells[:, :4].max()) + 1
@@ -60,7 +63,8 @@ def run_one(resolution, order, ball, mass_scaling, safety, duration, out) -> dic
                    max_displacement_mm=s["max_displacement_mm"], max_von_mises_mpa=s["max_von_mises_mpa"],
                    energy_error=s["energy_error"], max_energy_error=s["max_energy_error"],
                    added_mass_fraction=s["added_mass_fraction"], max_penetration_mm=s["max_penetration_mm"],
-                   kinetic_to_internal=float(r.energies.kinetic.iloc[-1] / max(r.energies.internal.iloc[-1], 1e-30)))
+                   kinetic_to_internal=float(r.energies.kinetic.iloc[-1] / max(r.energies.internal.iloc[-1], 1e-30)),
+                   newton_iterations=r.stats.get("iterations", 0), step_cuts=r.stats.get("cuts", 0))
     row["wall_time_s"] = time.perf_counter() - t0
     row["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return row
@@ -75,9 +79,10 @@ def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
              (2, "rigid", 10.0), (2, "deformable", 100.0), (2, "rigid", 100.0)]
     for (res, dur), g in df.groupby(["resolution", "duration"]):
         ok = g[g.status == "ok"]
+        explicit = ok[ok.integrator == "explicit"]
         ref = None
         for o, b, ms in order:
-            hit = ok[(ok.order == o) & (ok.ball == b) & (ok.mass_scaling == ms)].sort_values("safety")
+            hit = explicit[(explicit.order == o) & (ok.ball == b) & (ok.mass_scaling == ms)].sort_values("safety")
             if len(hit):
                 ref = hit.iloc[0]
                 break
@@ -103,6 +108,8 @@ def main(argv=None) -> pd.DataFrame:
     p.add_argument("--balls", nargs="+", default=["rigid", "deformable"])
     p.add_argument("--mass-scaling", nargs="+", type=float, default=[1.0, 10.0, 100.0])
     p.add_argument("--safety", nargs="+", type=float, default=[0.9])
+    p.add_argument("--integrators", nargs="+", default=["explicit"], choices=["explicit", "implicit"],
+                   help="implicit: quasi-static Newton (mass scaling and safety do not apply; run once)")
     p.add_argument("--duration", type=float, default=1.8, help="simulated time, s (seed 002: 1.8)")
     p.add_argument("--out", type=Path, default=RESULTS / "impact_ladder.csv")
     args = p.parse_args(argv)
@@ -112,10 +119,17 @@ def main(argv=None) -> pd.DataFrame:
     folder = args.out.with_suffix("")
     folder.mkdir(parents=True, exist_ok=True)
     rows = pd.read_csv(args.out).to_dict("records") if args.out.exists() else []
+    for r in rows:  # rows written before the integrator column were explicit
+        if not isinstance(r.get("integrator"), str):
+            r["integrator"] = "explicit"
     have = {_key(r) for r in rows}
-    combos = [dict(resolution=r, order=o, ball=b, mass_scaling=m, safety=s, duration=args.duration)
-              for r, o, b, m, s in itertools.product(args.resolutions, args.orders, args.balls, args.mass_scaling,
-                                                     args.safety)]
+    combos = [dict(resolution=r, order=o, ball=b, mass_scaling=m, safety=s, duration=args.duration, integrator=i)
+              for r, o, b, m, s, i in itertools.product(args.resolutions, args.orders, args.balls, args.mass_scaling,
+                                                        args.safety, args.integrators)
+              if i == "explicit" or (m == args.mass_scaling[0] and s == args.safety[0])]
+    for c in combos:  # no inertia in the quasi-static path: one run, recorded without mass scaling
+        if c["integrator"] == "implicit":
+            c["mass_scaling"], c["safety"] = 1.0, 0.9
     # cheapest first, so an interrupted ladder has the fast rungs
     combos.sort(key=lambda c: (c["resolution"] != "coarse", -c["mass_scaling"], c["order"], c["ball"] != "rigid"))
     todo = [c for c in combos if _key(c) not in have]
@@ -125,14 +139,15 @@ def main(argv=None) -> pd.DataFrame:
 
     with ProcessPoolExecutor(max_workers=1, max_tasks_per_child=1) as pool:
         for c in tqdm(todo, desc="impact ladder"):
-            rows.append(pool.submit(run_one, *c.values(), str(folder / f"{_key(c)}.npz")).result())
+            rows.append(pool.submit(run_one, **c, out=str(folder / f"{_key(c)}.npz")).result())
             with atomic_path(args.out) as tmp:
                 pd.DataFrame(rows).to_csv(tmp, index=False)
     df = compare(pd.DataFrame(rows), folder)
     with atomic_path(args.out) as tmp:
         df.to_csv(tmp, index=False)
-    cols = ["resolution", "order", "ball", "mass_scaling", "safety", "status", "steps", "wall_time_s",
-            "peak_rss_mib", "max_displacement_mm", "max_von_mises_mpa", "energy_error", "d_max_displacement_mm",
+    cols = ["resolution", "integrator", "order", "ball", "mass_scaling", "safety", "status", "steps", "wall_time_s",
+            "peak_rss_mib", "newton_iterations", "step_cuts", "max_displacement_mm", "max_von_mises_mpa",
+            "energy_error", "d_max_displacement_mm",
             "d_max_von_mises_mpa", "rmse_displacement_mm", "pearson_displacement"]
     cols = [c for c in cols if c in df.columns]
     with pd.option_context("display.width", 250, "display.max_rows", 200, "display.float_format", "{:.4g}".format):
@@ -141,8 +156,8 @@ def main(argv=None) -> pd.DataFrame:
     if len(ok):
         from toolkit.common.plotting import plot_tradeoff
 
-        labels = [f"{r.resolution[0]}/tet{4 if r.order == 1 else 10}/{r.ball[0]}/ms{r.mass_scaling:g}"
-                  for r in ok.itertuples()]
+        labels = [f"{r.resolution[0]}/tet{4 if r.order == 1 else 10}/{r.ball[0]}/"
+                  + ("implicit" if r.integrator == "implicit" else f"ms{r.mass_scaling:g}") for r in ok.itertuples()]
         plot_tradeoff(ok.wall_time_s.to_numpy(), ok.rmse_displacement_mm.to_numpy(), labels,
                       ylabel="displacement RMSE to the reference (mm)", title="impact ladder",
                       path=args.out.with_suffix(".png"))
