@@ -156,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     im_sub = im.add_subparsers(dest="impact_command", metavar="IMPACT_COMMAND")
     im_sub.required = True
     isim = im_sub.add_parser("simulate", help="run an impact scene",
-                             description="Run the explicit simulation and write face.xdmf (displacement, von_mises), "
+                             description="Run the simulation (explicit or quasi-static) and write face.xdmf (displacement, von_mises), "
                                          "ball.xdmf (deformable ball), history.h5, summary.json and preview.png.")
     isim.add_argument("--scene", type=Path, help="scene TOML (default: seed 002's scene)")
     isim.add_argument("--velocity", type=float, help="ball velocity, mm/s (seed 002: 20-50)")
@@ -164,6 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     isim.add_argument("--ball", choices=["deformable", "rigid"], help="ball model")
     isim.add_argument("--order", type=int, choices=[1, 2], help="tetrahedron order (1: tet4, 2: tet10)")
     isim.add_argument("--mass-scaling", type=float, help="density factor >= 1 (longer stable steps)")
+    isim.add_argument("--integrator", choices=["explicit", "implicit"],
+                      help="explicit dynamics (default) or quasi-static Newton load steps")
     isim.add_argument("--duration", type=float, help="simulated time, s (default 1.8)")
     isim.add_argument("--out", required=True, type=Path, help="output folder")
     isim.add_argument("--no-preview", action="store_true")
@@ -269,6 +271,8 @@ def _impact_scene(args, base=None):
         scene = scene.with_fidelity(order=args.order)
     if args.mass_scaling is not None:
         scene = scene.with_fidelity(mass_scaling=args.mass_scaling)
+    if getattr(args, "integrator", None) is not None:
+        scene = scene.with_fidelity(integrator=args.integrator)
     if args.duration is not None:
         scene = replace(scene, duration=args.duration)
     return scene

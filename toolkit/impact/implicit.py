@@ -88,7 +88,7 @@ class ImplicitOptions:
     """
 
     steps: int = 36
-    tolerance: float = 1e-5
+    tolerance: float = 3e-3
     displacement_tolerance: float = 1e-4
     max_iterations: int = 25
     easy_iterations: int = 4

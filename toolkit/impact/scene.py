@@ -174,7 +174,7 @@ class Fidelity:
     allow_unstable_dt: bool = False  # run a too-large dt anyway (the blow-up detector then stops it)
     integrator: str = "explicit"
     load_steps: int = 36
-    tolerance: float = 1e-5
+    tolerance: float = 3e-3
 
     def __post_init__(self):
         if self.order not in (1, 2):
