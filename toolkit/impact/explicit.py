@@ -254,21 +254,20 @@ def _prescribed(model: ExplicitModel) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([p[0] for p in pres]), np.concatenate([p[1] for p in pres])
 
 
-class _EnergyLedger:
-    """Energies (mJ) accumulated step by step with trapezoidal work increments; the initial
-    kinetic energy counts as work put in. Raises :class:`InstabilityError` when the kinetic
-    energy exceeds 100x the work done (an unstable step)."""
+class _WorkLedger:
+    """Work and energies (mJ) booked step by step with trapezoidal increments: internal work,
+    plastic and friction dissipation, contact elastic energy, and the external work of the
+    reactions at the ``driven`` (prescribed) flat dofs and of a rigid ball's imposed motion.
+    The quasi-static path books only this; :class:`_EnergyLedger` adds the kinetic energy."""
 
-    def __init__(self, m: np.ndarray, v0: np.ndarray, driven: np.ndarray, drive_v: np.ndarray):
-        self.m, self.driven, self.drive_v = m, driven, drive_v
-        self.ke_start = 0.5 * float(np.sum(m * v0**2))
-        self.energies = Energies(external=self.ke_start)
+    def __init__(self, driven: np.ndarray, external: float = 0.0):
+        self.driven = driven
+        self.energies = Energies(external=external)
         self.reaction = np.zeros(driven.size)
-        self.scale = 0.0
 
-    def record(self, t: float, dt: float, du: np.ndarray, v_half: np.ndarray, old: _InternalForces,
-               new: _InternalForces, contact: ContactResponse) -> None:
-        """Book one step: displacement increment ``du``, half-step velocity ``v_half`` (n, 3)."""
+    def record_work(self, du: np.ndarray, old: _InternalForces, new: _InternalForces,
+                    contact: ContactResponse) -> None:
+        """Book the work of one step: displacement increment ``du`` (n, 3) mm."""
         e = self.energies
         e.internal += float(np.sum(du * 0.5 * (old.force + new.force)))
         e.plastic += new.dissipation
@@ -279,6 +278,24 @@ class _EnergyLedger:
         reaction = (new.force - contact.forces).reshape(-1)[self.driven]
         e.external += float(np.sum(du.reshape(-1)[self.driven] * 0.5 * (self.reaction + reaction))) + contact.drive_work
         self.reaction = reaction
+
+
+class _EnergyLedger(_WorkLedger):
+    """:class:`_WorkLedger` plus the kinetic energy; the initial kinetic energy counts as work
+    put in. Raises :class:`InstabilityError` when the kinetic energy exceeds 100x the work done
+    (an unstable step)."""
+
+    def __init__(self, m: np.ndarray, v0: np.ndarray, driven: np.ndarray, drive_v: np.ndarray):
+        self.m, self.drive_v = m, drive_v
+        self.ke_start = 0.5 * float(np.sum(m * v0**2))
+        super().__init__(driven, external=self.ke_start)
+        self.scale = 0.0
+
+    def record(self, t: float, dt: float, du: np.ndarray, v_half: np.ndarray, old: _InternalForces,
+               new: _InternalForces, contact: ContactResponse) -> None:
+        """Book one step: displacement increment ``du``, half-step velocity ``v_half`` (n, 3)."""
+        self.record_work(du, old, new, contact)
+        e = self.energies
         # velocity at t(n+1) (the half-step velocity plus half a step of the new acceleration),
         # so that the kinetic energy is taken at the same time as the internal energy
         v_full = v_half + 0.5 * dt * (contact.forces - new.force) / self.m

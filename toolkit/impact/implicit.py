@@ -54,8 +54,8 @@ from toolkit.common.fem.solvers import LinearSolver, SolverError, estimate_facto
 from toolkit.common.fem.tangent import algorithmic_tangent
 from toolkit.impact.contact import RigidSphereContact
 from toolkit.impact.elements import deformation_gradient
-from toolkit.impact.explicit import (ContactResponse, Energies, ExplicitModel, _frame, _internal_forces,
-                                     _Inverted, _prescribed)
+from toolkit.impact.explicit import (ContactResponse, ExplicitModel, _frame, _internal_forces, _Inverted,
+                                     _prescribed, _WorkLedger)
 
 __all__ = ["ImplicitOptions", "StepContact", "ConvergenceError", "run_quasistatic"]
 
@@ -197,26 +197,6 @@ class _StepFailed(Exception):
     """A load step must be cut (the reason is the message)."""
 
 
-class _Ledger:
-    """Energies (mJ) of the quasi-static run, booked per converged step (kinetic energy 0)."""
-
-    def __init__(self, prescribed: np.ndarray):
-        self.prescribed = prescribed
-        self.energies = Energies()
-        self.reaction = np.zeros(prescribed.size)
-
-    def record(self, du: np.ndarray, old, new, contact: ContactResponse) -> None:
-        e = self.energies
-        e.internal += float(np.sum(du * 0.5 * (old.force + new.force)))
-        e.plastic += new.dissipation
-        e.friction += contact.friction_dissipation
-        e.contact_elastic = contact.elastic_energy
-        reaction = (new.force - contact.forces).reshape(-1)[self.prescribed]
-        e.external += float(np.sum(du.reshape(-1)[self.prescribed] * 0.5 * (self.reaction + reaction)))
-        e.external += contact.drive_work
-        self.reaction = reaction
-
-
 class _Newton:
     """The pieces every Newton iteration of a run shares: prescribed dofs, the sparse pattern
     and the linear solver (whose factorization later systems reuse as a preconditioner)."""
@@ -235,7 +215,7 @@ class _Newton:
         self.solver = LinearSolver(options.solver, factor_entries=estimate_factor_entries(nodes, 3), rtol=1e-8,
                                    reuse_rtol=1e-8)
         self.modes = rigid_body_modes(model.points)
-        self.solves, self.factorizations = 0, 0
+        self.solves = 0
 
     def forces(self, u: np.ndarray, states: list, x_start: np.ndarray, t: float, h: float):
         """Internal forces, contact (response, tangent) and the free-dof residual at ``u``."""
@@ -331,7 +311,7 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
     u = np.zeros((n, 3))
     last_increment, last_step = np.zeros((n, 3)), None
     internal, contact_now, _, _ = newton.forces(u, states, model.points, 0.0, duration)
-    ledger = _Ledger(newton.prescribed)
+    ledger = _WorkLedger(newton.prescribed)  # no kinetic energy
     frame_times = np.linspace(0.0, duration, n_frames + 1)[1:]
     h_max = duration / options.steps
     h, t, frames = h_max, 0.0, []
@@ -358,7 +338,7 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
             if contact is not None:  # the friction state of the accepted iterate (a line search may have tried others)
                 contact_new, _ = contact.evaluate(model.points + u_new, model.points + u, t_new, step)
                 contact.commit()
-            ledger.record(u_new - u, internal, internal_new, contact_new)
+            ledger.record_work(u_new - u, internal, internal_new, contact_new)
             last_increment, last_step = u_new - u, step
             u, internal, contact_now, t = u_new, internal_new, contact_new, t_new
             states = internal.states
