@@ -77,6 +77,13 @@ def stage_database(args) -> dict:
     return out
 
 
+def _larger_budget(model, config) -> bool:
+    """Whether ``model`` stopped at its time or epoch budget and ``config`` grants more of it."""
+    stopped = model.bundle.extra.get("stopped")
+    more_time = (config.max_seconds or np.inf) > (model.config.max_seconds or np.inf)
+    return (stopped == "time_limit" and more_time) or (stopped == "epochs" and config.epochs > model.config.epochs)
+
+
 def _pointnet(db_path, name, config, out: Path, subject: int = 0) -> dict:
     from toolkit.static.dataset import StaticDatabase, subject_phantom
     from toolkit.static.surrogate import Surrogate, evaluate_surrogate, train_surrogate, write_evaluation
@@ -89,6 +96,9 @@ def _pointnet(db_path, name, config, out: Path, subject: int = 0) -> dict:
                 {k: v for k, v in config.as_dict().items() if k not in budget}:
             print(f"{out}: trained with another configuration; retraining")
             shutil.rmtree(out)
+            model = None
+        elif _larger_budget(model, config) and (out / "checkpoint.pt").exists():
+            print(f"{out}: stopped at its budget ({model.bundle.extra['stopped']}); continuing with the larger one")
             model = None
     if model is None:
         model = train_surrogate(db_path, out, config, resume=(out / "checkpoint.pt").exists())

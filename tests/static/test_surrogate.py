@@ -2,6 +2,7 @@
 bound, hard boundary values are exact, and a model refuses data it was not built for."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -145,3 +146,18 @@ def test_cli_dataset_train_evaluate_predict(tmp_path):
     loaded = Surrogate.load(model)
     assert loaded.config.features.variant == "explicit" and loaded.config.lr_schedule == "cosine"
     assert loaded.bundle.extra["history"]["lr"] == pytest.approx([1e-3, 0.01e-3 + 0.99e-3 * 0.5])  # cosine, 2 epochs
+
+
+def test_training_resumes_with_a_larger_budget_and_refuses_other_settings(db100, tmp_path):
+    """A run stopped at its budget continues from its checkpoint when given more epochs (the
+    budget is not part of what the model is), and refuses to resume with another learning rate."""
+    config = SurrogateConfig(FeatureSpec("hard"), network="tiny", coarse_radii=True, epochs=1, lr=3e-3)
+    out = tmp_path / "m"
+    first = train_surrogate(db100, out, config, progress=False)
+    assert first.bundle.extra["history"]["epoch"] == [1]
+    longer = train_surrogate(db100, out, replace(config, epochs=2), resume=True,
+                             progress=False)
+    assert longer.bundle.extra["history"]["epoch"] == [1, 2]
+    with pytest.raises(IncompatibleError, match="lr"):
+        train_surrogate(db100, out, replace(config, epochs=3, lr=1e-3), resume=True,
+                        progress=False)

@@ -439,7 +439,9 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
                      lr_schedule=config.lr_schedule)
     signature = {"database": db.config.as_dict(), "mesh": _mesh_signature(db.points[0], db.cells),
                  "channels": list(channel_names(config.features))}
-    identity = {"surrogate": config.as_dict(), "data": signature, "samples": int(len(data.keys)),
+    # the training budget may grow on resume (TrainConfig.RESUMABLE); everything else must match
+    resumable = {k: v for k, v in config.as_dict().items() if k not in TrainConfig.RESUMABLE}
+    identity = {"surrogate": resumable, "data": signature, "samples": int(len(data.keys)),
                 "train": [int(i) for i in train_idx[:5]]}
     result = train_loop(module, torch.nn.functional.mse_loss, tensors(train_idx), tensors(val_idx), tc,
                         checkpoint=out / "checkpoint.pt", resume=resume, identity=identity)
