@@ -2,14 +2,17 @@
 patch test on the tet faces (issue 11, item 6; the hex8 and wedge6 patch tests are in
 tests/static).
 
-The static workflow assembles through the reference records and Voigt B matrices
-(:mod:`toolkit.static.assembly`); the impact workflow integrates finite-strain J2 by hand
-(:mod:`toolkit.impact.elements`, :mod:`toolkit.impact.plasticity`). On the same tet4 and
-tet10 faces and the same isotropic material (no yield table, so the J2 material is
-hyperelastic) the small-strain limits must agree:
+Both map their cells through the shared kinematics (:mod:`toolkit.common.fem.kinematics`).
+The static linear path builds stiffness from Voigt B matrices (:mod:`toolkit.static.assembly`);
+the impact workflow integrates finite-strain J2 (:mod:`toolkit.impact.plasticity`) and its
+critical time step and implicit path use ``element_tangent`` of ``dP/dF``
+(:mod:`toolkit.common.fem.assembly`). On the same tet4 and tet10 faces and the same
+isotropic material (no yield table, so the J2 material is hyperelastic) the small-strain
+limits must agree:
 
-- element matrices: the static ``_block_stiffness`` against the impact ``_element_stiffness``
-  (the one its critical time step uses), to 1e-12 of the largest entry (round-off);
+- element matrices: the static ``_block_stiffness`` against the impact ``_element_stiffness``,
+  to 1e-12 of the largest entry (round-off); and on distorted hex8, wedge6, tet4 and tet10
+  cells, ``element_tangent`` of the isotropic tensor against ``B^T D B``;
 - the impact internal force linearised by a central difference with a 1e-6 mm
   displacement against ``K u`` of the static path: the finite-strain terms are quadratic in
   ``u``, so the central difference cancels them up to O(eps^2) ~ 1e-12, and the round-off of
@@ -21,12 +24,15 @@ import numpy as np
 import pytest
 
 from toolkit.common.fem import TET_EDGES
-from toolkit.common.materials import LinearElastic, NeoHookean
-from toolkit.common.phantom import face_tet
-from toolkit.common.topology import triangulated_boundary
-from toolkit.impact.elements import _element_stiffness, deformation_gradient, internal_force, tet_kinematics
+from toolkit.common.fem.assembly import SparsePattern, element_tangent
+from toolkit.common.fem.kinematics import deformation_gradient, internal_force, kinematics
+from toolkit.common.materials import LinearElastic, NeoHookean, isotropic_tangent
+from toolkit.common.mesh import Mesh
+from toolkit.common.phantom import block, face_tet
+from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
+from toolkit.impact.elements import _element_stiffness, tet_kinematics
 from toolkit.impact.plasticity import J2Plasticity
-from toolkit.static.assembly import MaterialAssignment, SparsePattern, _block_stiffness, kinematics, linear_stiffness
+from toolkit.static.assembly import MaterialAssignment, _block_stiffness, linear_stiffness
 from toolkit.static.constraints import Constraints
 from toolkit.static.fem import StaticProblem
 
@@ -122,3 +128,29 @@ def test_impact_patch_test_on_the_tet_faces(face):
     assert scale > 0
     assert np.abs(f[inner]).max() <= 1e-12 * scale
     assert np.abs(f.sum(axis=0)).max() <= 1e-12 * scale
+
+
+@pytest.mark.parametrize("ctype", ["hex8", "wedge6", "tet4", "tet10"])
+def test_element_tangent_of_the_isotropic_tensor_is_the_voigt_stiffness(ctype):
+    """element_tangent (``dP/dF`` contracted with the gradients, what the implicit impact path
+    and the Neo-Hookean static path use) with the constant isotropic tensor equals the static
+    workflow's Voigt ``B^T D B`` stiffness (full integration, no mean dilatation) on distorted
+    cells of all four types, to round-off."""
+    mesh = _distorted(ctype)
+    kb = kinematics(mesh, mean_dilatation=False).blocks[0]
+    E, Q = kb.weight.shape
+    lam, mu = 0.4, 0.3
+    K = element_tangent(kb.grad, kb.weight, np.broadcast_to(isotropic_tangent(lam, mu), (E, Q, 3, 3, 3, 3)))
+    material = LinearElastic(mu * (3 * lam + 2 * mu) / (lam + mu), lam / (2 * (lam + mu)))  # lam, mu as above
+    D = np.broadcast_to(material.stiffness(), (E, 6, 6))
+    K0 = _block_stiffness(kb, D, np.zeros(E))
+    assert np.abs(K - K0).max() <= 1e-13 * np.abs(K0).max()
+
+
+def _distorted(ctype):
+    """A 2 x 2 x 2 box of 1 mm cells of ``ctype`` with nodes jittered by 0.1 mm."""
+    axes = [np.linspace(0, 2, 3)] * 3
+    if ctype != "wedge6":
+        return block(axes, ctype, jitter=0.1, seed=3)
+    hexes = block(axes, "hex8", jitter=0.1, seed=3)
+    return Mesh(hexes.points, {"wedge6": wedges_from_hexes(hexes.cells["hex8"])})

@@ -5,17 +5,11 @@ integrals, and the critical time step scales like a wave transit time (h / c).""
 import numpy as np
 import pytest
 
+from toolkit.common.fem.kinematics import deformation_gradient, internal_force, lumped_mass
 from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import block
 from toolkit.common.topology import tet10_from_tet4
-from toolkit.impact.elements import (
-    _element_stiffness,
-    critical_time_step,
-    deformation_gradient,
-    internal_force,
-    lumped_mass,
-    tet_kinematics,
-)
+from toolkit.impact.elements import _element_stiffness, critical_time_step, tet_kinematics
 from toolkit.impact.plasticity import J2Plasticity
 
 RHO = 1e-9
@@ -98,7 +92,7 @@ def test_critical_time_step_scales_with_size_and_sqrt_density(order):
 def test_compiled_element_loops_match_numpy(order, monkeypatch):
     """The compiled deformation-gradient and internal-force loops equal the batched numpy
     versions (``TOOLKIT_JIT=0``) to 1e-13 relative on a jittered block."""
-    from toolkit.impact.jit import HAVE_NUMBA
+    from toolkit.common.fem.jit import HAVE_NUMBA
 
     if not HAVE_NUMBA:
         pytest.skip("numba not installed: only the numpy path exists")

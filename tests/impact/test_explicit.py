@@ -19,6 +19,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 from scipy.optimize import brentq
 
+from toolkit.common.fem.kinematics import deformation_gradient, internal_force, lumped_mass
 from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import block
 from toolkit.common.topology import tet10_from_tet4
@@ -36,14 +37,7 @@ from toolkit.impact.contact import (
     RigidSphereContact,
     penalty_stiffness,
 )
-from toolkit.impact.elements import (
-    _element_stiffness,
-    critical_time_step,
-    deformation_gradient,
-    internal_force,
-    lumped_mass,
-    tet_kinematics,
-)
+from toolkit.impact.elements import _element_stiffness, critical_time_step, tet_kinematics
 from toolkit.impact.explicit import (Body, ContactResponse, ExplicitModel, InstabilityError, moving_sphere_contact,
                                      run_explicit)
 from toolkit.impact.plasticity import FACE_TABLE, J2Plasticity

@@ -12,11 +12,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from toolkit.common.fem.assembly import SparsePattern, element_tangent
+from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.fem.tangent import algorithmic_tangent
-from toolkit.common.phantom import block
+from toolkit.common.materials import isotropic_tangent
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact
-from toolkit.impact.elements import _element_stiffness, tet_kinematics
 from toolkit.impact.implicit import ImplicitOptions, StepContact
 from toolkit.impact.plasticity import FACE_TABLE, HardeningTable, J2Plasticity
 from toolkit.impact.scene import Fidelity, Scene
@@ -24,17 +23,12 @@ from toolkit.impact.scene import Fidelity, Scene
 EYE = np.eye(3)
 
 
-def _isotropic(lam, mu):
-    return lam * np.einsum("ij,kl->ijkl", EYE, EYE) + mu * (np.einsum("ik,jl->ijkl", EYE, EYE)
-                                                           + np.einsum("il,jk->ijkl", EYE, EYE))
-
-
 def test_the_tangent_at_rest_is_the_isotropic_elasticity_tensor():
     """At F = I, dP/dF of Hencky elasticity is lam I(x)I + 2 mu I_sym (closed form). Forward
     differences with step h err by ~h relative (the stress is smooth); central ones by ~h^2."""
     mat = J2Plasticity(0.015, 0.49, 1e-9, FACE_TABLE)
     F = np.broadcast_to(EYE, (5, 3, 3)).copy()
-    C = _isotropic(mat.lam, mat.mu)
+    C = isotropic_tangent(mat.lam, mat.mu)
     _, A = algorithmic_tangent(mat, F, mat.initial_state(5), step=1e-7)
     assert np.abs(A - C).max() <= 1e-6 * np.abs(C).max()
     _, A = algorithmic_tangent(mat, F, mat.initial_state(5), step=1e-5, central=True)
@@ -59,17 +53,6 @@ def test_the_tangent_is_the_derivative_of_the_update(plastic):
     assert np.abs(np.einsum("pijkl,pkl->pij", A, dF) - fd).max() <= 1e-5 * np.abs(fd).max()
     if not plastic:
         assert np.abs(A - A.transpose(0, 3, 4, 1, 2)).max() <= 1e-6 * np.abs(A).max()
-
-
-def test_element_tangent_of_the_isotropic_tensor_is_the_linear_stiffness():
-    """element_tangent with the constant isotropic tensor equals the small-strain stiffness
-    written out by hand (impact.elements._element_stiffness) on tet4 and tet10."""
-    for order in (1, 2):
-        kin = tet_kinematics(block([np.linspace(0, 2, 3)] * 3, "tet4" if order == 1 else "tet10", jitter=0.1))
-        E, Q = kin.weight.shape
-        K = element_tangent(kin.grad, kin.weight, np.broadcast_to(_isotropic(0.4, 0.3), (E, Q, 3, 3, 3, 3)))
-        K0 = _element_stiffness(kin, 0.4, 0.3)
-        assert np.abs(K - K0).max() <= 1e-13 * np.abs(K0).max()
 
 
 def test_sparse_pattern_assembles_and_constrains_like_a_dense_loop():

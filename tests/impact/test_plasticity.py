@@ -326,7 +326,7 @@ def test_compiled_update_matches_numpy_reference(material):
     (elastic, plastic, exactly undeformed and nearly-isotropic ones): stresses to 1e-9 relative
     plus 1e-12 mu absolute (the round-off of ln(1 + 1e-8) in a nearly isotropic be), plastic strain to 1e-12, the same points flow, and the carried principal
     directions stay orthonormal to 1e-13."""
-    from toolkit.impact.jit import HAVE_NUMBA
+    from toolkit.common.fem.jit import HAVE_NUMBA
 
     if not HAVE_NUMBA:
         pytest.skip("numba not installed: only the numpy path exists")

@@ -10,6 +10,7 @@ import pytest
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
+from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.materials import (
     LinearElastic,
     NeoHookean,
@@ -19,7 +20,6 @@ from toolkit.common.materials import (
 from toolkit.common.mesh import Mesh
 from toolkit.static.assembly import (
     MaterialAssignment,
-    SparsePattern,
     kinematics,
     linear_stiffness,
     neo_hookean_energy,

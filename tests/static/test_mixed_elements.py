@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from toolkit.common.fem import reference_element
+from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.mesh import Mesh, MeshError
 from toolkit.common.mixed_bar import mixed_bar
 from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
 from toolkit.static.assembly import (
     MaterialAssignment,
-    SparsePattern,
     kinematics,
     linear_stiffness,
     neo_hookean_energy,

@@ -210,7 +210,7 @@ def to_skfem(mesh: Mesh):
     ctype = mesh.volume_type
     if ctype not in _SKFEM_TYPES:
         raise MeshError(f"scikit-fem conversion supports {list(_SKFEM_TYPES)}, not {ctype!r} (scikit-fem reads no "
-                        "meshio wedges); the static assembly does not need it (toolkit.static.kinematics)")
+                        "meshio wedges); the static assembly does not need it (toolkit.common.fem.kinematics)")
     off = mesh.block_offset(ctype)
     n = mesh.cells[ctype].shape[0]
     cell_sets = {}

@@ -21,7 +21,7 @@ import numpy as np
 from toolkit.common.seeds import LIP_MUSCLE_E_FIBRE, LIP_MUSCLE_E_TRANSVERSE, TISSUE_E, TISSUE_NU
 
 __all__ = ["LinearElastic", "TransverselyIsotropic", "NeoHookean", "IsotropicModuli", "lame", "VOIGT",
-           "MaterialWarning", "von_mises"]
+           "MaterialWarning", "von_mises", "isotropic_tangent"]
 
 #: Voigt index pairs
 VOIGT = np.array([[0, 0], [1, 1], [2, 2], [1, 2], [0, 2], [0, 1]])
@@ -37,6 +37,19 @@ class MaterialWarning(UserWarning):
 def lame(E: float, nu: float) -> tuple[float, float]:
     """Lame parameters ``(lam, mu)`` in MPa from Young's modulus (MPa) and Poisson's ratio."""
     return E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+
+
+def isotropic_tangent(lam, mu) -> np.ndarray:
+    """Isotropic elasticity tensor ``C_ijkl = lam d_ij d_kl + mu (d_ik d_jl + d_il d_jk)``, MPa.
+
+    ``lam``, ``mu`` MPa, scalars or arrays of one shape ``S``; returns ``S + (3, 3, 3, 3)``.
+    It is also the small-strain ``dP/dF`` (``P = C : sym(F - I)``).
+    """
+    eye = np.eye(3)
+    volumetric = np.einsum("ij,kl->ijkl", eye, eye)
+    shear = np.einsum("ik,jl->ijkl", eye, eye) + np.einsum("il,jk->ijkl", eye, eye)
+    lam, mu = np.asarray(lam, dtype=float), np.asarray(mu, dtype=float)
+    return lam[..., None, None, None, None] * volumetric + mu[..., None, None, None, None] * shear
 
 
 def von_mises(stress: np.ndarray) -> np.ndarray:

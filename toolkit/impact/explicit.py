@@ -28,8 +28,8 @@ from typing import Callable
 
 import numpy as np
 
+from toolkit.common.fem.kinematics import BlockKinematics, deformation_gradient, internal_force
 from toolkit.common.materials import von_mises
-from toolkit.impact.elements import TetKinematics, deformation_gradient, internal_force
 
 __all__ = ["Body", "ExplicitModel", "Frame", "InstabilityError", "EnergyBalanceWarning", "run_explicit", "Energies",
            "moving_sphere_contact", "ContactResponse"]
@@ -59,7 +59,7 @@ class Body:
     Attributes
     ----------
     name : str
-    kin : TetKinematics (reference configuration)
+    kin : BlockKinematics (reference configuration)
     material : object with ``update(F (n,3,3), state) -> StressUpdate`` and ``initial_state(n)``
         (see :mod:`toolkit.impact.plasticity`); ``update`` raises ``FloatingPointError`` (with
         the bad point in ``.point``) where ``det F <= 0`` or ``F`` is not finite
@@ -72,7 +72,7 @@ class Body:
     """
 
     name: str
-    kin: TetKinematics
+    kin: BlockKinematics
     material: object
     offset: int
     n_nodes: int
@@ -194,12 +194,12 @@ def moving_sphere_contact(pair, slaves: np.ndarray, centre0: np.ndarray, velocit
     return contact
 
 
-def _volume_share(kin: TetKinematics, mask: np.ndarray) -> float:
+def _volume_share(kin: BlockKinematics, mask: np.ndarray) -> float:
     """Share of the body's volume at the integration points where ``mask (E, Q)`` holds."""
     return float(np.sum(kin.weight[mask]) / np.sum(kin.weight))
 
 
-def _to_nodes(kin: TetKinematics, values: np.ndarray, n_nodes: int) -> np.ndarray:
+def _to_nodes(kin: BlockKinematics, values: np.ndarray, n_nodes: int) -> np.ndarray:
     """Volume-weighted nodal average of Gauss-point values ``(E, Q)``."""
     elem = (values * kin.weight).sum(axis=1) / kin.volume
     num = np.bincount(kin.conn.ravel(), weights=np.repeat(elem * kin.volume, kin.conn.shape[1]), minlength=n_nodes)

@@ -50,10 +50,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from toolkit.common.fem.assembly import SparsePattern, element_tangent
+from toolkit.common.fem.kinematics import deformation_gradient
 from toolkit.common.fem.solvers import LinearSolver, SolverError, estimate_factor_entries, rigid_body_modes
 from toolkit.common.fem.tangent import algorithmic_tangent
 from toolkit.impact.contact import RigidSphereContact
-from toolkit.impact.elements import deformation_gradient
 from toolkit.impact.explicit import (ContactResponse, ExplicitModel, _frame, _internal_forces, _Inverted,
                                      _prescribed, _WorkLedger)
 
@@ -208,11 +208,9 @@ class _Newton:
         self.free = np.ones(3 * n, dtype=bool)
         self.free[self.prescribed] = False
         self.pattern = SparsePattern([b.kin.conn + b.offset for b in model.bodies], n)
-        nodes = sp.csr_matrix((np.ones(self.pattern.nnz), (self.pattern.rows // 3, self.pattern.cols // 3)),
-                              shape=(n, n))
         # an inexact Newton: later systems are solved by CG preconditioned with the last
         # factorization to 1e-8, far below what the Newton iteration needs
-        self.solver = LinearSolver(options.solver, factor_entries=estimate_factor_entries(nodes, 3), rtol=1e-8,
+        self.solver = LinearSolver(options.solver, factor_entries=estimate_factor_entries(self.pattern.node_graph(), 3), rtol=1e-8,
                                    reuse_rtol=1e-8)
         self.modes = rigid_body_modes(model.points)
         self.solves = 0

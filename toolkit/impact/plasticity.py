@@ -43,7 +43,7 @@ import numpy as np
 
 from toolkit.common import seeds
 from toolkit.common.materials import IsotropicModuli, _check, von_mises
-from toolkit.impact.jit import njit, use_jit
+from toolkit.common.fem.jit import njit, use_jit
 
 __all__ = [
     "HardeningTable",

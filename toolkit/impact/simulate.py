@@ -21,11 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common.fem.kinematics import lumped_mass
 from toolkit.common.materials import lame
 from toolkit.common.mesh import Mesh
 from toolkit.common.topology import boundary_faces
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact, penalty_stiffness
-from toolkit.impact.elements import critical_time_step, lumped_mass, tet_kinematics
+from toolkit.impact.elements import critical_time_step, tet_kinematics
 from toolkit.impact.explicit import Body, ContactResponse, ExplicitModel, moving_sphere_contact, run_explicit
 from toolkit.impact.plasticity import HardeningTable, J2Plasticity
 from toolkit.impact.scene import MaterialSpec, Scene

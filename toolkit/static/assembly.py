@@ -2,10 +2,11 @@
 on meshes that mix them.
 
 Shape-function gradients and quadrature weights come from the reference-element records
-(:mod:`toolkit.common.fem`, through :func:`toolkit.static.kinematics.kinematics`), one
+(:mod:`toolkit.common.fem`, through :func:`toolkit.common.fem.kinematics.kinematics`), one
 volume block at a time; element matrices are built with batched ``numpy.matmul`` over the
-elements of a block and scattered into one CSR matrix for all blocks through a
-precomputed pattern (``numpy.bincount``), with no Python loop over elements.
+elements of a block and scattered into one CSR matrix for all blocks through the shared
+:class:`~toolkit.common.fem.assembly.SparsePattern` (``numpy.bincount``), with no Python loop
+over elements.
 
 Volumetric locking (nu -> 0.5) is avoided on hexahedra and wedges by the
 **mean-dilatation (B-bar) split**: the ``lam (tr eps)^2`` part of the energy (the
@@ -22,70 +23,18 @@ MPa, N (forces), mJ (energies).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 import scipy.sparse as sp
 
+from toolkit.common.fem.assembly import SparsePattern, element_tangent
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.mesh import Mesh
-from toolkit.static.kinematics import BlockKinematics, Kinematics, kinematics
+from toolkit.common.fem.kinematics import BlockKinematics, Kinematics, deformation_gradient, element_forces, kinematics
 
-__all__ = ["Kinematics", "BlockKinematics", "kinematics", "SparsePattern", "MaterialAssignment",
+__all__ = ["Kinematics", "BlockKinematics", "kinematics", "MaterialAssignment",
            "linear_stiffness", "neo_hookean_system", "neo_hookean_energy", "small_strain"]
-
-
-def _as_blocks(a) -> list[np.ndarray]:
-    """One array, or a sequence of per-block arrays, as a list."""
-    return [a] if isinstance(a, np.ndarray) else list(a)
-
-
-class SparsePattern:
-    """CSR sparsity pattern of a mesh's vector stiffness, built once per topology.
-
-    Parameters
-    ----------
-    conn : (E, A) int array, or a sequence of them (one per volume block, e.g.
-        ``kin.conns``): the element nodes
-    n_nodes : number of mesh nodes
-
-    ``assemble(Ke)`` sums element matrices (``(E, 3A, 3A)``, or one such array per block
-    in the same order) into CSR with one ``bincount``; the pattern is reused for every
-    increment and Newton iteration.
-    """
-
-    def __init__(self, conn: np.ndarray | Sequence[np.ndarray], n_nodes: int):
-        self.n_dofs = 3 * n_nodes
-        self.block_dofs = [(3 * c[:, :, None] + np.arange(3)).reshape(c.shape[0], 3 * c.shape[1])
-                           for c in _as_blocks(conn)]
-        rows = np.concatenate([np.repeat(d, d.shape[1], axis=1).ravel() for d in self.block_dofs])
-        cols = np.concatenate([np.tile(d, (1, d.shape[1])).ravel() for d in self.block_dofs])
-        key = rows * self.n_dofs + cols
-        uniq, self.slot = np.unique(key, return_inverse=True)
-        self.slot = self.slot.ravel()
-        self.indices = (uniq % self.n_dofs).astype(np.int32)
-        counts = np.bincount(uniq // self.n_dofs, minlength=self.n_dofs)
-        self.indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
-        self.nnz = uniq.size
-        self._vector_dofs = np.concatenate([d.ravel() for d in self.block_dofs])
-
-    @property
-    def dofs(self) -> np.ndarray:
-        """``(E, 3A)`` element dofs of a single-block pattern."""
-        if len(self.block_dofs) != 1:
-            raise ValueError(f"the pattern has {len(self.block_dofs)} blocks; use block_dofs")
-        return self.block_dofs[0]
-
-    def assemble(self, Ke: np.ndarray | Sequence[np.ndarray]) -> sp.csr_matrix:
-        """Sum element matrices ``(E, 3A, 3A)`` N/mm (one array per block) into CSR."""
-        data = np.concatenate([k.reshape(-1) for k in _as_blocks(Ke)])
-        data = np.bincount(self.slot, weights=data, minlength=self.nnz)
-        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_dofs, self.n_dofs))
-
-    def assemble_vector(self, fe: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
-        """Sum element vectors ``(E, 3A)`` (one array per block) into a global ``(3 n_nodes,)`` vector."""
-        data = np.concatenate([f.reshape(-1) for f in _as_blocks(fe)])
-        return np.bincount(self._vector_dofs, weights=data, minlength=self.n_dofs)
 
 
 @dataclass(frozen=True)
@@ -183,10 +132,6 @@ def small_strain(kin: Kinematics, u: np.ndarray) -> np.ndarray:
     return np.concatenate(out)
 
 
-def _deformation_gradient(kb: BlockKinematics, u: np.ndarray, grad: np.ndarray) -> np.ndarray:
-    return np.eye(3) + np.einsum("eai,e...aj->e...ij", u[kb.conn], grad)
-
-
 def _block_groups(kb: BlockKinematics, groups) -> list[tuple[np.ndarray, object]]:
     """``(local element indices, material)`` of the groups that have elements in block ``kb``."""
     out = []
@@ -204,8 +149,8 @@ def neo_hookean_energy(kin: Kinematics, u: np.ndarray, groups) -> float:
     """
     total = 0.0
     for kb in kin.blocks:
-        F_all = _deformation_gradient(kb, u, kb.grad)
-        Fc_all = _deformation_gradient(kb, u, kb.grad_c[:, None])[:, 0]
+        F_all = deformation_gradient(kb, u)
+        Fc_all = deformation_gradient(kb, u, kb.grad_c[:, None])[:, 0]
         for ids, mat in _block_groups(kb, groups):
             F, Fc = F_all[ids], Fc_all[ids]
             J = np.linalg.det(F)
@@ -229,21 +174,14 @@ def _block_system(kb: BlockKinematics, u: np.ndarray, groups, tangent: bool):
     parts = [("shear", kb.grad, kb.weight), ("volumetric", kb.grad_c[:, None], kb.volume[:, None])] \
         if kb.sri else [("all", kb.grad, kb.weight)]
     for part, grad, weight in parts:
-        F_all = _deformation_gradient(kb, u, grad)
+        F_all = deformation_gradient(kb, u, grad)
         for ids, mat in groups:
             g = grad[ids]
             P, Atan = mat.first_piola(F_all[ids], part)
             w = weight[ids]
-            fe[ids] += np.einsum("eqij,eqaj,eq->eai", P, g, w)
+            fe[ids] += element_forces(g, w, P)
             if tangent:
-                # K[(a,i),(b,k)] = sum_q w sum_jl g_aj A_ijkl g_bl, as two batched products:
-                # (g_aj) x (A_j,ikl) then (T_aik,l) x (g_bl)
-                n = ids.size
-                for q in range(g.shape[1]):
-                    Aq = Atan[:, q].reshape(n, 3, 3, 3, 3).transpose(0, 2, 1, 3, 4).reshape(n, 3, 27)  # (j, ikl)
-                    T = (g[:, q] @ Aq).reshape(n, A * 9, 3)  # (a, i, k), l
-                    Kq = (T @ np.swapaxes(g[:, q], 1, 2)).reshape(n, A, 3, 3, A)  # a, i, k, b
-                    Ke[ids] += w[:, q, None, None] * Kq.transpose(0, 1, 2, 4, 3).reshape(n, 3 * A, 3 * A)
+                Ke[ids] += element_tangent(g, w, Atan)
     return fe.reshape(E, -1), Ke
 
 

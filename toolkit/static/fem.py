@@ -22,17 +22,17 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.sparse as sp
 
+from toolkit.common.fem.assembly import SparsePattern
+from toolkit.common.fem.solvers import LinearSolver, SolveInfo, estimate_factor_entries, rigid_body_modes
 from toolkit.common.mesh import Mesh
 from toolkit.static.assembly import (
     MaterialAssignment,
-    SparsePattern,
     kinematics,
     linear_stiffness,
     neo_hookean_energy,
     neo_hookean_system,
 )
 from toolkit.static.constraints import Constraints
-from toolkit.common.fem.solvers import LinearSolver, SolveInfo, estimate_factor_entries, rigid_body_modes
 
 __all__ = ["StaticProblem", "Solution", "ConvergenceError", "solve_with_lip_contact", "ContactResult"]
 
@@ -97,7 +97,7 @@ class StaticProblem:
         self.groups = materials.groups(mesh)
         self._K = None
         self._modes = rigid_body_modes(mesh.points)
-        entries = estimate_factor_entries(_node_graph(self.pattern)) if solver == "auto" else None
+        entries = estimate_factor_entries(self.pattern.node_graph()) if solver == "auto" else None
         self.linear_solver = LinearSolver(solver, factor_entries=entries)
         # force of a unit strain on a typical element face, N: the yardstick for round-off
         moduli = [getattr(m, "E", None) or getattr(m, "E_fibre", 0.0) for _, m in self.groups]
@@ -219,14 +219,6 @@ class StaticProblem:
             E = E_new
         raise ConvergenceError(f"Newton did not converge in {max_iter} iterations (residual {gn:.3e} N)",
                                max_iter, gn)
-
-
-def _node_graph(pattern: SparsePattern) -> sp.csr_matrix:
-    """Node adjacency ``(n, n)`` from a dof pattern (node-major dofs, 3 per node)."""
-    rows = np.repeat(np.arange(pattern.n_dofs), np.diff(pattern.indptr))
-    keep = rows % 3 == 0  # one dof row per node
-    n = pattern.n_dofs // 3
-    return sp.csr_matrix((np.ones(int(keep.sum())), (rows[keep] // 3, pattern.indices[keep] // 3)), shape=(n, n))
 
 
 @dataclass(frozen=True, eq=False)

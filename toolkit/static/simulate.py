@@ -63,12 +63,13 @@ from typing import Mapping
 
 import numpy as np
 
+from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import FacePhantom
 from toolkit.common.surface_distance import barycentric, beyond_rim_onto_plane, closest_points
 from toolkit.common.topology import rim_edges
-from toolkit.static.assembly import MaterialAssignment, SparsePattern
+from toolkit.static.assembly import MaterialAssignment
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
 from toolkit.static.constraints import Constraints
 from toolkit.static.fem import ConvergenceError, StaticProblem, solve_with_lip_contact

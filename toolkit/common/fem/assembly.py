@@ -11,6 +11,8 @@ Units follow the caller (mm, N, MPa: stiffness in N/mm).
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -36,37 +38,66 @@ def element_tangent(grad: np.ndarray, weight: np.ndarray, A: np.ndarray) -> np.n
     return K.reshape(E, 3 * n, 3 * n)
 
 
+def _as_blocks(a) -> list[np.ndarray]:
+    """One array, or a sequence of per-block arrays, as a list."""
+    return [a] if isinstance(a, np.ndarray) else list(a)
+
+
 class SparsePattern:
-    """The CSR pattern of a stiffness matrix assembled from element blocks.
+    """The CSR pattern of a stiffness matrix assembled from element blocks, built once per topology.
 
     Parameters
     ----------
-    blocks : list of (E, n) int arrays of global node ids, one per element block (bodies of
-        several element types or meshes may share one pattern)
-    n_nodes : nodes of the model (3 dofs each)
+    blocks : (E, n) int array of global node ids, or a sequence of them, one per element block
+        (bodies of several element types or meshes may share one pattern)
+    n_nodes : nodes of the model (3 dofs each, node-major: dof ``3 * node + component``)
+
+    ``assemble`` sums element matrices (``(E, 3n, 3n)``, one array per block in the same
+    order) into CSR with one ``bincount``; ``assemble_vector`` does the same for element
+    vectors. The pattern is reused for every increment and Newton iteration.
     """
 
-    def __init__(self, blocks: list, n_nodes: int):
+    def __init__(self, blocks: np.ndarray | Sequence[np.ndarray], n_nodes: int):
         self.n_dofs = 3 * int(n_nodes)
+        self.block_dofs = []
         keys = []
-        for conn in blocks:
+        for conn in _as_blocks(blocks):
             conn = np.asarray(conn, dtype=np.int64)
             dofs = (3 * conn[:, :, None] + np.arange(3)).reshape(conn.shape[0], -1)  # (E, 3n)
+            self.block_dofs.append(dofs)
             keys.append((dofs[:, :, None] * self.n_dofs + dofs[:, None, :]).ravel())
         unique, inverse = np.unique(np.concatenate(keys), return_inverse=True)
         self.rows, self.cols = unique // self.n_dofs, unique % self.n_dofs
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.rows, minlength=self.n_dofs))])
+        self.indices = self.cols.astype(np.int32)
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.rows, minlength=self.n_dofs))]).astype(np.int32)
         self.nnz = unique.size
-        bounds = np.cumsum([0] + [k.size for k in keys])
-        self._scatter = [inverse[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+        self._slot = inverse.ravel()
+        self._vector_dofs = np.concatenate([d.ravel() for d in self.block_dofs])
         self._diagonal = np.flatnonzero(self.rows == self.cols)
 
-    def assemble(self, element_matrices: list) -> sp.csr_matrix:
+    @property
+    def dofs(self) -> np.ndarray:
+        """``(E, 3n)`` element dofs of a single-block pattern."""
+        if len(self.block_dofs) != 1:
+            raise ValueError(f"the pattern has {len(self.block_dofs)} blocks; use block_dofs")
+        return self.block_dofs[0]
+
+    def node_graph(self) -> sp.csr_matrix:
+        """Node adjacency ``(n_nodes, n_nodes)``: 1 where two nodes share an element."""
+        keep = (self.rows % 3 == 0) & (self.cols % 3 == 0)  # one entry per node pair
+        n = self.n_dofs // 3
+        return sp.csr_matrix((np.ones(int(keep.sum())), (self.rows[keep] // 3, self.cols[keep] // 3)), shape=(n, n))
+
+    def assemble(self, element_matrices: np.ndarray | Sequence[np.ndarray]) -> sp.csr_matrix:
         """The global matrix ``(3 n_nodes, 3 n_nodes)`` from one ``(E, 3n, 3n)`` array per block."""
-        data = np.zeros(self.nnz)
-        for scatter, Ke in zip(self._scatter, element_matrices):
-            data += np.bincount(scatter, weights=np.asarray(Ke, dtype=np.float64).ravel(), minlength=self.nnz)
-        return sp.csr_matrix((data, self.cols, self.indptr), shape=(self.n_dofs, self.n_dofs))
+        data = np.concatenate([np.asarray(k, dtype=np.float64).reshape(-1) for k in _as_blocks(element_matrices)])
+        data = np.bincount(self._slot, weights=data, minlength=self.nnz)
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_dofs, self.n_dofs))
+
+    def assemble_vector(self, element_vectors: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
+        """The global vector ``(3 n_nodes,)`` from one ``(E, 3n)`` array per block."""
+        data = np.concatenate([np.asarray(f, dtype=np.float64).reshape(-1) for f in _as_blocks(element_vectors)])
+        return np.bincount(self._vector_dofs, weights=data, minlength=self.n_dofs)
 
     def constrain(self, K: sp.csr_matrix, dofs: np.ndarray) -> sp.csr_matrix:
         """``K`` (this pattern) with the rows and columns of ``dofs`` zeroed and a unit diagonal
@@ -77,4 +108,4 @@ class SparsePattern:
         data[held[self.rows] | held[self.cols]] = 0.0
         diag = self._diagonal[held[self.rows[self._diagonal]]]
         data[diag] = 1.0
-        return sp.csr_matrix((data, self.cols, self.indptr), shape=K.shape)
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=K.shape)

@@ -116,6 +116,16 @@ class ReferenceElement:
         return float(self.quadrature(1)[1].sum())
 
     @property
+    def hrz_fractions(self) -> np.ndarray:
+        """HRZ lumped-mass fractions ``(n_nodes,)`` (sum 1): the diagonal of the consistent
+        mass, ``int N_a^2``, scaled to the element mass; exact for affine cells, all positive
+        (row-sum lumping gives a ``tet10``'s corners ``-1/20``). ``tet10``: corners ``1/36``,
+        mid-edge nodes ``4/27``; ``tet4``: ``1/4``; ``hex8``: ``1/8``."""
+        xi, w = self.quadrature(2 * self.degree)
+        d = w @ self.shape(xi) ** 2
+        return d / d.sum()
+
+    @property
     def faces_flat(self) -> np.ndarray | None:
         """The faces as one array when they all have the same size, else ``None``."""
         return self.faces[0] if len(self.faces) == 1 else None
