@@ -26,12 +26,12 @@ import pytest
 from toolkit.common.fem import TET_EDGES
 from toolkit.common.fem.assembly import SparsePattern, element_tangent
 from toolkit.common.fem.kinematics import deformation_gradient, internal_force, kinematics
-from toolkit.common.materials import LinearElastic, NeoHookean, isotropic_tangent
+from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic, isotropic_tangent
 from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import block, face_tet
 from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
 from toolkit.impact.elements import _element_stiffness, tet_kinematics
-from toolkit.impact.plasticity import J2Plasticity
+from toolkit.impact.plasticity import FACE_TABLE, J2Plasticity
 from toolkit.static.assembly import MaterialAssignment, _block_stiffness, linear_stiffness
 from toolkit.static.constraints import Constraints
 from toolkit.static.fem import StaticProblem
@@ -154,3 +154,40 @@ def _distorted(ctype):
         return block(axes, ctype, jitter=0.1, seed=3)
     hexes = block(axes, "hex8", jitter=0.1, seed=3)
     return Mesh(hexes.points, {"wedge6": wedges_from_hexes(hexes.cells["hex8"])})
+
+
+def _contract_cases():
+    """(name, material, state, F) with F at finite strain (20 % stretches and shears, and
+    enough for J2 to yield on the face table), 6 points each."""
+    rng = np.random.default_rng(5)
+    F = np.eye(3) + 0.2 * rng.standard_normal((6, 3, 3))
+    fibres = rng.standard_normal((6, 3))
+    j2 = J2Plasticity(E_MPA, NU, 1e-9, table=FACE_TABLE.scaled(0.1))  # yields at 0.0015 MPa
+    return [("linear", LinearElastic(E_MPA, NU), None, F),
+            ("transversely isotropic", TransverselyIsotropic(), TransverselyIsotropic().initial_state(fibres), F),
+            ("Neo-Hookean", NeoHookean(E_MPA, NU), None, F),
+            ("J2", j2, j2.initial_state(6), F)]
+
+
+@pytest.mark.parametrize("case", range(4), ids=["linear", "transversely_isotropic", "neo_hookean", "j2"])
+def test_every_material_tangent_is_the_derivative_of_its_update(case):
+    """One contract for the four materials: ``tangent(F, state)`` returns the update and
+    ``dP/dF``, which must equal central differences of ``update(F, state).first_piola``.
+    With a step h = 1e-6 the truncation error is ~h^2 times the third derivative (~1e-12
+    relative) and the round-off ~1e-16 / h = 1e-10; the J2 tangent is itself a forward
+    difference with step 1e-7 (error ~1e-7 relative), so the tolerance is 1e-5 of the
+    largest entry."""
+    name, material, state, F = _contract_cases()[case]
+    result, A = material.tangent(F, state)
+    np.testing.assert_allclose(result.first_piola, material.update(F, state).first_piola, rtol=0, atol=1e-15)
+    h = 1e-6
+    fd = np.empty_like(A)
+    for k in range(3):
+        for L in range(3):
+            step = np.zeros((3, 3))
+            step[k, L] = h
+            fd[..., k, L] = (material.update(F + step, state).first_piola
+                             - material.update(F - step, state).first_piola) / (2 * h)
+    assert np.abs(A - fd).max() <= 1e-5 * np.abs(fd).max(), name
+    if name == "J2":
+        assert result.plastic.any(), "the J2 case must exercise the return mapping"

@@ -6,6 +6,13 @@
 - :class:`NeoHookean`: compressible Neo-Hookean (FEBio's ``neo-Hookean``),
   ``W = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2``.
 
+Every law here and :class:`~toolkit.impact.plasticity.J2Plasticity` share one contract:
+``update(F (m, 3, 3), state) -> result`` with ``result.first_piola (m, 3, 3)`` MPa and
+``result.state`` (the state to carry to the next step), and ``tangent(F, state) -> (result,
+dP/dF (m, 3, 3, 3, 3) MPa)``. The elastic laws have no history: their state is ``None``,
+except the transversely isotropic one, whose state is the unit fibre ``(m, 3)`` of each point
+(carried unchanged). The linear laws are geometrically linear: ``P = C : sym(F - I)``.
+
 Voigt order is ``[xx, yy, zz, yz, xz, xy]`` with engineering shear strains. Each law
 also exposes its *volumetric* Lame part ``lam`` so element formulations can integrate
 it with reduced quadrature (selective reduced integration against volumetric locking).
@@ -21,7 +28,7 @@ import numpy as np
 from toolkit.common.seeds import LIP_MUSCLE_E_FIBRE, LIP_MUSCLE_E_TRANSVERSE, TISSUE_E, TISSUE_NU
 
 __all__ = ["LinearElastic", "TransverselyIsotropic", "NeoHookean", "IsotropicModuli", "lame", "VOIGT",
-           "MaterialWarning", "von_mises", "isotropic_tangent"]
+           "MaterialWarning", "von_mises", "isotropic_tangent", "ElasticUpdate"]
 
 #: Voigt index pairs
 VOIGT = np.array([[0, 0], [1, 1], [2, 2], [1, 2], [0, 2], [0, 1]])
@@ -59,6 +66,30 @@ def von_mises(stress: np.ndarray) -> np.ndarray:
     tr = np.trace(stress, axis1=-2, axis2=-1)
     ss = np.einsum("...ij,...ij->...", stress, stress) - tr**2 / 3.0
     return np.sqrt(1.5 * np.maximum(ss, 0.0))
+
+
+@dataclass(frozen=True, eq=False)
+class ElasticUpdate:
+    """Result of an elastic law's ``update``: ``first_piola (m, 3, 3)`` MPa and the (unchanged) state."""
+
+    first_piola: np.ndarray
+    state: object = None
+
+
+def _voigt_to_tensor(D: np.ndarray) -> np.ndarray:
+    """Minor- and major-symmetric tensors ``(..., 3, 3, 3, 3)`` from Voigt stiffnesses ``(..., 6, 6)``
+    (engineering shear strains)."""
+    index = np.empty((3, 3), dtype=np.int64)
+    index[VOIGT[:, 0], VOIGT[:, 1]] = np.arange(6)
+    index[VOIGT[:, 1], VOIGT[:, 0]] = np.arange(6)
+    return D[..., index[:, :, None, None], index[None, None, :, :]]
+
+
+def _small_strain_update(C: np.ndarray, F: np.ndarray, state) -> ElasticUpdate:
+    """``P = C : sym(F - I)`` for tensors ``C (m, 3, 3, 3, 3)`` or ``(3, 3, 3, 3)`` MPa."""
+    H = np.asarray(F, dtype=float) - np.eye(3)
+    eps = 0.5 * (H + np.swapaxes(H, -1, -2))
+    return ElasticUpdate(np.einsum("...ijkl,...kl->...ij", C, eps), state)
 
 
 def _check(name: str, E: float, nu: float) -> None:
@@ -111,6 +142,19 @@ class LinearElastic(IsotropicModuli):
     def volumetric_lambda(self) -> float:
         """The ``lam (tr eps)^2 / 2`` part of the energy, MPa (reduced-integrated)."""
         return self.lam
+
+    def initial_state(self, n: int) -> None:
+        """No history."""
+        return None
+
+    def update(self, F: np.ndarray, state=None) -> ElasticUpdate:
+        """``P = C : sym(F - I)`` ``(m, 3, 3)`` MPa for ``F (m, 3, 3)``."""
+        return _small_strain_update(isotropic_tangent(self.lam, self.mu), F, state)
+
+    def tangent(self, F: np.ndarray, state=None) -> tuple[ElasticUpdate, np.ndarray]:
+        """The update and ``dP/dF = C`` ``(m, 3, 3, 3, 3)`` MPa."""
+        C = isotropic_tangent(self.lam, self.mu)
+        return _small_strain_update(C, F, state), np.broadcast_to(C, np.shape(F)[:-2] + (3, 3, 3, 3))
 
 
 def _bond_matrix(R: np.ndarray) -> np.ndarray:
@@ -175,6 +219,20 @@ class TransverselyIsotropic:
         R = np.stack([a, t1, t2], axis=2)  # columns: local axes in global coordinates
         M = _bond_matrix(R)
         return M @ self._local_stiffness() @ np.transpose(M, (0, 2, 1))
+
+    def initial_state(self, fibre: np.ndarray) -> np.ndarray:
+        """The state of points with fibres ``(m, 3)``: the unit fibres (carried unchanged)."""
+        a = np.asarray(fibre, dtype=float).reshape(-1, 3)
+        return a / np.linalg.norm(a, axis=1, keepdims=True)
+
+    def update(self, F: np.ndarray, state: np.ndarray) -> ElasticUpdate:
+        """``P = C(fibre) : sym(F - I)`` ``(m, 3, 3)`` MPa; ``state``: the fibres ``(m, 3)``."""
+        return _small_strain_update(_voigt_to_tensor(self.stiffness(state)), F, state)
+
+    def tangent(self, F: np.ndarray, state: np.ndarray) -> tuple[ElasticUpdate, np.ndarray]:
+        """The update and ``dP/dF = C(fibre)`` ``(m, 3, 3, 3, 3)`` MPa."""
+        C = _voigt_to_tensor(self.stiffness(state))
+        return _small_strain_update(C, F, state), C
 
     def volumetric_lambda(self) -> float:
         """The part ``lam (tr eps)^2 / 2`` split off for mean-dilatation integration, MPa.
@@ -253,3 +311,16 @@ class NeoHookean(IsotropicModuli):
         P, _ = self.first_piola(F)
         J = np.linalg.det(F)[..., None, None]
         return P @ np.swapaxes(F, -1, -2) / J
+
+    def initial_state(self, n: int) -> None:
+        """No history."""
+        return None
+
+    def update(self, F: np.ndarray, state=None) -> ElasticUpdate:
+        """First Piola-Kirchhoff stress ``(m, 3, 3)`` MPa at ``F (m, 3, 3)``."""
+        return self.tangent(F, state)[0]
+
+    def tangent(self, F: np.ndarray, state=None) -> tuple[ElasticUpdate, np.ndarray]:
+        """The update and ``dP/dF`` ``(m, 3, 3, 3, 3)`` MPa (:meth:`first_piola`)."""
+        P, A = self.first_piola(np.asarray(F, dtype=float))
+        return ElasticUpdate(P, state), A

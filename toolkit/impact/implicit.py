@@ -52,7 +52,6 @@ import scipy.sparse as sp
 from toolkit.common.fem.assembly import SparsePattern, element_tangent
 from toolkit.common.fem.kinematics import deformation_gradient
 from toolkit.common.fem.solvers import LinearSolver, SolverError, estimate_factor_entries, rigid_body_modes
-from toolkit.common.fem.tangent import algorithmic_tangent
 from toolkit.impact.contact import RigidSphereContact
 from toolkit.impact.explicit import (ContactResponse, ExplicitModel, _frame, _internal_forces, _Inverted,
                                      _prescribed, _WorkLedger)
@@ -237,7 +236,7 @@ class _Newton:
             F = deformation_gradient(b.kin, u[b.offset:b.offset + b.n_nodes])
             E, Q = F.shape[:2]
             try:
-                _, A = algorithmic_tangent(b.material, F.reshape(-1, 3, 3), st)
+                _, A = b.material.tangent(F.reshape(-1, 3, 3), st)
             except FloatingPointError as exc:
                 raise _StepFailed(f"{b.name}: {exc}") from None
             Ke = element_tangent(b.kin.grad, b.kin.weight, A.reshape(E, Q, 3, 3, 3, 3))

@@ -44,6 +44,7 @@ import numpy as np
 from toolkit.common import seeds
 from toolkit.common.materials import IsotropicModuli, _check, von_mises
 from toolkit.common.fem.jit import njit, use_jit
+from toolkit.common.fem.tangent import algorithmic_tangent
 
 __all__ = [
     "HardeningTable",
@@ -551,6 +552,11 @@ class J2Plasticity(IsotropicModuli):
         return StressUpdate(cauchy=cauchy, kirchhoff=tau, first_piola=P,
                             state=PlasticState(F=F_new, be=be_new, eps_p=eps_p, directions=N),
                             dissipation=diss, plastic=plastic)
+
+    def tangent(self, F_new: np.ndarray, state: PlasticState) -> tuple[StressUpdate, np.ndarray]:
+        """The update and its algorithmic tangent ``dP/dF (n, 3, 3, 3, 3)`` MPa, return mapping
+        included (:func:`~toolkit.common.fem.tangent.algorithmic_tangent`: nine more updates)."""
+        return algorithmic_tangent(self, F_new, state)
 
     def update_numpy(self, F_new: np.ndarray, state: PlasticState) -> StressUpdate:
         """:meth:`update` in vectorized numpy (LAPACK ``eigh``): the reference implementation."""
