@@ -130,6 +130,10 @@ class LinearElastic(IsotropicModuli):
 
     E: float = TISSUE_E
     nu: float = TISSUE_NU
+    #: small-strain linear: the static path assembles its Voigt stiffness once
+    linear = True
+    #: the stiffness does not depend on a fibre direction
+    needs_fibre = False
 
     def __post_init__(self):
         _check("LinearElastic", self.E, self.nu)
@@ -185,6 +189,10 @@ class TransverselyIsotropic:
     E_transverse: float = LIP_MUSCLE_E_TRANSVERSE
     nu: float = TISSUE_NU
     G_fibre: float | None = None
+    #: small-strain linear: the static path assembles its Voigt stiffness once
+    linear = True
+    #: the stiffness depends on the cell field ``fibre_direction``
+    needs_fibre = True
 
     def __post_init__(self):
         _check("TransverselyIsotropic", self.E_fibre, self.nu)
@@ -263,6 +271,8 @@ class NeoHookean(IsotropicModuli):
 
     E: float = TISSUE_E
     nu: float = TISSUE_NU
+    #: finite strain: the static path solves it by Newton (``neo_hookean_system``)
+    linear = False
 
     def __post_init__(self):
         _check("NeoHookean", self.E, self.nu)

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from toolkit.common.fem.assembly import SparsePattern, element_tangent
-from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
+from toolkit.common.materials import LinearElastic
 from toolkit.common.mesh import Mesh
 from toolkit.common.fem.kinematics import BlockKinematics, Kinematics, deformation_gradient, element_forces, kinematics
 
@@ -61,22 +61,20 @@ class MaterialAssignment:
 
     @property
     def is_linear(self) -> bool:
-        return all(isinstance(m, (LinearElastic, TransverselyIsotropic))
-                   for m in [self.default, *(self.regions or {}).values()])
+        """Whether every material is small-strain linear (``material.linear``)."""
+        return all(getattr(m, "linear", False) for m in [self.default, *(self.regions or {}).values()])
 
     def voigt(self, mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
         """Per-element Voigt stiffness ``(E, 6, 6)`` MPa and volumetric lambda ``(E,)`` MPa."""
         D = np.empty((mesh.n_cells, 6, 6))
         lam = np.empty(mesh.n_cells)
         for ids, mat in self.groups(mesh):
-            if isinstance(mat, TransverselyIsotropic):
-                if "fibre_direction" not in mesh.cell_data:
-                    raise KeyError("a transversely isotropic material needs the cell field 'fibre_direction'")
-                D[ids] = mat.stiffness(mesh.cell_data["fibre_direction"][ids])
-            elif isinstance(mat, LinearElastic):
-                D[ids] = mat.stiffness()
-            else:
+            if not getattr(mat, "linear", False):
                 raise TypeError(f"{type(mat).__name__} is not a linear material; use neo_hookean_system")
+            if mat.needs_fibre and "fibre_direction" not in mesh.cell_data:
+                raise KeyError(f"a {type(mat).__name__} material needs the cell field 'fibre_direction'")
+            D[ids] = mat.stiffness(mesh.cell_data["fibre_direction"][ids]) if mat.needs_fibre \
+                else np.broadcast_to(mat.stiffness(), (ids.size, 6, 6))
             lam[ids] = mat.volumetric_lambda()
         return D, lam
 
@@ -193,8 +191,9 @@ def neo_hookean_system(kin: Kinematics, u: np.ndarray, groups, pattern: SparsePa
     ``(global element indices, material)`` pairs (:meth:`MaterialAssignment.groups`).
     """
     for _, mat in groups:
-        if not isinstance(mat, NeoHookean):
-            raise TypeError(f"neo_hookean_system got {type(mat).__name__}; every element must be NeoHookean")
+        if not hasattr(mat, "energy") or getattr(mat, "linear", False):
+            raise TypeError(f"neo_hookean_system got {type(mat).__name__}; every element needs a hyperelastic "
+                            "material with energy(F) and the split first_piola(F, part), like NeoHookean")
     fes, Kes = [], []
     for kb in kin.blocks:
         fe, Ke = _block_system(kb, u, _block_groups(kb, groups), tangent)
