@@ -86,14 +86,13 @@ def _reduced(problem, c):
 def run_one(name: str, method: str) -> dict:
     from dataclasses import replace
 
-    from toolkit.static.fem import _node_graph
     from toolkit.common.fem.solvers import LinearSolver, SolverError, choose_method, estimate_factor_entries
 
     t0 = time.perf_counter()
     problem, c, ties = _system(name)
     T, A, b = _reduced(problem, c)
     t_build = time.perf_counter() - t0
-    entries = estimate_factor_entries(_node_graph(problem.pattern))
+    entries = estimate_factor_entries(problem.pattern.node_graph())
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     row = {"mesh": name, "method": method, "dofs": A.shape[0], "nnz": A.nnz, "build_s": t_build,
            "expected_factor_entries": entries, "auto_choice": choose_method("auto", A.shape[0], entries)}

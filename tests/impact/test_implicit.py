@@ -123,6 +123,8 @@ def test_the_integrator_is_a_fidelity_option():
         Fidelity(integrator="implicit", load_steps=0)
     with pytest.raises(ValueError, match="min_step"):
         ImplicitOptions(min_step=0.0)
+    with pytest.raises(ValueError, match="linear_tolerance 2"):
+        ImplicitOptions(linear_tolerance=2)
 
 
 def test_a_rigid_sphere_needs_its_motion():

@@ -9,13 +9,13 @@ from toolkit.common.materials import LinearElastic
 from toolkit.common.phantom import block, face_hex
 from toolkit.static.assembly import MaterialAssignment
 from toolkit.static.constraints import Constraints
-from toolkit.static.fem import StaticProblem, _node_graph
+from toolkit.static.fem import StaticProblem
 from toolkit.common.fem.solvers import AUTO_DIRECT_MAX_ENTRIES, LinearSolver, choose_method, estimate_factor_entries
 
 
 def _entries(mesh):
     problem = StaticProblem(mesh, MaterialAssignment(LinearElastic()))
-    return estimate_factor_entries(_node_graph(problem.pattern)), 3 * mesh.n_points
+    return estimate_factor_entries(problem.pattern.node_graph()), 3 * mesh.n_points
 
 
 def test_auto_chooses_by_expected_fill_not_by_size():

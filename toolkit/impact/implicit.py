@@ -84,6 +84,10 @@ class ImplicitOptions:
     growth : step growth factor after an easy step (> 1)
     min_step : s, the smallest step before :class:`ConvergenceError`
     solver : linear solver (:data:`toolkit.common.fem.solvers.METHODS`)
+    linear_tolerance : relative residual of the iterative linear solves (CG preconditioned by
+        the last factorization, or AMG-CG). 1e-2 (an inexact Newton) was measured 19 % faster
+        on the coarse face (0.9 s, deformable ball) with skin displacements within 0.007 mm of
+        1e-8, but an energy balance error of 2.8 % in the first frame instead of 0.3 %
     """
 
     steps: int = 36
@@ -94,11 +98,14 @@ class ImplicitOptions:
     growth: float = 1.5
     min_step: float = 1e-5
     solver: str = "auto"
+    linear_tolerance: float = 1e-8
 
     def __post_init__(self):
         if int(self.steps) < 1 or not 0 < self.tolerance < 1 or int(self.max_iterations) < 1:
             raise ValueError(f"implicit options: steps {self.steps} must be >= 1, tolerance {self.tolerance} in "
                              f"(0, 1), max_iterations {self.max_iterations} >= 1")
+        if not 0 < self.linear_tolerance < 1:
+            raise ValueError(f"implicit options: linear_tolerance {self.linear_tolerance} must lie in (0, 1)")
         if not self.growth > 1 or not self.min_step > 0:
             raise ValueError(f"implicit options: growth {self.growth} must be > 1 and min_step {self.min_step} s > 0")
 
@@ -207,10 +214,11 @@ class _Newton:
         self.free = np.ones(3 * n, dtype=bool)
         self.free[self.prescribed] = False
         self.pattern = SparsePattern([b.kin.conn + b.offset for b in model.bodies], n)
-        # an inexact Newton: later systems are solved by CG preconditioned with the last
-        # factorization to 1e-8, far below what the Newton iteration needs
-        self.solver = LinearSolver(options.solver, factor_entries=estimate_factor_entries(self.pattern.node_graph(), 3), rtol=1e-8,
-                                   reuse_rtol=1e-8)
+        # later systems are solved by CG preconditioned with the last factorization, to
+        # options.linear_tolerance (1e-8 by default: far below what the Newton iteration needs)
+        entries = estimate_factor_entries(self.pattern.node_graph(), 3)
+        self.solver = LinearSolver(options.solver, factor_entries=entries, rtol=options.linear_tolerance,
+                                   reuse_rtol=options.linear_tolerance)
         self.modes = rigid_body_modes(model.points)
         self.solves = 0
 
