@@ -71,9 +71,10 @@ class MaterialAssignment:
         for ids, mat in self.groups(mesh):
             if not getattr(mat, "linear", False):
                 raise TypeError(f"{type(mat).__name__} is not a linear material; use neo_hookean_system")
-            if mat.needs_fibre and "fibre_direction" not in mesh.cell_data:
+            needs_fibre = getattr(mat, "needs_fibre", False)
+            if needs_fibre and "fibre_direction" not in mesh.cell_data:
                 raise KeyError(f"a {type(mat).__name__} material needs the cell field 'fibre_direction'")
-            D[ids] = mat.stiffness(mesh.cell_data["fibre_direction"][ids]) if mat.needs_fibre \
+            D[ids] = mat.stiffness(mesh.cell_data["fibre_direction"][ids]) if needs_fibre \
                 else np.broadcast_to(mat.stiffness(), (ids.size, 6, 6))
             lam[ids] = mat.volumetric_lambda()
         return D, lam
