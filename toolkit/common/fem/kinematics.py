@@ -35,7 +35,7 @@ import numpy as np
 from toolkit.common.fem.jit import njit, use_jit
 from toolkit.common.fem.mapping import shape_gradients
 from toolkit.common.fem.reference import reference_element
-from toolkit.common.mesh import Mesh, MeshError
+from toolkit.common.mesh import CellBlock, Mesh, MeshError
 
 __all__ = ["BlockKinematics", "Kinematics", "kinematics", "QUADRATURE_ORDER", "MEAN_DILATATION_TYPES",
            "deformation_gradient", "element_forces", "internal_force", "lumped_mass"]
@@ -76,15 +76,10 @@ class BlockKinematics:
         """Quadrature points in the block."""
         return self.weight.size
 
-    @property
-    def elements(self) -> np.ndarray:
-        """Global element indices ``(E,)`` int64 of the block."""
-        return np.arange(self.offset, self.offset + self.conn.shape[0], dtype=np.int64)
-
     def local(self, ids: np.ndarray) -> np.ndarray:
-        """The global element ``ids`` in this block, as row indices into its arrays."""
-        ids = np.asarray(ids, dtype=np.int64)
-        return ids[(ids >= self.offset) & (ids < self.offset + self.conn.shape[0])] - self.offset
+        """The global element ``ids`` in this block, as row indices into its arrays
+        (:meth:`~toolkit.common.mesh.CellBlock.local`)."""
+        return CellBlock(self.ctype, self.conn, self.offset).local(ids)
 
 
 @dataclass(frozen=True, eq=False)
