@@ -565,6 +565,31 @@ def test_quasi_static_hertz_contact_of_a_rigid_sphere_on_an_elastic_layer():
         assert np.interp(d, delta, force) > hertz
 
 
+def test_quasi_static_steps_are_cut_where_newton_fails_and_the_answer_holds():
+    """One load step over the whole press with at most 3 Newton iterations cannot converge at
+    first touch: the shared load stepping (toolkit.common.fem.newton.LoadSteps) must cut it
+    (measured: 3 cuts) and still land on Hertz within the same 10 % with the energy balance
+    within 2 %; a ``min_step`` above the needed step ends in a ConvergenceError that names the
+    time and the option."""
+    from toolkit.impact.implicit import ConvergenceError, ImplicitOptions, StepContact, run_quasistatic
+
+    def press(options):
+        hb = _hertz_block()
+        contact = StepContact(hb.pair, hb.P.shape[0], centre0=np.array([0.0, 0.0, hb.R]),
+                              velocity=np.array([0.0, 0.0, -1.1 * hb.deltas[-1]]))
+        return hb, run_quasistatic(ExplicitModel(hb.P, hb.mass, [hb.body], 1.0, None), contact, 1.0, 4, options)
+
+    hb, (frames, stats) = press(ImplicitOptions(steps=1, max_iterations=3))
+    assert stats["cuts"] >= 1 and stats["energy_error"] < 0.02
+    centre_node = np.flatnonzero(np.all(hb.P == 0.0, axis=1))[0]
+    delta = np.array([0.0] + [-f.displacement[centre_node, 2] for f in frames])
+    force = np.array([0.0] + [-f.contact_force[2] for f in frames])
+    for d in hb.deltas:
+        assert np.interp(d, delta, force) / hb.hertz(d)[1] == pytest.approx(1.0, rel=0.1)
+    with pytest.raises(ConvergenceError, match="below min_step 0.3 s"):
+        press(ImplicitOptions(steps=1, max_iterations=2, min_step=0.3))
+
+
 # ----------------------------------------------------------------------------------------------
 # 7. Coulomb friction at the FE level
 # ----------------------------------------------------------------------------------------------

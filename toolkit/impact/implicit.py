@@ -17,8 +17,10 @@ Each load step ``t -> t + h``:
    (:func:`~toolkit.common.fem.tangent.algorithmic_tangent`) assembled by
    :class:`~toolkit.common.fem.assembly.SparsePattern`, plus the penalty contact's: ``k n n^T``
    normal and ``k_t (I - n n^T)`` for sticking friction, shared with the master triangle's
-   corners by the barycentric weights for a deformable ball. A backtracking line search
-   halves the correction until the residual decreases. The contact laws are those of the
+   corners by the barycentric weights for a deformable ball. The iteration is the shared
+   :func:`toolkit.common.fem.newton.newton` with its
+   :class:`~toolkit.common.fem.newton.ResidualDecrease` line search (the correction is
+   halved until the residual decreases). The contact laws are those of the
    explicit path (:mod:`toolkit.impact.contact`, same penalties, same Coulomb return mapping);
    the friction state is restored before every trial and kept when the step converges.
 3. **Converged** when the free-dof residual is below ``tolerance`` times the force scale (the
@@ -29,7 +31,7 @@ Each load step ``t -> t + h``:
 4. **Adaptive steps**: a step that does not converge in ``max_iterations``, inverts an element
    or breaks the material update is cut in half; one that converges in at most
    ``easy_iterations`` lets the next grow by ``growth`` up to the initial step. Steps end
-   exactly at the output frames.
+   exactly at the output frames (:class:`toolkit.common.fem.newton.LoadSteps`).
 
 Energies are booked as in the explicit path (internal work by the trapezoidal rule, plastic
 dissipation, contact elastic energy, friction dissipation; external work done by the
@@ -51,6 +53,7 @@ import scipy.sparse as sp
 
 from toolkit.common.fem.assembly import SparsePattern, element_tangent
 from toolkit.common.fem.kinematics import deformation_gradient
+from toolkit.common.fem.newton import InadmissibleState, LoadSteps, NewtonFailed, ResidualDecrease, Trial, newton
 from toolkit.common.fem.solvers import LinearSolver, SolverError, estimate_factor_entries, rigid_body_modes
 from toolkit.impact.contact import RigidSphereContact
 from toolkit.impact.explicit import (ContactResponse, ExplicitModel, _frame, _internal_forces, _Inverted,
@@ -199,10 +202,6 @@ class StepContact:
         return sp.csr_matrix((block.ravel(), (rows.ravel(), cols.ravel())), shape=(size, size))
 
 
-class _StepFailed(Exception):
-    """A load step must be cut (the reason is the message)."""
-
-
 class _Newton:
     """The pieces every Newton iteration of a run shares: prescribed dofs, the sparse pattern
     and the linear solver (whose factorization later systems reuse as a preconditioner)."""
@@ -227,7 +226,7 @@ class _Newton:
         try:
             internal = _internal_forces(self.model, u, states)
         except _Inverted as exc:
-            raise _StepFailed(f"{exc.body} element {exc.element} inverted") from None
+            raise InadmissibleState(f"{exc.body} element {exc.element} inverted") from None
         if self.contact is None:
             contact = ContactResponse(np.zeros_like(u), 0.0, 0.0, np.zeros(3), 0.0)
             k_c = None
@@ -246,7 +245,7 @@ class _Newton:
             try:
                 _, A = b.material.tangent(F.reshape(-1, 3, 3), st)
             except FloatingPointError as exc:
-                raise _StepFailed(f"{b.name}: {exc}") from None
+                raise NewtonFailed(f"{b.name}: {exc}") from None
             Ke = element_tangent(b.kin.grad, b.kin.weight, A.reshape(E, Q, 3, 3, 3, 3))
             blocks.append(0.5 * (Ke + np.swapaxes(Ke, 1, 2)))
         K = self.pattern.constrain(self.pattern.assemble(blocks), self.prescribed)
@@ -257,46 +256,48 @@ class _Newton:
         return K
 
     def solve_step(self, u: np.ndarray, states: list, guess: np.ndarray, t: float, h: float):
-        """Equilibrium at ``t`` from the converged ``u`` (``guess`` sets the free dofs' start);
-        returns ``(u_new, internal, contact, iterations)`` or raises :class:`_StepFailed`."""
+        """Equilibrium at ``t`` from the converged ``u`` (``guess`` sets the free dofs' start)
+        by :func:`~toolkit.common.fem.newton.newton` with a residual line search; returns
+        ``(u_new, internal, contact, iterations)`` or raises
+        :class:`~toolkit.common.fem.newton.NewtonFailed`."""
         opt = self.options
         x_start = self.model.points + u
-        u_try = guess.copy()
-        u_try.reshape(-1)[self.prescribed] = self.rates * t
-        internal, contact, k_c, r = self.forces(u_try, states, x_start, t, h)
-        for it in range(1, opt.max_iterations + 1):
+
+        def evaluate(x):
+            internal, contact, k_c, r = self.forces(x, states, x_start, t, h)
+            return Trial(x, r, float(np.linalg.norm(r)), (internal, contact, k_c))
+
+        def converged(trial):
+            internal, contact, _ = trial.data
             scale = np.linalg.norm((internal.force - contact.forces).reshape(-1)[self.prescribed]) \
                 + np.linalg.norm(contact.forces)
-            norm = np.linalg.norm(r)
-            if norm <= opt.tolerance * scale or norm < 1e-9:
-                return u_try, internal, contact, it - 1
-            log.debug("t = %.5g s, iteration %d: residual %.3g N (scale %.3g N) at node %d", t, it, norm, scale,
-                      int(np.argmax(np.abs(r))) // 3)
-            K = self.tangent(u_try, states, k_c)
-            if np.max(np.abs(r) / K.diagonal()) <= opt.displacement_tolerance:
-                return u_try, internal, contact, it - 1
+            log.debug("t = %.5g s: residual %.3g N (scale %.3g N) at node %d", t, trial.norm, scale,
+                      int(np.argmax(np.abs(trial.residual))) // 3)
+            return trial.norm <= opt.tolerance * scale or trial.norm < 1e-9
+
+        def correction(trial):
+            K = self.tangent(trial.x, states, trial.data[2])
+            if np.max(np.abs(trial.residual) / K.diagonal()) <= opt.displacement_tolerance:
+                return None  # the residual is worth less than the displacement tolerance
             try:
-                du, info = self.solver.solve(K, -r, near_nullspace=self.modes)
+                du, _ = self.solver.solve(K, -trial.residual, near_nullspace=self.modes)
             except SolverError as exc:
-                raise _StepFailed(f"linear solve failed: {exc}") from None
+                raise NewtonFailed(f"linear solve failed: {exc}") from None
             self.solves += 1
-            best = None
-            for alpha in (1.0, 0.5, 0.25, 0.125):
-                trial = u_try + alpha * du.reshape(-1, 3)
-                try:
-                    got = self.forces(trial, states, x_start, t, h)
-                except _StepFailed:
-                    continue
-                if best is None or np.linalg.norm(got[3]) < np.linalg.norm(best[1][3]):
-                    best = (trial, got)
-                if np.linalg.norm(got[3]) < norm:
-                    break
-            if best is None:
-                raise _StepFailed("every line-search trial inverted an element")
-            u_try, (internal, contact, k_c, r) = best
-            if np.abs(du).max() <= opt.displacement_tolerance:
-                return u_try, internal, contact, it
-        raise _StepFailed(f"no convergence in {opt.max_iterations} iterations (residual {np.linalg.norm(r):.3g} N)")
+            return du.reshape(-1, 3)
+
+        def negligible(trial, du):
+            return np.abs(du).max() <= opt.displacement_tolerance
+
+        x = guess.copy()
+        x.reshape(-1)[self.prescribed] = self.rates * t
+        try:
+            start = evaluate(x)
+        except InadmissibleState as exc:
+            raise NewtonFailed(str(exc)) from None
+        result = newton(start, evaluate, correction, converged, negligible, ResidualDecrease(), opt.max_iterations)
+        internal, contact, _ = result.trial.data
+        return result.trial.x, internal, contact, result.iterations
 
 
 def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration: float, n_frames: int,
@@ -310,51 +311,47 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
     """
     from tqdm.auto import tqdm
 
-    newton = _Newton(model, contact, options)
+    steps = LoadSteps(np.linspace(0.0, duration, n_frames + 1)[1:], max_step=duration / options.steps,
+                      min_step=options.min_step, growth=options.growth, easy_iterations=options.easy_iterations)
+    solver = _Newton(model, contact, options)
     n = model.points.shape[0]
     states = [b.material.initial_state(b.kin.n_points) for b in model.bodies]
     u = np.zeros((n, 3))
     last_increment, last_step = np.zeros((n, 3)), None
-    internal, contact_now, _, _ = newton.forces(u, states, model.points, 0.0, duration)
-    ledger = _WorkLedger(newton.prescribed)  # no kinetic energy
-    frame_times = np.linspace(0.0, duration, n_frames + 1)[1:]
-    h_max = duration / options.steps
-    h, t, frames = h_max, 0.0, []
+    internal, contact_now, _, _ = solver.forces(u, states, model.points, 0.0, duration)
+    ledger = _WorkLedger(solver.prescribed)  # no kinetic energy
+    frames = []
     stats = {"steps": 0, "iterations": 0, "cuts": 0, "max_contact_force_n": 0.0, "max_penetration_mm": 0.0}
     bar = tqdm(total=n_frames, desc="frames (quasi-static)", disable=not progress, leave=False)
     t0 = time.perf_counter()
-    for t_frame in frame_times:
-        while t < t_frame - 1e-12 * duration:
-            step = min(h, t_frame - t)
-            t_new = t_frame if t_frame - t - step < 1e-9 * duration else t + step
-            step = t_new - t
-            guess = u + (step / last_step) * last_increment if last_step else u.copy()
-            try:
-                u_new, internal_new, contact_new, its = newton.solve_step(u, states, guess, t_new, step)
-            except _StepFailed as exc:
-                stats["cuts"] += 1
-                h = 0.5 * step
-                log.info("t = %.4g s: step %.3g s cut (%s)", t_new, step, exc)
-                if h < options.min_step:
-                    raise ConvergenceError(f"load step {step:.3g} s failed ({exc}) and the next would be below "
-                                           f"min_step {options.min_step:g} s; try more load steps or a smaller "
-                                           "tolerance", t_new) from None
-                continue
-            if contact is not None:  # the friction state of the accepted iterate (a line search may have tried others)
-                contact_new, _ = contact.evaluate(model.points + u_new, model.points + u, t_new, step)
-                contact.commit()
-            ledger.record_work(u_new - u, internal, internal_new, contact_new)
-            last_increment, last_step = u_new - u, step
-            u, internal, contact_now, t = u_new, internal_new, contact_new, t_new
-            states = internal.states
-            stats["steps"] += 1
-            stats["iterations"] += its
-            stats["max_contact_force_n"] = max(stats["max_contact_force_n"],
-                                               float(np.linalg.norm(contact_now.force_on_face)))
-            stats["max_penetration_mm"] = max(stats["max_penetration_mm"], float(contact_now.max_penetration))
-            if its <= options.easy_iterations:
-                h = min(h * options.growth, h_max)
-        frame, bodies_fields = _frame(model, t, u, internal, ledger.energies, contact_now)
+    while not steps.done:
+        t, t_new = steps.next()
+        step = t_new - t
+        guess = u + (step / last_step) * last_increment if last_step else u.copy()
+        try:
+            u_new, internal_new, contact_new, its = solver.solve_step(u, states, guess, t_new, step)
+        except NewtonFailed as exc:
+            log.info("t = %.4g s: step %.3g s cut (%s)", t_new, step, exc)
+            if not steps.cut():
+                raise ConvergenceError(f"load step {step:.3g} s failed ({exc}) and the next would be below "
+                                       f"min_step {options.min_step:g} s; try more load steps or a smaller "
+                                       "tolerance", t_new) from None
+            continue
+        if contact is not None:  # the friction state of the accepted iterate (a line search may have tried others)
+            contact_new, _ = contact.evaluate(model.points + u_new, model.points + u, t_new, step)
+            contact.commit()
+        ledger.record_work(u_new - u, internal, internal_new, contact_new)
+        last_increment, last_step = u_new - u, step
+        u, internal, contact_now = u_new, internal_new, contact_new
+        states = internal.states
+        stats["steps"] += 1
+        stats["iterations"] += its
+        stats["max_contact_force_n"] = max(stats["max_contact_force_n"],
+                                           float(np.linalg.norm(contact_now.force_on_face)))
+        stats["max_penetration_mm"] = max(stats["max_penetration_mm"], float(contact_now.max_penetration))
+        if steps.accept(its) is None:
+            continue
+        frame, bodies_fields = _frame(model, t_new, u, internal, ledger.energies, contact_now)
         frames.append(frame)
         if on_frame is not None:
             on_frame(frame, bodies_fields)
@@ -362,8 +359,9 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
     bar.close()
     stats["wall_time_s"] = time.perf_counter() - t0
     stats["dt_s"] = duration / max(stats["steps"], 1)
-    stats["linear_solves"] = newton.solves
-    stats["factorizations"] = newton.solver.factorizations
+    stats["cuts"] = steps.cuts
+    stats["linear_solves"] = solver.solves
+    stats["factorizations"] = solver.solver.factorizations
     stats["energy_error"] = frames[-1].energies.balance_error if frames else 0.0
     stats["max_energy_error"] = max((f.energies.balance_error for f in frames if f.energies.external > 1e-12),
                                     default=0.0)

@@ -23,6 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from toolkit.common.fem.assembly import SparsePattern
+from toolkit.common.fem.newton import ArmijoOnMerit, InadmissibleState, LoadSteps, NewtonFailed, Trial, newton
 from toolkit.common.fem.solvers import LinearSolver, SolveInfo, estimate_factor_entries, rigid_body_modes
 from toolkit.common.mesh import Mesh
 from toolkit.static.assembly import (
@@ -134,91 +135,79 @@ class StaticProblem:
 
     # ----------------------------------------------------------------- Newton
     def _newton(self, T, u0, u_start, max_iter: int = 25, max_substeps: int = 6) -> Solution:
-        """Newton from ``u_start`` to the prescribed ``u0``, bisecting the prescribed
-        increment (load sub-steps) when a step does not converge."""
+        """Newton from ``u_start`` to the prescribed ``u0``, cutting the prescribed increment
+        in half (load sub-steps, at most ``max_substeps`` halvings deep) when a step does not
+        converge."""
         n = self.mesh.n_points
         u_prev = np.zeros(3 * n) if u_start is None else np.asarray(u_start, float).reshape(-1)
         # the previous state's constrained part; sub-steps move it linearly to u0
         start_u0 = u_prev - T @ (T.T @ (u_prev - u0))
         solves, total_iter = [], 0
-        done, step, level = 0.0, 1.0, 0
-        while done < 1.0 - 1e-12:
-            target = min(1.0, done + step)
+        steps = LoadSteps([1.0], max_step=1.0, min_step=0.5 ** max_substeps)
+        while not steps.done:
+            _, target = steps.next()
             u0_k = start_u0 + target * (u0 - start_u0)
             try:
                 v, iters, infos = self._newton_fixed(T, u0_k, u_prev, max_iter)
-            except ConvergenceError:
-                level += 1
-                if level > max_substeps:
-                    raise
-                step /= 2.0
-                log.info("Newton failed; sub-stepping the prescribed displacements (step %.3g)", step)
+            except NewtonFailed as exc:
+                if not steps.cut():
+                    raise ConvergenceError(str(exc), exc.iteration, exc.residual) from None
+                log.info("Newton failed; sub-stepping the prescribed displacements (step %.3g)", steps.step)
                 continue
             solves += infos
             total_iter += iters
             u_prev = T @ v + u0_k
-            done = target
+            steps.accept(iters)
         f, _ = neo_hookean_system(self.kin, u_prev.reshape(-1, 3), self.groups, self.pattern, tangent=False)
         return Solution(u_prev.reshape(-1, 3), f, solves, total_iter)
 
     def _newton_fixed(self, T, u0, u_prev, max_iter):
-        """Newton with fixed prescribed part ``u0``, starting from the tangent predictor at
-        the previous equilibrium ``u_prev`` (the linearised response to the new ``u0``)."""
+        """Newton (:func:`~toolkit.common.fem.newton.newton`, Armijo line search on the total
+        energy) with fixed prescribed part ``u0``, starting from the tangent predictor at the
+        previous equilibrium ``u_prev`` (the linearised response to the new ``u0``); returns
+        the free unknowns, the iterations (the predictor counts as one) and the solves."""
         infos = []
-        energy = lambda vv: neo_hookean_energy(self.kin, (T @ vv + u0).reshape(-1, 3), self.groups)  # noqa: E731
+
+        def evaluate(v):
+            u = T @ v + u0
+            E = neo_hookean_energy(self.kin, u.reshape(-1, 3), self.groups)
+            if not np.isfinite(E):
+                raise InadmissibleState("an element is inverted")
+            f, _ = neo_hookean_system(self.kin, u.reshape(-1, 3), self.groups, self.pattern, tangent=False)
+            return Trial(v, T.T @ f, E, (u, f))
+
+        def correction(trial):
+            _, K = neo_hookean_system(self.kin, trial.data[0].reshape(-1, 3), self.groups, self.pattern)
+            dv, info = self._solve_reduced(T, (T.T @ K @ T).tocsr(), -trial.residual)
+            infos.append(info)
+            return dv
+
+        def converged(trial):
+            return trial.norm <= self.rtol * max(np.abs(trial.data[1]).max(), 1e-30)
+
+        def negligible(trial, dv):
+            # a stress-free equilibrium has only round-off forces, which no relative force test
+            # can beat: stop when the Newton correction itself is negligible
+            return np.abs(dv).max() <= 1e-10 * max(np.abs(trial.data[0]).max(), 1e-3)
+
+        def stalled(trial):  # the energy cannot resolve the step: the round-off limit
+            return trial.norm <= 1e-5 * max(np.abs(trial.data[1]).max(), self.force_scale)
+
         f, K = neo_hookean_system(self.kin, u_prev.reshape(-1, 3), self.groups, self.pattern)
         A = (T.T @ K @ T).tocsr()
         v, info = self._solve_reduced(T, A, -(T.T @ (f + K @ (u0 - u_prev))))
         infos.append(info)
-        E = energy(v)
-        if not np.isfinite(E):  # the predictor inverts elements: fall back to the previous free state
-            v = T.T @ (u_prev - u0)
-            E = energy(v)
-            if not np.isfinite(E):
-                raise ConvergenceError("the prescribed displacements invert elements; a smaller step is needed")
-        gn = np.inf
-        for it in range(1, max_iter + 1):
-            u = T @ v + u0
-            f, K = neo_hookean_system(self.kin, u.reshape(-1, 3), self.groups, self.pattern)
-            g = T.T @ f
-            gn = np.linalg.norm(g)
-            scale = max(np.abs(f).max(), 1e-30)
-            if gn <= self.rtol * scale:
-                return v, it, infos
-            A = (T.T @ K @ T).tocsr()
-            dv, info = self._solve_reduced(T, A, -g)
-            infos.append(info)
-            # a stress-free equilibrium has only round-off forces, which no relative force test
-            # can beat: stop when the Newton correction itself is negligible
-            if np.abs(dv).max() <= 1e-10 * max(np.abs(u).max(), 1e-3):
-                return v + dv, it, infos
-            slope = g @ dv
-            if slope >= 0:  # not a descent direction (indefinite tangent): steepest descent
-                dv = -g * (np.abs(dv).max() / max(np.abs(g).max(), 1e-30))
-                slope = g @ dv
-            alpha = 1.0
-            for _ in range(30):
-                E_new = energy(v + alpha * dv)
-                # Armijo, with slack for round-off once the energy change nears machine precision
-                if np.isfinite(E_new) and E_new <= E + 1e-4 * alpha * slope + 1e-12 * abs(E):
-                    break
-                if alpha == 1.0 and np.isfinite(E_new) and abs(E_new - E) < 1e-9 * self.force_scale * 1e-3:
-                    # energy changes below its own round-off: judge the full step by the residual
-                    f_new, _ = neo_hookean_system(self.kin, (T @ (v + dv) + u0).reshape(-1, 3), self.groups,
-                                                  self.pattern, tangent=False)
-                    if np.linalg.norm(T.T @ f_new) < gn:
-                        break
-                alpha *= 0.5
-            else:
-                if gn <= 1e-5 * max(scale, self.force_scale):  # energy can't resolve the step: round-off limit
-                    log.debug("Newton stopped at the round-off limit (residual %.3e N)", gn)
-                    return v, it, infos
-                raise ConvergenceError(f"line search failed at Newton iteration {it} (residual {gn:.3e} N)", it, gn)
-            log.debug("Newton %d: residual %.3e N, step %.3g, energy %.6e mJ", it, gn, alpha, E_new)
-            v = v + alpha * dv
-            E = E_new
-        raise ConvergenceError(f"Newton did not converge in {max_iter} iterations (residual {gn:.3e} N)",
-                               max_iter, gn)
+        try:
+            start = evaluate(v)
+        except InadmissibleState:  # the predictor inverts elements: fall back to the previous free state
+            try:
+                start = evaluate(T.T @ (u_prev - u0))
+            except InadmissibleState:
+                raise NewtonFailed("the prescribed displacements invert elements; a smaller step is needed", 0,
+                                   None) from None
+        search = ArmijoOnMerit(merit_resolution=1e-12 * self.force_scale)
+        result = newton(start, evaluate, correction, converged, negligible, search, max_iter, stalled)
+        return result.trial.x, result.iterations + 1, infos
 
 
 @dataclass(frozen=True, eq=False)

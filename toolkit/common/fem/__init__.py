@@ -1,8 +1,9 @@
 """The finite-element core shared by both workflows: one reference-element record per
 cell type (shape functions, quadrature, faces, edges, file-format names), the fixed-pattern
 sparse assembly (:mod:`~toolkit.common.fem.assembly`), material tangents by differentiating
-a material's update (:mod:`~toolkit.common.fem.tangent`) and the sparse SPD solvers
-(:mod:`~toolkit.common.fem.solvers`).
+a material's update (:mod:`~toolkit.common.fem.tangent`), the sparse SPD solvers
+(:mod:`~toolkit.common.fem.solvers`) and Newton's method with its line searches and load-step
+cutting (:mod:`~toolkit.common.fem.newton`).
 
 Imports nothing from :mod:`toolkit.static` or :mod:`toolkit.impact`.
 """
