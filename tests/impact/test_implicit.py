@@ -125,6 +125,8 @@ def test_the_integrator_is_a_fidelity_option():
         ImplicitOptions(min_step=0.0)
     with pytest.raises(ValueError, match="linear_tolerance 2"):
         ImplicitOptions(linear_tolerance=2)
+    with pytest.raises(ValueError, match="line_search 'wolfe' must be one of"):
+        ImplicitOptions(line_search="wolfe")
 
 
 def test_a_rigid_sphere_needs_its_motion():

@@ -10,7 +10,13 @@ from toolkit.common.phantom import block, face_hex
 from toolkit.static.assembly import MaterialAssignment
 from toolkit.static.constraints import Constraints
 from toolkit.static.fem import StaticProblem
-from toolkit.common.fem.solvers import AUTO_DIRECT_MAX_ENTRIES, LinearSolver, choose_method, estimate_factor_entries
+from toolkit.common.fem.solvers import (
+    AUTO_DIRECT_MAX_ENTRIES,
+    REUSED_DIRECT_MAX_ENTRIES,
+    LinearSolver,
+    choose_method,
+    estimate_factor_entries,
+)
 
 
 def _entries(mesh):
@@ -34,6 +40,9 @@ def test_auto_chooses_by_expected_fill_not_by_size():
     small, _ = _entries(block([np.linspace(0, 100, 11)] * 3))
     assert 20 < cube / small < 45
     assert shell < AUTO_DIRECT_MAX_ENTRIES < cube
+    # a solver whose factorization will be reused over many systems factorizes larger meshes
+    assert choose_method("auto", n_cube, cube, direct_max_entries=REUSED_DIRECT_MAX_ENTRIES) == "superlu"
+    assert choose_method("auto", n_cube, 10 * REUSED_DIRECT_MAX_ENTRIES, REUSED_DIRECT_MAX_ENTRIES) == "amg"
 
 
 @pytest.mark.parametrize("method", ["superlu", "amg"])

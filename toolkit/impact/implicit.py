@@ -53,8 +53,10 @@ import scipy.sparse as sp
 
 from toolkit.common.fem.assembly import SparsePattern, element_tangent
 from toolkit.common.fem.kinematics import deformation_gradient
-from toolkit.common.fem.newton import InadmissibleState, LoadSteps, NewtonFailed, ResidualDecrease, Trial, newton
-from toolkit.common.fem.solvers import LinearSolver, SolverError, estimate_factor_entries, rigid_body_modes
+from toolkit.common.fem.newton import (InadmissibleState, LoadSteps, NewtonFailed, ResidualDecrease, SecantOnDirection,
+                                       Trial, newton)
+from toolkit.common.fem.solvers import (REUSED_DIRECT_MAX_ENTRIES, LinearSolver, SolverError, estimate_factor_entries,
+                                       rigid_body_modes)
 from toolkit.impact.contact import RigidSphereContact
 from toolkit.impact.explicit import (ContactResponse, ExplicitModel, _frame, _internal_forces, _Inverted,
                                      _prescribed, _WorkLedger)
@@ -62,6 +64,9 @@ from toolkit.impact.explicit import (ContactResponse, ExplicitModel, _frame, _in
 __all__ = ["ImplicitOptions", "StepContact", "ConvergenceError", "run_quasistatic"]
 
 log = logging.getLogger(__name__)
+
+#: line searches of the Newton iterations (:mod:`toolkit.common.fem.newton`)
+LINE_SEARCHES = {"secant": SecantOnDirection, "residual": ResidualDecrease}
 
 
 class ConvergenceError(RuntimeError):
@@ -86,11 +91,20 @@ class ImplicitOptions:
     easy_iterations : a step converged within this many lets the next grow by ``growth``
     growth : step growth factor after an easy step (> 1)
     min_step : s, the smallest step before :class:`ConvergenceError`
-    solver : linear solver (:data:`toolkit.common.fem.solvers.METHODS`)
+    solver : linear solver (:data:`toolkit.common.fem.solvers.METHODS`); ``auto`` factorizes
+        up to :data:`~toolkit.common.fem.solvers.REUSED_DIRECT_MAX_ENTRIES` (the paper face
+        with the deformable ball included), as one factorization serves many iterations
     linear_tolerance : relative residual of the iterative linear solves (CG preconditioned by
         the last factorization, or AMG-CG). 1e-2 (an inexact Newton) was measured 19 % faster
         on the coarse face (0.9 s, deformable ball) with skin displacements within 0.007 mm of
         1e-8, but an energy balance error of 2.8 % in the first frame instead of 0.3 %
+    line_search : ``"secant"`` (:class:`~toolkit.common.fem.newton.SecantOnDirection`, the
+        zero of ``r . dx`` along the correction) or ``"residual"``
+        (:class:`~toolkit.common.fem.newton.ResidualDecrease`, fixed fractions judged by the
+        residual norm). Measured on the paper face at first touch: the residual search cycles
+        (three skin nodes in and out of the ball, 25 iterations and no convergence); the secant
+        converges in 12. On the coarse face (1.8 s) both agree to 0.002 mm RMSE; the secant cut
+        no step (deformable ball: 130 s, 181 iterations against 181 s, 184 iterations, 6 cuts)
     """
 
     steps: int = 36
@@ -102,11 +116,15 @@ class ImplicitOptions:
     min_step: float = 1e-5
     solver: str = "auto"
     linear_tolerance: float = 1e-8
+    line_search: str = "secant"
 
     def __post_init__(self):
         if int(self.steps) < 1 or not 0 < self.tolerance < 1 or int(self.max_iterations) < 1:
             raise ValueError(f"implicit options: steps {self.steps} must be >= 1, tolerance {self.tolerance} in "
                              f"(0, 1), max_iterations {self.max_iterations} >= 1")
+        if self.line_search not in LINE_SEARCHES:
+            raise ValueError(f"implicit options: line_search {self.line_search!r} must be one of "
+                             f"{sorted(LINE_SEARCHES)}")
         if not 0 < self.linear_tolerance < 1:
             raise ValueError(f"implicit options: linear_tolerance {self.linear_tolerance} must lie in (0, 1)")
         if not self.growth > 1 or not self.min_step > 0:
@@ -217,7 +235,7 @@ class _Newton:
         # options.linear_tolerance (1e-8 by default: far below what the Newton iteration needs)
         entries = estimate_factor_entries(self.pattern.node_graph(), 3)
         self.solver = LinearSolver(options.solver, factor_entries=entries, rtol=options.linear_tolerance,
-                                   reuse_rtol=options.linear_tolerance)
+                                   reuse_rtol=options.linear_tolerance, direct_max_entries=REUSED_DIRECT_MAX_ENTRIES)
         self.modes = rigid_body_modes(model.points)
         self.solves = 0
 
@@ -295,7 +313,8 @@ class _Newton:
             start = evaluate(x)
         except InadmissibleState as exc:
             raise NewtonFailed(str(exc)) from None
-        result = newton(start, evaluate, correction, converged, negligible, ResidualDecrease(), opt.max_iterations)
+        search = LINE_SEARCHES[opt.line_search]()
+        result = newton(start, evaluate, correction, converged, negligible, search, opt.max_iterations)
         internal, contact, _ = result.trial.data
         return result.trial.x, internal, contact, result.iterations
 

@@ -29,7 +29,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 __all__ = ["Trial", "NewtonResult", "InadmissibleState", "NewtonFailed", "newton", "ArmijoOnMerit",
-           "ResidualDecrease", "LoadSteps"]
+           "ResidualDecrease", "SecantOnDirection", "LoadSteps"]
 
 
 class InadmissibleState(Exception):
@@ -134,6 +134,56 @@ class ResidualDecrease:
             if got.merit < trial.merit:
                 break
         return best
+
+
+@dataclass(frozen=True)
+class SecantOnDirection:
+    """Find a step along ``dx`` where the residual is nearly orthogonal to it:
+    ``|s(a)| <= tolerance |s0|`` with ``s(a) = r(x + a dx) . dx`` and ``s0 = s(0) < 0`` (the
+    criterion of FEBio's and NIKE3D's line search, after Matthies and Strang).
+
+    The full step is tried first and taken if it passes or is still descending (``s(1) < 0``:
+    the minimum along ``dx`` lies further on). Past the minimum (``s(1) > 0``) the zero of
+    ``s`` is bracketed and found by regula falsi with the Illinois modification (the end that
+    stays has its ``s`` halved, so a kink of ``s`` cannot stall it). Inadmissible trials are
+    halved. Returns the trial with the smallest ``|s|`` when ``max_trials`` end the search,
+    None when every trial is inadmissible.
+
+    Why: penalty contact makes ``s`` kinked. From a state out of contact the Newton correction
+    (whose tangent has no contact) drives the slaves deep into the master, where ``s`` is large
+    and positive; fixed fractions of the correction all land in contact, and a residual-norm
+    test then takes the least bad, from which the next correction (with contact) throws the
+    slaves out again: a two-cycle that never converges (measured on the paper face at first
+    touch). The bracketed zero stops the step where the contact engages.
+    """
+
+    tolerance: float = 0.9
+    max_trials: int = 8
+
+    def __call__(self, trial: Trial, dx: np.ndarray, evaluate: Callable[[np.ndarray], Trial]) -> Trial | None:
+        s0 = float(np.vdot(trial.residual, dx))
+        lo, s_lo, hi, s_hi = 0.0, s0, None, None
+        alpha, kept, best = 1.0, 0, None
+        for _ in range(self.max_trials):
+            try:
+                got = evaluate(trial.x + alpha * dx)
+            except InadmissibleState:
+                hi, s_hi = alpha, None
+                alpha = 0.5 * (lo + alpha)
+                continue
+            s = float(np.vdot(got.residual, dx))
+            if best is None or abs(s) < best[0]:
+                best = (abs(s), got)
+            if s0 >= 0 or abs(s) <= self.tolerance * abs(s0) or (hi is None and s < 0):
+                return got
+            if s > 0:
+                hi, s_hi = alpha, s
+                s_lo, kept = (0.5 * s_lo if kept == -1 else s_lo), -1  # lo stays a second time: Illinois
+            else:
+                lo, s_lo = alpha, s
+                s_hi, kept = (0.5 * s_hi if kept == 1 and s_hi is not None else s_hi), 1
+            alpha = 0.5 * (lo + hi) if s_hi is None else lo - s_lo * (hi - lo) / (s_hi - s_lo)
+        return None if best is None else best[1]
 
 
 def newton(start: Trial, evaluate: Callable[[np.ndarray], Trial], correction: Callable[[Trial], np.ndarray | None],

@@ -34,12 +34,18 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 __all__ = ["solve", "SolveInfo", "SolverError", "LinearSolver", "rigid_body_modes", "estimate_factor_entries",
-           "choose_method", "AUTO_DIRECT_MAX_ENTRIES", "METHODS"]
+           "choose_method", "AUTO_DIRECT_MAX_ENTRIES", "REUSED_DIRECT_MAX_ENTRIES", "METHODS"]
 
 #: entries of the factor below which ``auto`` factorizes (SuperLU): ~30 M entries ~ 0.5 GB,
 #: a few seconds here; the paper phantom is ~4 M, the fine phantom ~2 G, a 26k-dof bulky
 #: tet mesh ~40 M (``benchmarks/static_solvers.py``)
 AUTO_DIRECT_MAX_ENTRIES = 30_000_000
+#: the same limit for a solver that will reuse its factorization over many systems (the
+#: implicit impact path's Newton iterations): on the paper face with the deformable ball
+#: (54k dofs, estimate 64 M, SuperLU L+U 58 M entries, 1.9 GB, 15 s) one factorization reused
+#: as a CG preconditioner ran a 2-step probe in 55 s against 176 s for AMG-CG, whose hierarchy
+#: the contact springs spoil (12 set-ups in 14 solves, 8.6 s per solve)
+REUSED_DIRECT_MAX_ENTRIES = 150_000_000
 METHODS = ("auto", "superlu", "amg", "cholmod")
 
 
@@ -99,16 +105,17 @@ def estimate_factor_entries(node_graph: sp.spmatrix, block: int = 3) -> int:
     return int((np.sum(rank - first) + n) * block * block)
 
 
-def choose_method(method: str, n_dofs: int, factor_entries: int | None) -> str:
-    """The concrete solver for ``method`` (``auto`` decides by ``factor_entries``, or by
-    size when it is unknown: direct below 40k dofs)."""
+def choose_method(method: str, n_dofs: int, factor_entries: int | None,
+                  direct_max_entries: int = AUTO_DIRECT_MAX_ENTRIES) -> str:
+    """The concrete solver for ``method`` (``auto`` decides by ``factor_entries`` against
+    ``direct_max_entries``, or by size when it is unknown: direct below 40k dofs)."""
     if method not in METHODS:
         raise ValueError(f"unknown solver {method!r}; expected one of {METHODS}")
     if method != "auto":
         return method
     if factor_entries is None:
         return "superlu" if n_dofs <= 40_000 else "amg"
-    return "superlu" if factor_entries <= AUTO_DIRECT_MAX_ENTRIES else "amg"
+    return "superlu" if factor_entries <= direct_max_entries else "amg"
 
 
 def _factorize(A: sp.csc_matrix, method: str, near_nullspace, rtol: float):
@@ -152,15 +159,19 @@ class LinearSolver:
     timed_budget : also cap those iterations by what a new factorization costs (its measured
         time over that of one preconditioner application), so that a failed reuse never costs
         more than one extra factorization; False keeps the cap fixed (reproducible choices)
+    direct_max_entries : ``auto`` factorizes up to this expected factor size
+        (:data:`AUTO_DIRECT_MAX_ENTRIES`; :data:`REUSED_DIRECT_MAX_ENTRIES` where many
+        systems will share a factorization)
     """
 
     def __init__(self, method: str = "auto", factor_entries: int | None = None, rtol: float = 1e-9,
                  reuse: bool = True, max_reuse_iterations: int = 60, reuse_rtol: float = 1e-13,
-                 timed_budget: bool = True):
+                 timed_budget: bool = True, direct_max_entries: int = AUTO_DIRECT_MAX_ENTRIES):
         if method not in METHODS:
             raise ValueError(f"unknown solver {method!r}; expected one of {METHODS}")
         self.method, self.factor_entries, self.rtol, self.reuse_rtol = method, factor_entries, rtol, reuse_rtol
         self.reuse, self.max_reuse_iterations, self.timed_budget = reuse, int(max_reuse_iterations), timed_budget
+        self.direct_max_entries = int(direct_max_entries)
         self._A = None
         self._factor = None
         self._kind = None
@@ -183,7 +194,7 @@ class LinearSolver:
             x, iterations = self._reuse(A, b, x0)
             reused = x is not None
         if x is None:
-            kind = choose_method(self.method, m, self.factor_entries)
+            kind = choose_method(self.method, m, self.factor_entries, self.direct_max_entries)
             t_factor = time.perf_counter()
             self._factor, self._kind, self._A = _factorize(A, kind, near_nullspace, self.rtol), kind, A
             t_apply = time.perf_counter()
