@@ -13,6 +13,8 @@ Rows are written atomically after each run; a rerun skips finished rows (resume)
     python benchmarks/impact_ladder.py --resolutions coarse --duration 1.8
     python benchmarks/impact_ladder.py --resolutions paper --orders 1 2 --balls rigid --mass-scaling 100
     python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators implicit
+    python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators implicit \
+        --velocities 20 30 50 --mass-scaling 1 --out benchmarks/results/impact_ladder_velocities.csv
 """
 
 from __future__ import annotations
@@ -30,23 +32,27 @@ import pandas as pd
 
 RESULTS = Path(__file__).parent / "results"
 FIDELITY = ["integrator", "order", "ball", "mass_scaling", "safety"]
+SEED_VELOCITY = 30.0  # mm/s, seed 002's ball
 
 
 def _key(r) -> str:
     implicit = "_implicit" if r.get("integrator", "explicit") == "implicit" else ""
+    v = float(r.get("velocity", SEED_VELOCITY))
+    speed = "" if v == SEED_VELOCITY else f"_v{v:g}"  # rows of seed 002's 30 mm/s keep their names
     return f"{r['resolution']}_tet{4 if int(r['order']) == 1 else 10}_{r['ball']}_ms{float(r['mass_scaling']):g}" \
-           f"_s{float(r['safety']):g}_{float(r['duration']):g}s{implicit}"
+           f"_s{float(r['safety']):g}_{float(r['duration']):g}s{speed}{implicit}"
 
 
-def run_one(resolution, order, ball, mass_scaling, safety, duration, out, integrator="explicit") -> dict:
+def run_one(resolution, order, ball, mass_scaling, safety, duration, out, integrator="explicit",
+            velocity=SEED_VELOCITY) -> dict:
     from toolkit.impact import InstabilityError, default_scene, simulate
     from toolkit.impact.implicit import ConvergenceError
 
-    scene = default_scene().with_face(resolution=resolution).with_ball(rigid=ball == "rigid")
+    scene = default_scene().with_face(resolution=resolution).with_ball(rigid=ball == "rigid", velocity=velocity)
     scene = replace(scene.with_fidelity(order=order, mass_scaling=mass_scaling, safety=safety, integrator=integrator),
                     duration=duration, n_frames=18)
     row = {"resolution": resolution, "order": order, "ball": ball, "mass_scaling": mass_scaling, "safety": safety,
-           "duration": duration, "integrator": integrator}
+           "duration": duration, "integrator": integrator, "velocity": velocity}
     t0 = time.perf_counter()
     try:
         r = simulate(scene, preview=False)
@@ -77,7 +83,7 @@ def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
         df[c] = "" if c == "reference" else np.nan
     order = [(2, "deformable", 1.0), (2, "deformable", 10.0), (2, "rigid", 1.0), (1, "deformable", 1.0),
              (2, "rigid", 10.0), (2, "deformable", 100.0), (2, "rigid", 100.0)]
-    for (res, dur), g in df.groupby(["resolution", "duration"]):
+    for (res, dur, _), g in df.groupby(["resolution", "duration", "velocity"]):
         ok = g[g.status == "ok"]
         explicit = ok[ok.integrator == "explicit"]
         ref = None
@@ -111,6 +117,8 @@ def main(argv=None) -> pd.DataFrame:
     p.add_argument("--integrators", nargs="+", default=["explicit"], choices=["explicit", "implicit"],
                    help="implicit: quasi-static Newton (mass scaling and safety do not apply; run once)")
     p.add_argument("--duration", type=float, default=1.8, help="simulated time, s (seed 002: 1.8)")
+    p.add_argument("--velocities", nargs="+", type=float, default=[SEED_VELOCITY],
+                   help="ball speeds, mm/s (seed 002: 30; its range 20-50); each speed has its own reference")
     p.add_argument("--out", type=Path, default=RESULTS / "impact_ladder.csv")
     args = p.parse_args(argv)
     from toolkit.common.runtime import set_threads
@@ -119,13 +127,16 @@ def main(argv=None) -> pd.DataFrame:
     folder = args.out.with_suffix("")
     folder.mkdir(parents=True, exist_ok=True)
     rows = pd.read_csv(args.out).to_dict("records") if args.out.exists() else []
-    for r in rows:  # rows written before the integrator column were explicit
+    for r in rows:  # rows written before the integrator and velocity columns: explicit, 30 mm/s
         if not isinstance(r.get("integrator"), str):
             r["integrator"] = "explicit"
+        if not np.isfinite(float(r.get("velocity", np.nan))):
+            r["velocity"] = SEED_VELOCITY
     have = {_key(r) for r in rows}
-    combos = [dict(resolution=r, order=o, ball=b, mass_scaling=m, safety=s, duration=args.duration, integrator=i)
-              for r, o, b, m, s, i in itertools.product(args.resolutions, args.orders, args.balls, args.mass_scaling,
-                                                        args.safety, args.integrators)
+    combos = [dict(resolution=r, order=o, ball=b, mass_scaling=m, safety=s, duration=args.duration, integrator=i,
+                   velocity=v)
+              for r, o, b, m, s, i, v in itertools.product(args.resolutions, args.orders, args.balls, args.mass_scaling,
+                                                           args.safety, args.integrators, args.velocities)
               if i == "explicit" or (m == args.mass_scaling[0] and s == args.safety[0])]
     for c in combos:  # no inertia in the quasi-static path: one run, recorded without mass scaling
         if c["integrator"] == "implicit":
@@ -145,7 +156,8 @@ def main(argv=None) -> pd.DataFrame:
     df = compare(pd.DataFrame(rows), folder)
     with atomic_path(args.out) as tmp:
         df.to_csv(tmp, index=False)
-    cols = ["resolution", "integrator", "order", "ball", "mass_scaling", "safety", "status", "steps", "wall_time_s",
+    cols = ["resolution", "velocity", "integrator", "order", "ball", "mass_scaling", "safety", "status", "steps",
+            "wall_time_s",
             "peak_rss_mib", "newton_iterations", "step_cuts", "max_displacement_mm", "max_von_mises_mpa",
             "energy_error", "d_max_displacement_mm",
             "d_max_von_mises_mpa", "rmse_displacement_mm", "pearson_displacement"]
