@@ -18,9 +18,9 @@ Each load step ``t -> t + h``:
    :class:`~toolkit.common.fem.assembly.SparsePattern`, plus the penalty contact's: ``k n n^T``
    normal and ``k_t (I - n n^T)`` for sticking friction, shared with the master triangle's
    corners by the barycentric weights for a deformable ball. The iteration is the shared
-   :func:`toolkit.common.fem.newton.newton` with its
-   :class:`~toolkit.common.fem.newton.ResidualDecrease` line search (the correction is
-   halved until the residual decreases). The contact laws are those of the
+   :func:`toolkit.common.fem.newton.newton` with the
+   :class:`~toolkit.common.fem.newton.SecantOnDirection` line search (the step along the
+   correction where ``r . dx`` vanishes, which stops a correction where a contact engages). The contact laws are those of the
    explicit path (:mod:`toolkit.impact.contact`, same penalties, same Coulomb return mapping);
    the friction state is restored before every trial and kept when the step converges.
 3. **Converged** when the free-dof residual is below ``tolerance`` times the force scale (the
@@ -275,7 +275,7 @@ class _Newton:
 
     def solve_step(self, u: np.ndarray, states: list, guess: np.ndarray, t: float, h: float):
         """Equilibrium at ``t`` from the converged ``u`` (``guess`` sets the free dofs' start)
-        by :func:`~toolkit.common.fem.newton.newton` with a residual line search; returns
+        by :func:`~toolkit.common.fem.newton.newton` with ``options.line_search``; returns
         ``(u_new, internal, contact, iterations)`` or raises
         :class:`~toolkit.common.fem.newton.NewtonFailed`."""
         opt = self.options
@@ -330,8 +330,10 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
     """
     from tqdm.auto import tqdm
 
-    steps = LoadSteps(np.linspace(0.0, duration, n_frames + 1)[1:], max_step=duration / options.steps,
-                      min_step=options.min_step, growth=options.growth, easy_iterations=options.easy_iterations)
+    h_max = duration / options.steps
+    steps = LoadSteps(np.linspace(0.0, duration, n_frames + 1)[1:], max_step=h_max,
+                      min_step=min(options.min_step, h_max), growth=options.growth,
+                      easy_iterations=options.easy_iterations)
     solver = _Newton(model, contact, options)
     n = model.points.shape[0]
     states = [b.material.initial_state(b.kin.n_points) for b in model.bodies]

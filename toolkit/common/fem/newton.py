@@ -15,8 +15,10 @@ A workflow states its problem as four callables and keeps its physics to itself:
 - ``negligible(trial, dx) -> bool``: the correction is too small to matter; the corrected
   state ``x + dx`` is then accepted without a line search.
 
-:func:`newton` iterates; :class:`ArmijoOnMerit` (energy) and :class:`ResidualDecrease`
-(residual norm) are the two line searches. :class:`LoadSteps` walks a load parameter
+:func:`newton` iterates. Line searches: :class:`ArmijoOnMerit` (an energy; the static
+face), :class:`SecantOnDirection` (the zero of ``r . dx``; the impact path, where penalty
+contact has no energy that friction would not spoil) and :class:`ResidualDecrease` (fixed
+fractions judged by the residual norm). :class:`LoadSteps` walks a load parameter
 (time, or the fraction of a prescribed displacement) over its stops in steps that are cut
 in half when Newton fails and grow again after easy steps.
 """
