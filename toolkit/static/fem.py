@@ -169,16 +169,18 @@ class StaticProblem:
         infos = []
 
         def evaluate(v):
+            # forces and tangent in one pass: the material returns dP/dF with P anyway, and a
+            # trial is usually accepted, so its tangent serves the next correction (measured on
+            # the paper face: forces alone 0.145 s, with the tangent 0.232 s)
             u = T @ v + u0
             E = neo_hookean_energy(self.kin, u.reshape(-1, 3), self.groups)
             if not np.isfinite(E):
                 raise InadmissibleState("an element is inverted")
-            f, _ = neo_hookean_system(self.kin, u.reshape(-1, 3), self.groups, self.pattern, tangent=False)
-            return Trial(v, T.T @ f, E, (u, f))
+            f, K = neo_hookean_system(self.kin, u.reshape(-1, 3), self.groups, self.pattern)
+            return Trial(v, T.T @ f, E, (u, f, K))
 
         def correction(trial):
-            _, K = neo_hookean_system(self.kin, trial.data[0].reshape(-1, 3), self.groups, self.pattern)
-            dv, info = self._solve_reduced(T, (T.T @ K @ T).tocsr(), -trial.residual)
+            dv, info = self._solve_reduced(T, (T.T @ trial.data[2] @ T).tocsr(), -trial.residual)
             infos.append(info)
             return dv
 
