@@ -24,10 +24,14 @@ Each load step ``t -> t + h``:
    explicit path (:mod:`toolkit.impact.contact`, same penalties, same Coulomb return mapping);
    the friction state is restored before every trial and kept when the step converges.
 3. **Converged** when the free-dof residual is below ``tolerance`` times the force scale (the
-   reactions at the prescribed dofs plus the contact force), or when it is worth less than
-   ``displacement_tolerance`` mm at every dof (the residual over the tangent's diagonal), or
-   when a Newton correction moves no dof by more than that. The displacement tests matter at
-   first touch, when the forces are too small for a relative force test.
+   reactions at the prescribed dofs plus the contact force), or when a Newton correction moves
+   no dof by more than ``displacement_tolerance`` mm (the corrected state is taken). The
+   displacement test matters before and at first touch, when the forces are too small for a
+   relative force test. It looks at a solved correction, not at the residual over the tangent's
+   diagonal: a stiff ball translating before contact has a large diagonal, so a residual of
+   1e-3 N passes that cheaper test while its net force, times the ball's travel, books
+   spurious external work (82 % energy balance error in the first frame of a 0.3 s coarse run,
+   0.7 % with the solved test).
 4. **Adaptive steps**: a step that does not converge in ``max_iterations``, inverts an element
    or breaks the material update is cut in half; one that converges in at most
    ``easy_iterations`` lets the next grow by ``growth`` up to the initial step. Steps end
@@ -85,8 +89,8 @@ class ImplicitOptions:
     ----------
     steps : load steps over the duration at the start (the largest step is ``duration / steps``)
     tolerance : relative residual (to the reactions plus the contact force) of a converged step
-    displacement_tolerance : mm, a residual or Newton correction worth less than this at every
-        dof also ends the iterations
+    displacement_tolerance : mm, a Newton correction moving no dof by more than this also ends
+        the iterations (with the corrected state)
     max_iterations : Newton iterations before a step is cut
     easy_iterations : a step converged within this many lets the next grow by ``growth``
     growth : step growth factor after an easy step (> 1)
@@ -297,8 +301,6 @@ class _Newton:
 
         def correction(trial):
             K = self.tangent(trial.x, states, trial.data[2])
-            if np.max(np.abs(trial.residual) / K.diagonal()) <= opt.displacement_tolerance:
-                return None  # the residual is worth less than the displacement tolerance
             try:
                 du, _ = self.solver.solve(K, -trial.residual, near_nullspace=self.modes)
             except SolverError as exc:
