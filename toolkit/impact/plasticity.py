@@ -338,11 +338,83 @@ def _cofactor3(F, C):  # pragma: no cover - compiled
 
 
 @njit
+def _slope(x, e_k, y_k):  # pragma: no cover - compiled
+    """Hardening modulus ``d sigma_y / d eps_p`` at ``x`` (:meth:`HardeningTable.slope`)."""
+    m = e_k.shape[0]
+    for k in range(m - 1):
+        if x < e_k[k + 1]:
+            return (y_k[k + 1] - y_k[k]) / (e_k[k + 1] - e_k[k])
+    return 0.0
+
+
+@njit
+def _j2_tangent_point(A, V, C, J, unit, lam, mu, flow, c2, P, out):  # pragma: no cover - compiled
+    """Consistent tangent ``out[i, J, k, L] = dP_iJ / dF_kL`` (MPa) of one point's update.
+
+    ``A`` holds the trial ``be``'s eigenvalues ``x_a`` on its diagonal and ``V`` its
+    principal directions (columns); ``C`` is the cofactor of ``F`` (``F^-1 = C^T / J``);
+    ``unit`` the trial deviatoric strain's unit direction in those axes; ``flow`` and ``c2``
+    the radial return's factors (1 and 0 for an elastic point); ``P`` the stress.
+
+    For each unit direction ``H = e_k e_L^T`` of ``dF``, in the principal axes:
+
+    - ``d be_trial = l be + be l^T`` with ``l = H F^-1`` (also through ``f = F F_old^-1``);
+    - ``d eps_ab = 1/2 g_ab d be_ab`` (Daleckii-Krein for the tensor logarithm): ``g_aa =
+      1 / x_a``, ``g_ab = (ln x_a - ln x_b) / (x_a - x_b)``, its limit ``1 / x_a`` for equal
+      eigenvalues (valid with any orthonormal eigenbasis, so repeated ones need no case);
+    - ``d tau = K tr(d eps) I + 2 mu flow dev(d eps) + c2 N (N : d eps)`` (Simo and Hughes's
+      radial-return tangent, ``K = lam + 2 mu / 3``, ``N`` = ``unit`` on the diagonal);
+    - ``dP = d tau F^-T - P H^T F^-T``.
+    """
+    g = np.empty((3, 3))
+    W = np.empty((3, 3))  # W[L, b] = (F^-1 V)[L, b]
+    de = np.empty((3, 3))
+    dt = np.empty((3, 3))
+    R = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            xa, xb = A[a, a], A[b, b]
+            r = xb / xa - 1.0
+            if abs(r) < 1e-6:  # ln(1 + r) / r, its series
+                g[a, b] = (1.0 - r / 2.0 + r * r / 3.0) / xa
+            else:
+                g[a, b] = (np.log(xa) - np.log(xb)) / (xa - xb)
+            W[a, b] = (C[0, a] * V[0, b] + C[1, a] * V[1, b] + C[2, a] * V[2, b]) / J
+    K = lam + 2.0 * mu / 3.0
+    for k in range(3):
+        for L in range(3):
+            tr = 0.0
+            for a in range(3):
+                for b in range(3):
+                    dbe = V[k, a] * W[L, b] * A[b, b] + A[a, a] * V[k, b] * W[L, a]
+                    de[a, b] = 0.5 * g[a, b] * dbe
+                tr += de[a, a]
+            proj = unit[0] * de[0, 0] + unit[1] * de[1, 1] + unit[2] * de[2, 2]
+            for a in range(3):
+                for b in range(3):
+                    dt[a, b] = 2.0 * mu * flow * de[a, b]
+                dt[a, a] += (K - 2.0 * mu * flow / 3.0) * tr + c2 * unit[a] * proj
+            for a in range(3):  # R = V dt, then d tau = R V^T (into dt)
+                for b in range(3):
+                    R[a, b] = V[a, 0] * dt[0, b] + V[a, 1] * dt[1, b] + V[a, 2] * dt[2, b]
+            for a in range(3):
+                for b in range(3):
+                    dt[a, b] = R[a, 0] * V[b, 0] + R[a, 1] * V[b, 1] + R[a, 2] * V[b, 2]
+            for i in range(3):  # dP = d tau F^-T - P H^T F^-T, F^-T = C / J
+                for Jj in range(3):
+                    out[i, Jj, k, L] = (dt[i, 0] * C[0, Jj] + dt[i, 1] * C[1, Jj] + dt[i, 2] * C[2, Jj]
+                                        - P[i, L] * C[k, Jj]) / J
+
+
+@njit
 def _j2_points(F_new, F_old, be_old, eps_p_old, N_old, lam, mu, e_k, y_k, w_k, hardening, rtol,
-               cauchy, tau, P, be_new, eps_p_new, diss, plastic, N_new, status):  # pragma: no cover - compiled
+               cauchy, tau, P, be_new, eps_p_new, diss, plastic, N_new, status, want_tangent,
+               tangent):  # pragma: no cover - compiled
     """Hencky-J2 update of every point (see the module docstring), writing into the output
     arrays; ``status = (kind, point)`` with kind 0 ok, 1 det F <= 0, 2 det F_old <= 0,
-    3 be not positive definite (the first bad point; the loop stops there).
+    3 be not positive definite (the first bad point; the loop stops there). With
+    ``want_tangent`` also the consistent tangent ``dP/dF`` of every point into ``tangent
+    (n, 3, 3, 3, 3)`` (:func:`_j2_tangent_point`).
 
     The eigen-decomposition of the trial ``be`` starts from the previous principal directions
     ``N_old``: ``A = N_old^T be N_old`` is nearly diagonal, Jacobi finishes it (usually in
@@ -357,6 +429,7 @@ def _j2_points(F_new, F_old, be_old, eps_p_old, N_old, lam, mu, e_k, y_k, w_k, h
     W = np.empty((3, 3))
     eps = np.empty(3)
     dev = np.empty(3)
+    unit = np.empty(3)
     mu2 = 2.0 * mu
     mu3 = 3.0 * mu
     m = e_k.shape[0]
@@ -417,8 +490,11 @@ def _j2_points(F_new, F_old, be_old, eps_p_old, N_old, lam, mu, e_k, y_k, w_k, h
             ss += dev[k] * dev[k]
         eps_p_new[i] = eps_p_old[i]
         diss[i] = 0.0
+        q = np.sqrt(1.5) * mu2 * np.sqrt(ss)
+        for k in range(3):  # unit deviatoric direction of the trial strain (principal axes)
+            unit[k] = dev[k] / np.sqrt(ss) if ss > 0.0 else 0.0
+        flow, c2 = 1.0, 0.0  # dev tau = 2 mu flow dev eps_trial; c2: the radial return's N (x) N term
         if hardening:
-            q = np.sqrt(1.5) * mu2 * np.sqrt(ss)
             ep = eps_p_old[i]
             if q > _interp(ep, e_k, y_k) * (1.0 + rtol):
                 r = q + mu3 * ep
@@ -427,9 +503,10 @@ def _j2_points(F_new, F_old, be_old, eps_p_old, N_old, lam, mu, e_k, y_k, w_k, h
                 else:
                     x = e_k[m - 1] + (r - h_k[m - 1]) / mu3
                 d = max(x - ep, 0.0)
-                scale = 1.0 - mu3 * d / q
+                flow = 1.0 - mu3 * d / q
+                c2 = 2.0 * mu3 * mu * (d / q - 1.0 / (mu3 + _slope(x, e_k, y_k)))
                 for k in range(3):
-                    dev[k] *= scale
+                    dev[k] *= flow
                 eps_p_new[i] = ep + d
                 diss[i] = _hardening_work(ep + d, e_k, y_k, w_k) - _hardening_work(ep, e_k, y_k, w_k)
                 plastic[i] = True
@@ -449,6 +526,8 @@ def _j2_points(F_new, F_old, be_old, eps_p_old, N_old, lam, mu, e_k, y_k, w_k, h
         for a in range(3):  # P = tau F^-T = tau C / J
             for b in range(3):
                 P[i, a, b] = (tau[i, a, 0] * C[0, b] + tau[i, a, 1] * C[1, b] + tau[i, a, 2] * C[2, b]) / J
+        if want_tangent:
+            _j2_tangent_point(A, V, C, J, unit, lam, mu, flow, c2, P[i], tangent[i])
 
 
 @dataclass(frozen=True)
@@ -528,17 +607,20 @@ class J2Plasticity(IsotropicModuli):
             return z, z, z
         return self.table.plastic_strain, self.table.yield_stress, self.table._work
 
-    def _update_compiled(self, F_new: np.ndarray, state: PlasticState) -> StressUpdate:
+    def _update_compiled(self, F_new: np.ndarray, state: PlasticState,
+                         tangent: np.ndarray | None = None) -> StressUpdate:
         n = state.n
         cauchy, tau, P, be_new, N = (np.empty((n, 3, 3)) for _ in range(5))
         eps_p, diss = np.empty(n), np.empty(n)
         plastic = np.zeros(n, dtype=np.bool_)
         status = np.zeros(2, dtype=np.int64)
         e_k, y_k, w_k = self._table_arrays()
+        want = tangent is not None
         _j2_points(F_new, np.ascontiguousarray(state.F), np.ascontiguousarray(state.be),
                    np.ascontiguousarray(state.eps_p, dtype=np.float64), np.ascontiguousarray(state.directions),
                    float(self.lam), float(self.mu), e_k, y_k, w_k, self.table is not None, _YIELD_RTOL,
-                   cauchy, tau, P, be_new, eps_p, diss, plastic, N, status)
+                   cauchy, tau, P, be_new, eps_p, diss, plastic, N, status, want,
+                   tangent if want else np.empty((0, 3, 3, 3, 3)))
         kind, i = int(status[0]), int(status[1])
         if kind == 1:
             raise InvertedPointError(f"J2Plasticity.update: det F = {np.linalg.det(F_new[i]):.4g} <= 0 at point "
@@ -554,9 +636,16 @@ class J2Plasticity(IsotropicModuli):
                             dissipation=diss, plastic=plastic)
 
     def tangent(self, F_new: np.ndarray, state: PlasticState) -> tuple[StressUpdate, np.ndarray]:
-        """The update and its algorithmic tangent ``dP/dF (n, 3, 3, 3, 3)`` MPa, return mapping
-        included (:func:`~toolkit.common.fem.tangent.algorithmic_tangent`: nine more updates)."""
-        return algorithmic_tangent(self, F_new, state)
+        """The update and its consistent tangent ``dP/dF (n, 3, 3, 3, 3)`` MPa, return mapping
+        included: in closed form from the compiled kernel (:func:`_j2_tangent_point`, the
+        same pass as the update), or by differentiating the numpy update
+        (:func:`~toolkit.common.fem.tangent.algorithmic_tangent`: nine more updates) without
+        numba. ``A[p, i, J, k, L] = dP_iJ / dF_kL`` at point ``p``."""
+        F_new = _batch_copy(F_new, state)
+        if not use_jit():
+            return algorithmic_tangent(self, F_new, state)
+        A = np.empty((state.n, 3, 3, 3, 3))
+        return self._update_compiled(F_new, state, A), A
 
     def update_numpy(self, F_new: np.ndarray, state: PlasticState) -> StressUpdate:
         """:meth:`update` in vectorized numpy (LAPACK ``eigh``): the reference implementation."""
