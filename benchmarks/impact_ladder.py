@@ -8,6 +8,15 @@ ball, no mass scaling, safety 0.9 — or the next best) by the difference in max
 displacement and maximum von Mises stress, and by the RMSE and Pearson correlation of the
 skin displacement time series (on the corner nodes, which tet4 and tet10 faces share).
 
+The scene is mirror-symmetric about the midsagittal plane x = 0 (the phantom's skin nodes map
+onto each other exactly and the ball moves along it), and a deformable ball pressed into the
+face slides sideways to one side or the other: a symmetry-breaking branch that round-off or the
+step size selects (the same quasi-static solver went to -x with 36 load steps and to +x with
+144 on the coarse face). So each run is also compared after mirroring its field across x = 0
+(``rmse_mirrored_mm``, ``pearson_mirrored``), and ``reference_asymmetry_mm`` is the RMSE of
+the reference against its own mirror image: the floor of an unmirrored comparison for a run
+that took the other branch.
+
 Rows are written atomically after each run; a rerun skips finished rows (resume).
 
     python benchmarks/impact_ladder.py --resolutions coarse --duration 1.8
@@ -20,6 +29,7 @@ Rows are written atomically after each run; a rerun skips finished rows (resume)
 from __future__ import annotations
 
 import argparse
+import functools
 import itertools
 import resource
 import time
@@ -76,10 +86,43 @@ def run_one(resolution, order, ball, mass_scaling, safety, duration, out, integr
     return row
 
 
+@functools.lru_cache(maxsize=None)
+def _mirror(resolution: str) -> np.ndarray | None:
+    """Index of each sampled skin node's mirror image across x = 0 (the skin order of
+    :func:`run_one`; the lips of the mouth slit, which share positions, kept apart), or None
+    when the skin is not mirror-symmetric to 1e-6 mm."""
+    from toolkit.common.symmetry import mirror_index
+    from toolkit.impact import default_scene
+    from toolkit.impact.simulate import face_mesh
+
+    face = face_mesh(default_scene().with_face(resolution=resolution).with_fidelity(order=1))
+    skin = face.node_sets["skin"]
+    skin = skin[skin < int(face.volume_cells[:, :4].max()) + 1]
+    return mirror_index(face.points[skin], _lip_labels(face, skin))
+
+
+def _lip_labels(face, nodes: np.ndarray) -> np.ndarray:
+    """0 for a node on neither lip of the mouth slit, 1 upper, 2 lower."""
+    labels = np.zeros(nodes.size, dtype=int)
+    for label, name in ((1, "upper_lip_face"), (2, "lower_lip_face")):
+        if name in face.node_sets:
+            labels[np.isin(nodes, face.node_sets[name])] = label
+    return labels
+
+
+def _agreement(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """RMSE (mm) and Pearson correlation of two displacement series ``(frames, nodes, 3)``."""
+    rmse = float(np.sqrt(np.mean((a - b) ** 2)))
+    pearson = float(np.corrcoef(a.ravel(), b.ravel())[0, 1]) if a.std() > 0 and b.std() > 0 else np.nan
+    return rmse, pearson
+
+
 def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
+    from toolkit.common.symmetry import mirrored
+
     df = df.copy()
     for c in ("reference", "d_max_displacement_mm", "d_max_von_mises_mpa", "rmse_displacement_mm",
-              "pearson_displacement"):
+              "pearson_displacement", "rmse_mirrored_mm", "pearson_mirrored", "reference_asymmetry_mm"):
         df[c] = "" if c == "reference" else np.nan
     order = [(2, "deformable", 1.0), (2, "deformable", 10.0), (2, "rigid", 1.0), (1, "deformable", 1.0),
              (2, "rigid", 10.0), (2, "deformable", 100.0), (2, "rigid", 100.0)]
@@ -88,22 +131,25 @@ def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
         explicit = ok[ok.integrator == "explicit"]
         ref = None
         for o, b, ms in order:
-            hit = explicit[(explicit.order == o) & (ok.ball == b) & (ok.mass_scaling == ms)].sort_values("safety")
+            same = (explicit.order == o) & (explicit.ball == b) & (explicit.mass_scaling == ms)
+            hit = explicit[same].sort_values("safety")
             if len(hit):
                 ref = hit.iloc[0]
                 break
         if ref is None:
             continue
         R = np.load(folder / f"{_key(ref)}.npz")
+        b = R["skin_displacement"]
+        mirror = _mirror(res)
         for i, r in ok.iterrows():
-            X = np.load(folder / f"{_key(r)}.npz")
-            a, b = X["skin_displacement"], R["skin_displacement"]
+            a = np.load(folder / f"{_key(r)}.npz")["skin_displacement"]
             df.loc[i, "reference"] = _key(ref)
             df.loc[i, "d_max_displacement_mm"] = r.max_displacement_mm - ref.max_displacement_mm
             df.loc[i, "d_max_von_mises_mpa"] = r.max_von_mises_mpa - ref.max_von_mises_mpa
-            df.loc[i, "rmse_displacement_mm"] = float(np.sqrt(np.mean((a - b) ** 2)))
-            if a.std() > 0 and b.std() > 0:
-                df.loc[i, "pearson_displacement"] = float(np.corrcoef(a.ravel(), b.ravel())[0, 1])
+            df.loc[i, ["rmse_displacement_mm", "pearson_displacement"]] = _agreement(a, b)
+            if mirror is not None:
+                df.loc[i, ["rmse_mirrored_mm", "pearson_mirrored"]] = _agreement(mirrored(a, mirror), b)
+                df.loc[i, "reference_asymmetry_mm"] = _agreement(mirrored(b, mirror), b)[0]
     return df
 
 
@@ -160,7 +206,8 @@ def main(argv=None) -> pd.DataFrame:
             "wall_time_s",
             "peak_rss_mib", "newton_iterations", "step_cuts", "max_displacement_mm", "max_von_mises_mpa",
             "energy_error", "d_max_displacement_mm",
-            "d_max_von_mises_mpa", "rmse_displacement_mm", "pearson_displacement"]
+            "d_max_von_mises_mpa", "rmse_displacement_mm", "pearson_displacement", "rmse_mirrored_mm",
+            "pearson_mirrored", "reference_asymmetry_mm"]
     cols = [c for c in cols if c in df.columns]
     with pd.option_context("display.width", 250, "display.max_rows", 200, "display.float_format", "{:.4g}".format):
         print(df[cols].to_string(index=False))

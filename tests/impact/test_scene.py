@@ -209,3 +209,23 @@ def test_support_is_validated_and_round_trips(tmp_path):
 
     scene = yielding_scene(35.0)
     assert Scene.read(scene.write(tmp_path / "y.toml")) == scene
+
+
+@pytest.mark.parametrize("resolution", ["coarse", "paper"])
+def test_the_default_scene_is_mirror_symmetric_about_the_midsagittal_plane(resolution):
+    """Every skin corner node of the phantom has a mirror image under x -> -x (to 1e-9 mm;
+    the volume's tet split is not symmetric everywhere, the skin is), with the two lips of the
+    mouth slit (coincident nodes) kept apart by their node sets, and the default ball starts
+    and moves in the plane x = 0. benchmarks/impact_ladder.py relies on this to compare a run
+    with the mirror image of its reference: a deformable ball pressed into this face slides to
+    one side or the other (a symmetry-breaking branch)."""
+    from toolkit.common.symmetry import mirror_index
+
+    built = build_model(default_scene().with_face(resolution=resolution).with_ball(rigid=True))
+    face = built.face
+    skin = face.node_sets["skin"]
+    skin = skin[skin < int(face.volume_cells[:, :4].max()) + 1]
+    lips = np.isin(skin, face.node_sets["upper_lip_face"]) + 2 * np.isin(skin, face.node_sets["lower_lip_face"])
+    assert mirror_index(face.points[skin], lips, tol=1e-9) is not None
+    assert mirror_index(face.points[skin], tol=1e-9) is None  # the lips' coincident nodes need the labels
+    assert abs(built.ball_centre[0]) < 1e-9 and default_scene().ball.direction[0] == 0.0
