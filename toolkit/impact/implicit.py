@@ -13,8 +13,8 @@ Each load step ``t -> t + h``:
    free dofs start from the last increment scaled to ``h`` (a linear predictor).
 2. **Newton** on ``r(u) = f_int(u) - f_contact(u) = 0`` over the free dofs. ``f_int`` comes from
    every body's material update from the last converged state (finite-strain J2 with its
-   return mapping), the tangent from the material's algorithmic ``dP/dF``
-   (:func:`~toolkit.common.fem.tangent.algorithmic_tangent`) assembled by
+   return mapping), the tangent from the material's consistent ``dP/dF``
+   (:meth:`~toolkit.impact.plasticity.J2Plasticity.tangent`, in closed form) assembled by
    :class:`~toolkit.common.fem.assembly.SparsePattern`, plus the penalty contact's: ``k n n^T``
    normal and ``k_t (I - n n^T)`` for sticking friction, shared with the master triangle's
    corners by the barycentric weights for a deformable ball. The iteration is the shared
