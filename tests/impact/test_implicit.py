@@ -192,7 +192,7 @@ def test_the_work_ledger_balances_from_the_first_frame_with_a_deformable_ball():
     dissipation add up to the external work. Before contact the ball only translates, and a
     convergence test that accepted a residual worth < 1e-4 mm over the stiff ball's large
     tangent diagonal left a 1e-3 N net force on it, booked times its travel as external work:
-    82 % at this frame (measured; 0.7 % with the solved-correction test)."""
+    82 % at this frame (measured; 0.8 % with the solved-correction test)."""
     from dataclasses import replace
 
     from toolkit.impact import default_scene, simulate
