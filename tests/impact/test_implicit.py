@@ -8,6 +8,9 @@ bonded-layer factor) or exact derivatives checked by central differences with a 
 
 from __future__ import annotations
 
+import os
+from unittest import mock
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -82,7 +85,8 @@ def test_the_closed_form_j2_tangent_is_the_derivative_of_the_update(stretches):
     rng = np.random.default_rng(4)
     table = HardeningTable.from_pairs([(0.002, 0.0), (0.004, 1.0)])
     mat = J2Plasticity(0.015, 0.45, 1e-9, table)
-    first = np.array([[1.3, 0.1, 0.0], [0.05, 0.85, 0.1], [0.0, 0.0, 1.0]])[None] + 0.02 * rng.standard_normal((4, 3, 3))
+    first = np.array([[1.3, 0.1, 0.0], [0.05, 0.85, 0.1], [0.0, 0.0, 1.0]])[None]
+    first = first + 0.02 * rng.standard_normal((4, 3, 3))
     state = mat.update(first, mat.initial_state(4)).state
     assert (state.eps_p > 0).all()
     Q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
@@ -94,9 +98,6 @@ def test_the_closed_form_j2_tangent_is_the_derivative_of_the_update(stretches):
     rest = mat.tangent(np.broadcast_to(EYE, (2, 3, 3)).copy(), mat.initial_state(2))[1]
     C = isotropic_tangent(mat.lam, mat.mu)
     assert np.abs(rest - C).max() <= 1e-14 * np.abs(C).max()
-    import os
-    from unittest import mock
-
     with mock.patch.dict(os.environ, {"TOOLKIT_JIT": "0"}):
         _, A_numpy = mat.tangent(F, state)
     assert np.abs(A_numpy - A).max() <= 1e-5 * np.abs(A).max()
