@@ -93,3 +93,34 @@ def test_reuse_gives_up_when_the_matrix_changed_too_much():
     x, info = solver.solve(B, b)
     np.testing.assert_allclose(B @ x, b, atol=1e-8)
     assert solver.factorizations + solver.reuses == 2
+
+
+def _unsymmetric_pair(n=300, rank=12, seed=3):
+    """An SPD matrix ``A`` (a 1D Laplacian plus a shift) and ``B = A + U V^T``, an unsymmetric
+    low-rank change as a slipping friction contact adds to a tangent."""
+    rng = np.random.default_rng(seed)
+    A = sp.diags([-np.ones(n - 1), 2.2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsc()
+    rows = rng.choice(n, rank, replace=False)
+    U = sp.csc_matrix((rng.uniform(0.2, 0.5, rank), (rows, np.arange(rank))), shape=(n, rank))
+    V = sp.csc_matrix((rng.uniform(-0.5, 0.5, rank), (np.roll(rows, 1), np.arange(rank))), shape=(n, rank))
+    return A, (A + U @ V.T).tocsc(), rng.standard_normal(n)
+
+
+@pytest.mark.parametrize("method", ["superlu", "amg"])
+def test_an_unsymmetric_system_is_solved_fresh_and_with_a_reused_factorization(method):
+    """SuperLU factorizes the unsymmetric matrix itself, AMG its symmetric part as GMRES's
+    preconditioner; a reused symmetric factorization preconditions GMRES (right-preconditioned,
+    so its stopping test is the true residual: asserted at rtol). CG on that system would not
+    be a valid method, and the solver never uses it there."""
+    A, B, b = _unsymmetric_pair()
+    rtol = 1e-8
+    fresh = LinearSolver(method, rtol=rtol, reuse_rtol=rtol)
+    x, _ = fresh.solve(B, b, symmetric=False)
+    assert np.linalg.norm(B @ x - b) <= 1.01 * rtol * np.linalg.norm(b)
+    reused = LinearSolver(method, rtol=rtol, reuse_rtol=rtol, timed_budget=False)
+    reused.solve(A, b)
+    x, info = reused.solve(B, b, symmetric=False)
+    assert info.reused and reused.factorizations == 1
+    assert np.linalg.norm(B @ x - b) <= 1.01 * rtol * np.linalg.norm(b)
+    # a rank-12 change needs at most 12 + 1 GMRES iterations on an exact factor of A
+    assert method != "superlu" or info.iterations <= 13
