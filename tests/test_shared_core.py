@@ -20,11 +20,15 @@ limits must agree:
   Poisson's ratio of 0.46 instead of 0.45 in one path moves the element matrices by 0.22.
 """
 
+import os
+from unittest import mock
+
 import numpy as np
 import pytest
 
 from toolkit.common.fem import TET_EDGES
 from toolkit.common.fem.assembly import SparsePattern, element_tangent
+from toolkit.common.fem.jit import HAVE_NUMBA
 from toolkit.common.fem.kinematics import deformation_gradient, internal_force, kinematics
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic, isotropic_tangent
 from toolkit.common.mesh import Mesh
@@ -145,6 +149,22 @@ def test_element_tangent_of_the_isotropic_tensor_is_the_voigt_stiffness(ctype):
     D = np.broadcast_to(material.stiffness(), (E, 6, 6))
     K0 = _block_stiffness(kb, D, np.zeros(E))
     assert np.abs(K - K0).max() <= 1e-13 * np.abs(K0).max()
+
+
+@pytest.mark.skipif(not HAVE_NUMBA, reason="the compiled kernel needs numba")
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_the_compiled_element_tangent_equals_the_einsum_reference(symmetric):
+    """The numba kernel of element_tangent against its numpy reference (two einsums), for an
+    unsymmetric random dP/dF on tet10 gradients, to round-off."""
+    rng = np.random.default_rng(4)
+    E, Q, n = 7, 4, 10
+    grad, weight = rng.standard_normal((E, Q, n, 3)), rng.uniform(0.1, 1.0, (E, Q))
+    A = rng.standard_normal((E, Q, 3, 3, 3, 3))
+    K = element_tangent(grad, weight, A, symmetric)
+    with mock.patch.dict(os.environ, {"TOOLKIT_JIT": "0"}):
+        K0 = element_tangent(grad, weight, A, symmetric)
+    assert np.abs(K - K0).max() <= 1e-13 * np.abs(K0).max()
+    assert not symmetric or np.array_equal(K, np.swapaxes(K, 1, 2))
 
 
 def _distorted(ctype):
