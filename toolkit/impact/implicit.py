@@ -263,7 +263,7 @@ class _Newton:
         entries = estimate_factor_entries(self.pattern.node_graph(), 3)
         self.solver = LinearSolver(options.solver, factor_entries=entries, rtol=options.linear_tolerance,
                                    reuse_rtol=options.linear_tolerance, direct_max_entries=REUSED_DIRECT_MAX_ENTRIES,
-                                   single_precision=options.single_precision_factor)
+                                   single_precision=options.single_precision_factor, timed_budget=False)
         self.modes = rigid_body_modes(model.points)
         self.solves = 0
 
