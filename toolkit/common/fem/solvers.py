@@ -157,9 +157,10 @@ class LinearSolver:
     ----------
     method : one of :data:`METHODS`
     factor_entries : expected factor size for ``auto`` (see :func:`estimate_factor_entries`)
-    rtol : relative residual of AMG-CG solves (and of CG on a reused AMG hierarchy)
-    reuse_rtol : relative residual of CG on a reused direct factorization (tight, so that
-        reusing changes the answer only at round-off level)
+    rtol : relative residual of AMG-CG solves (and of the Krylov solves on a reused AMG
+        hierarchy, on a float32 factor just made, or on a factor of the symmetric part)
+    reuse_rtol : relative residual of the Krylov solves on a reused direct factorization
+        (tight by default, so that reusing changes the answer only at round-off level)
     reuse : precondition later systems of the same size with the stored factorization
     max_reuse_iterations : Krylov (CG or GMRES) iterations after which a reuse is abandoned
         for a new factorization
