@@ -60,8 +60,7 @@ class InfluenceMatrix:
         materials : ``linear`` (seed 001: the lip muscle transversely isotropic) or a
             MaterialAssignment of linear materials
         """
-        import scipy.sparse.linalg as spla
-
+        from toolkit.common.fem.solvers import superlu
         from toolkit.static.fem import StaticProblem
         from toolkit.static.simulate import material_assignment
 
@@ -78,8 +77,7 @@ class InfluenceMatrix:
         f, b = dof(free), dof(driven)
         Kff = K[f][:, f].tocsc()
         Kfb = K[f][:, b].toarray()
-        lu = spla.splu(Kff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        H = -lu.solve(Kfb)
+        H = -superlu(Kff)(Kfb)
         return cls(driven, fixed, free, H, time.perf_counter() - t0)
 
     def predict(self, driven_displacement: np.ndarray) -> np.ndarray:
