@@ -175,7 +175,7 @@ def test_factorizing_ahead_uses_a_background_factor_chosen_by_the_count_of_solve
     solves later: after six systems it preconditions with ``A_4``'s factor (submitted at
     solves 2 and 4). Every answer meets the residual, the Krylov iterations on a two-solve-old
     factor stay below those on the first factor, and a second solver makes exactly the same
-    choices (the count of solves decides, not timing)."""
+    choices (the count of solves decides, not timing). ``close`` ends the worker thread."""
     A0 = _grid_laplacian_3d(8)
     m = A0.shape[0]
     D = sp.diags(np.linspace(0.0, 2.0, m))
@@ -189,13 +189,48 @@ def test_factorizing_ahead_uses_a_background_factor_chosen_by_the_count_of_solve
             x, info = solver.solve(S, b)
             assert np.linalg.norm(S @ x - b) <= 1e-9 * np.linalg.norm(b)
             counts.append(info.iterations)
-        runs.append((counts, solver))
+        runs.append((counts, solver, solver._A))
         solver.close()
-    (first, ahead), (second, _), (stale, plain) = runs
+    (first, ahead, used), (second, _, _), (stale, plain, _) = runs
     assert first == second
     assert ahead.factorizations == 1 and ahead.background_factorizations == 2
-    assert abs(ahead._A - systems[3]).max() == 0
+    assert abs(used - systems[3]).max() == 0
     assert plain.factorizations == 1 and plain.background_factorizations == 0
     assert sum(first[3:]) < sum(stale[3:])
+    # closed: the worker has ended, the factors made on it are freed, a new solve starts afresh
+    assert ahead._worker is None and ahead._A is None
+    x, info = ahead.solve(systems[0], b)
+    assert not info.reused and np.linalg.norm(systems[0] @ x - b) <= 1e-9 * np.linalg.norm(b)
     with pytest.raises(ValueError, match="factorize_ahead -1"):
         LinearSolver(factorize_ahead=-1)
+
+
+def test_factors_made_ahead_are_freed_on_the_thread_that_made_them(monkeypatch):
+    """scipy's SuperLU objects freed on another thread than the one that made them keep their
+    memory (scipy issue #15921: a paper impact run grew to 13.4 GB). Every factor the worker
+    makes, used or dropped, is freed on the worker, by the time ``close`` returns."""
+    import threading
+    import weakref
+
+    made = []  # (thread that made the factor, thread that freed it)
+
+    original = LinearSolver._new_factor
+
+    def tracked(self, A, symmetric, near_nullspace):
+        result = original(self, A, symmetric, near_nullspace)
+        record = [threading.current_thread().name, None]
+        made.append(record)
+        weakref.finalize(result[0], lambda r=record: r.__setitem__(1, threading.current_thread().name))
+        return result
+
+    monkeypatch.setattr(LinearSolver, "_new_factor", tracked)
+    A0 = _grid_laplacian_3d(6)
+    D = sp.diags(np.linspace(0.0, 2.0, A0.shape[0]))
+    b = np.ones(A0.shape[0])
+    solver = LinearSolver("superlu", single_precision=True, timed_budget=False, factorize_ahead=1)
+    for k in range(1, 8):
+        solver.solve((A0 + k * D).tocsc(), b)
+    solver.close()
+    ahead = [r for r in made if r[0].startswith("toolkit-factorize-ahead")]
+    assert len(ahead) >= 3
+    assert all(r[1] is not None and r[1].startswith("toolkit-factorize-ahead") for r in ahead), made

@@ -33,8 +33,8 @@ the preconditioner stays a few systems old along a Newton path whose matrix keep
 from __future__ import annotations
 
 import logging
-import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -262,7 +262,9 @@ class LinearSolver:
                              "is used; 0 for none)")
         self.ordering, self.factorize_ahead = ordering, int(factorize_ahead)
         self._perm = None  # the nested-dissection ordering of this size's systems
-        self._pending = None  # a background factorization: (thread, result box, solve count at its start)
+        self._worker = None  # the thread pool of one that factorizes ahead
+        self._background = False  # whether the factor in use was made on the worker
+        self._pending = None  # a background factorization: (future, solve count at its start, matrix, symmetric)
         self._count = 0
         self.method, self.factor_entries, self.rtol, self.reuse_rtol = method, factor_entries, rtol, reuse_rtol
         self.reuse, self.max_reuse_iterations, self.timed_budget = reuse, int(max_reuse_iterations), timed_budget
@@ -295,19 +297,16 @@ class LinearSolver:
             return np.zeros(0), SolveInfo("none", 0, 0.0, 0.0)
         A = sp.csr_matrix(A)  # the Krylov products; a factorization converts what it needs
         self._count += 1
-        if self._pending is not None and self._count - self._pending[2] >= self.factorize_ahead:
+        if self._pending is not None and self._count - self._pending[1] >= self.factorize_ahead:
             self._take_pending()
         x, iterations, reused = None, 0, False
         if self.reuse and self._A is not None and self._A.shape == A.shape:
             x, iterations = self._reuse(A, b, x0, symmetric)
             reused = x is not None
         if x is None:
-            if self._pending is not None:  # older than this system: wait for it (one factorization at a
-                self._pending[0].join()  # time on the second core) and drop it
-                self._pending = None
+            self._drop_pending()  # older than this system
             t_factor = time.perf_counter()
-            self._factor, self._kind, self._exact = self._new_factor(A, symmetric, near_nullspace)
-            self._A, self._symmetric = A, symmetric
+            self._install(self._new_factor(A, symmetric, near_nullspace), A, symmetric, background=False)
             t_apply = time.perf_counter()
             self.factorizations += 1
             x, iterations = self._apply(A, b, x0)
@@ -331,11 +330,15 @@ class LinearSolver:
         return x, SolveInfo(self._kind, iterations, res, time.perf_counter() - t0, reused)
 
     def close(self) -> None:
-        """Wait for a background factorization still running and drop it (call when done with
-        the solver, so that no thread outlives its work)."""
-        if self._pending is not None:
-            self._pending[0].join()
-            self._pending = None
+        """Free the factors made ahead and end the worker thread (call when done with a solver
+        that factorizes ahead; a later solve starts afresh)."""
+        if self._worker is None:
+            return
+        self._drop_pending()
+        if self._background:
+            self._install((None, None, True), None, True, background=False)
+        self._worker.shutdown(wait=True)
+        self._worker = None
 
     def _new_factor(self, A, symmetric: bool, near_nullspace):
         """``(factor, kind, exact)`` for ``A``: of ``A`` itself, or of its symmetric part (AMG,
@@ -354,34 +357,44 @@ class LinearSolver:
         factor = _factorize(A if own else 0.5 * (A + A.T), kind, near_nullspace, self.rtol, single, ordering)
         return factor, kind, own and not single
 
+    def _install(self, made: tuple, A, symmetric: bool, background: bool) -> None:
+        """Precondition with ``made`` = ``(factor, kind, exact)`` of ``A`` from now on. A factor
+        made on the worker thread is freed on it: scipy's SuperLU objects freed on another
+        thread than the one that made them keep their memory (scipy issue #15921; a paper impact
+        run grew to 13.4 GB)."""
+        box = [self._factor] if self._background else None  # the old factor's last reference
+        self._factor, self._kind, self._exact = made
+        self._A, self._symmetric, self._background = A, symmetric, background
+        if box is not None:
+            self._worker.submit(box.clear)
+
+    def _drop_pending(self) -> None:
+        """Forget the background factorization, freeing it on the worker once it is done."""
+        if self._pending is not None:
+            box = [self._pending[0]]  # the future holds the factor
+            self._pending = None
+            self._worker.submit(box.clear)
+
     def _start_pending(self, A, symmetric: bool, near_nullspace) -> None:
-        """Factorize ``A`` in a background thread (:attr:`factorize_ahead`)."""
-        box = {}
-
-        def work():
-            try:
-                box["result"] = self._new_factor(A, symmetric, near_nullspace)
-            except Exception as exc:  # noqa: BLE001 - reported when taken (the old factor stays)
-                box["error"] = exc
-
-        thread = threading.Thread(target=work, name="toolkit-factorize-ahead", daemon=True)
-        thread.start()
-        self._pending = (thread, box, self._count, A, symmetric)
+        """Factorize ``A`` on the worker thread (:attr:`factorize_ahead`)."""
+        if self._worker is None:
+            self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="toolkit-factorize-ahead")
+        future = self._worker.submit(self._new_factor, A, symmetric, near_nullspace)
+        self._pending = (future, self._count, A, symmetric)
 
     def _take_pending(self) -> None:
         """Wait for the background factorization and precondition with it from now on (a failed
         one is dropped: the next failed reuse factorizes in the foreground and reports)."""
-        thread, box, _, A, symmetric = self._pending
-        self._pending = None
+        future, _, A, symmetric = self._pending
         t0 = time.perf_counter()
-        thread.join()
+        error = future.exception()  # waits
         self.waited_s += time.perf_counter() - t0
-        if "result" in box:
-            self._factor, self._kind, self._exact = box["result"]
-            self._A, self._symmetric = A, symmetric
+        if error is None:
+            self._install(future.result(), A, symmetric, background=True)
             self.background_factorizations += 1
         else:
-            log.warning("background factorization failed (%s); keeping the previous factor", box.get("error"))
+            log.warning("background factorization failed (%s); keeping the previous factor", error)
+        self._drop_pending()  # the future's reference, freed on the worker too
 
     def _preconditioner(self, shape) -> spla.LinearOperator:
         """The stored factorization or hierarchy as an approximate inverse."""
