@@ -134,9 +134,9 @@ class ImplicitOptions:
         factor kept until a reuse fails grows stale. Paper face, deformable ball, 1.8 s,
         nested-dissection ordering, one run at a time: 0: 166 s, 143 Newton iterations, 24 GMRES
         iterations per solve (8 factorizations); 2: 152 s, 131, 12.5 per solve, but 57 s waiting
-        for factorizations (64 of ~2.4 s each beside the solves); 3: 133 s, 145, 16.4 per solve,
-        9 s waiting (47). The factor in use depends on the count of solves only, not on timing,
-        so a run is reproducible.
+        for factorizations (64 of ~2.4 s each beside the solves); 3: 124-133 s over two runs, 145,
+        16.4 per solve, 9 s waiting (47). The factor in use depends on the count of solves only,
+        not on timing, so a run is reproducible.
     """
 
     steps: int = 36
