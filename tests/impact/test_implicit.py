@@ -188,6 +188,70 @@ def test_the_friction_tangent_is_the_derivative_of_the_contact_forces():
     assert _contact_check(surf, x_all, StepContact(surf, n + 4), 1.0, 1.0, start=start) < 0.05
 
 
+def _pulled_slave(stick_on_reversal: bool, rigid: bool):
+    """Newton on one skin node pulled along a contact by a soft spring (see the test below);
+    returns the Newton result, the contact and its last state."""
+    from toolkit.common.fem.newton import Trial, newton
+
+    k_s, anchor, k = 0.1, np.array([0.005, 0.0, 0.05]), 10.0  # N/mm, mm, N/mm
+    friction = CoulombFriction(0.2)
+    if rigid:  # a sphere so large that it is a plane z > 0 near the origin
+        pair = RigidSphereContact(1e4, k, friction, np.array([0]))
+        sc, n = StepContact(pair, 1, centre0=np.array([0.0, 0.0, 1e4]), velocity=np.zeros(3)), 1
+        master = np.zeros((0, 3))
+    else:  # a flat master triangle pair at z = 0, outward normal -z, on nodes held in place
+        pair = SurfaceContact(np.array([0]), np.array([[1, 3, 2], [1, 4, 3]]), k, friction)
+        sc, n = StepContact(pair, 5), 5
+        master = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
+    start = np.vstack([np.zeros(3), master])
+    free = np.zeros((n, 3), dtype=bool)
+    free[0] = True
+    last = {}
+
+    def evaluate(x):
+        response, state = sc.respond(x, start, 1.0, 1.0)
+        r = np.where(free, k_s * (x - np.vstack([anchor, master])) - response.forces, 0.0)
+        last["state"] = state
+        return Trial(x, r, float(np.linalg.norm(r)), state)
+
+    previous = [None]
+
+    def correction(trial):
+        lin = sc.linearize(trial.data, previous[0] if stick_on_reversal else None)
+        previous[0] = lin.directions
+        K = (k_s * np.eye(3) + lin.tangent.toarray()[:3, :3])
+        return np.vstack([np.linalg.solve(K, -trial.residual[0] + lin.force_shift[:3]), np.zeros((n - 1, 3))])
+
+    def full_step(trial, dx, evaluate):  # in a face of thousands of dofs a line search hardly sees one node
+        return evaluate(trial.x + dx)
+
+    x0 = start.copy()
+    x0[0] = [0.003, 0.0, 0.05 * k_s / (k + k_s)]  # 3 um along, at the normal equilibrium
+    result = newton(evaluate(x0), evaluate, correction, lambda t: t.norm < 1e-10, lambda t, dx: False, full_step, 25)
+    return result, last["state"]
+
+
+@pytest.mark.parametrize("rigid", [True, False], ids=["rigid sphere", "surface"])
+def test_a_nearly_stuck_slave_converges_when_a_reversed_slip_is_linearized_on_the_stick_piece(rigid):
+    """One skin node pressed into the contact (normal force 5 mN) and pulled along it by a soft
+    spring (0.1 N/mm) whose pull, 0.5 mN, is below the Coulomb limit of 1 mN: the true state is
+    stuck, within a stick band of 0.1 um (the limit over k_t = 10 N/mm). Started 3 um along,
+    the node slips; the slipping tangent has no stiffness along the slip, so each correction
+    moves it to where the spring alone balances the limit, across the band: x = -5 um, +15 um,
+    -5 um, ... a two-cycle that never converges (exactly, with a linear spring). Linearized on
+    the stick piece once its slip reverses (:meth:`StepContact.linearize`), it converges in a
+    few corrections to the stuck state, where the friction force equals the spring's pull."""
+    from toolkit.common.fem.newton import NewtonFailed
+
+    with pytest.raises(NewtonFailed):
+        _pulled_slave(stick_on_reversal=False, rigid=rigid)
+    result, state = _pulled_slave(stick_on_reversal=True, rigid=rigid)
+    assert result.iterations <= 5
+    assert state.active[0] and not state.slipping[0]
+    pull = 0.1 * (np.array([0.005, 0.0]) - result.trial.x[0, :2])
+    np.testing.assert_allclose(state.tangential_force[0, :2], -pull, atol=1e-12)
+
+
 def test_the_integrator_is_a_fidelity_option():
     scene = Scene().with_fidelity(integrator="implicit", load_steps=20)
     assert Scene.from_dict(scene.as_dict()).fidelity == scene.fidelity
