@@ -1,7 +1,8 @@
 """Speed/accuracy ladder of the impact simulation (seed 002's scene, 30 mm/s).
 
 Each fidelity option (element order, rigid or deformable ball, mass scaling, time-step
-safety factor, and the integrator: explicit dynamics or quasi-static Newton) runs in a
+safety factor, and the integrator: explicit dynamics or quasi-static Newton with its residual
+tolerance) runs in a
 fresh process that reports wall time, peak resident memory and steps. Every run is compared
 with the highest-fidelity run of its resolution that finished (explicit, tet10, deformable
 ball, no mass scaling, safety 0.9 — or the next best) by the difference in maximum
@@ -24,6 +25,7 @@ Rows are written atomically after each run; a rerun skips finished rows (resume)
     python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators implicit
     python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators implicit \
         --velocities 20 30 50 --mass-scaling 1 --out benchmarks/results/impact_ladder_velocities.csv
+    python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators implicit --tolerances 3e-3 1e-2
 """
 
 from __future__ import annotations
@@ -43,26 +45,30 @@ import pandas as pd
 RESULTS = Path(__file__).parent / "results"
 FIDELITY = ["integrator", "order", "ball", "mass_scaling", "safety"]
 SEED_VELOCITY = 30.0  # mm/s, seed 002's ball
+TOLERANCE = 3e-3  # the implicit Newton tolerance of rows written before the tolerance column
 
 
 def _key(r) -> str:
     implicit = "_implicit" if r.get("integrator", "explicit") == "implicit" else ""
     v = float(r.get("velocity", SEED_VELOCITY))
     speed = "" if v == SEED_VELOCITY else f"_v{v:g}"  # rows of seed 002's 30 mm/s keep their names
+    tol = float(r.get("tolerance", TOLERANCE))
+    if implicit and tol != TOLERANCE:
+        implicit += f"_tol{tol:g}"
     return f"{r['resolution']}_tet{4 if int(r['order']) == 1 else 10}_{r['ball']}_ms{float(r['mass_scaling']):g}" \
            f"_s{float(r['safety']):g}_{float(r['duration']):g}s{speed}{implicit}"
 
 
 def run_one(resolution, order, ball, mass_scaling, safety, duration, out, integrator="explicit",
-            velocity=SEED_VELOCITY) -> dict:
+            velocity=SEED_VELOCITY, tolerance=TOLERANCE) -> dict:
     from toolkit.impact import InstabilityError, default_scene, simulate
     from toolkit.impact.implicit import ConvergenceError
 
     scene = default_scene().with_face(resolution=resolution).with_ball(rigid=ball == "rigid", velocity=velocity)
-    scene = replace(scene.with_fidelity(order=order, mass_scaling=mass_scaling, safety=safety, integrator=integrator),
-                    duration=duration, n_frames=18)
+    scene = replace(scene.with_fidelity(order=order, mass_scaling=mass_scaling, safety=safety, integrator=integrator,
+                                        tolerance=tolerance), duration=duration, n_frames=18)
     row = {"resolution": resolution, "order": order, "ball": ball, "mass_scaling": mass_scaling, "safety": safety,
-           "duration": duration, "integrator": integrator, "velocity": velocity}
+           "duration": duration, "integrator": integrator, "velocity": velocity, "tolerance": tolerance}
     t0 = time.perf_counter()
     try:
         r = simulate(scene, preview=False)
@@ -165,6 +171,8 @@ def main(argv=None) -> pd.DataFrame:
     p.add_argument("--duration", type=float, default=1.8, help="simulated time, s (seed 002: 1.8)")
     p.add_argument("--velocities", nargs="+", type=float, default=[SEED_VELOCITY],
                    help="ball speeds, mm/s (seed 002: 30; its range 20-50); each speed has its own reference")
+    p.add_argument("--tolerances", nargs="+", type=float, default=[TOLERANCE],
+                   help="Newton tolerances of the implicit runs (relative residual; Fidelity.tolerance)")
     p.add_argument("--out", type=Path, default=RESULTS / "impact_ladder.csv")
     args = p.parse_args(argv)
     from toolkit.common.runtime import set_threads
@@ -178,12 +186,16 @@ def main(argv=None) -> pd.DataFrame:
             r["integrator"] = "explicit"
         if not np.isfinite(float(r.get("velocity", np.nan))):
             r["velocity"] = SEED_VELOCITY
+        if not np.isfinite(float(r.get("tolerance", np.nan))):
+            r["tolerance"] = TOLERANCE
     have = {_key(r) for r in rows}
     combos = [dict(resolution=r, order=o, ball=b, mass_scaling=m, safety=s, duration=args.duration, integrator=i,
-                   velocity=v)
-              for r, o, b, m, s, i, v in itertools.product(args.resolutions, args.orders, args.balls, args.mass_scaling,
-                                                           args.safety, args.integrators, args.velocities)
-              if i == "explicit" or (m == args.mass_scaling[0] and s == args.safety[0])]
+                   velocity=v, tolerance=tol)
+              for r, o, b, m, s, i, v, tol in itertools.product(args.resolutions, args.orders, args.balls,
+                                                                args.mass_scaling, args.safety, args.integrators,
+                                                                args.velocities, args.tolerances)
+              if (i == "explicit" and tol == args.tolerances[0])
+              or (i == "implicit" and m == args.mass_scaling[0] and s == args.safety[0])]
     for c in combos:  # no inertia in the quasi-static path: one run, recorded without mass scaling
         if c["integrator"] == "implicit":
             c["mass_scaling"], c["safety"] = 1.0, 0.9
@@ -202,7 +214,8 @@ def main(argv=None) -> pd.DataFrame:
     df = compare(pd.DataFrame(rows), folder)
     with atomic_path(args.out) as tmp:
         df.to_csv(tmp, index=False)
-    cols = ["resolution", "velocity", "integrator", "order", "ball", "mass_scaling", "safety", "status", "steps",
+    cols = ["resolution", "velocity", "integrator", "tolerance", "order", "ball", "mass_scaling", "safety", "status",
+            "steps",
             "wall_time_s",
             "peak_rss_mib", "newton_iterations", "step_cuts", "max_displacement_mm", "max_von_mises_mpa",
             "energy_error", "d_max_displacement_mm",
@@ -216,7 +229,8 @@ def main(argv=None) -> pd.DataFrame:
         from toolkit.common.plotting import plot_tradeoff
 
         labels = [f"{r.resolution[0]}/tet{4 if r.order == 1 else 10}/{r.ball[0]}/"
-                  + ("implicit" if r.integrator == "implicit" else f"ms{r.mass_scaling:g}") for r in ok.itertuples()]
+                  + (f"implicit {r.tolerance:g}" if r.integrator == "implicit" else f"ms{r.mass_scaling:g}")
+                  for r in ok.itertuples()]
         plot_tradeoff(ok.wall_time_s.to_numpy(), ok.rmse_displacement_mm.to_numpy(), labels,
                       ylabel="displacement RMSE to the reference (mm)", title="impact ladder",
                       path=args.out.with_suffix(".png"))
