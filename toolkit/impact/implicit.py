@@ -136,13 +136,14 @@ class ImplicitOptions:
         nested-dissection ordering, one run at a time: 0: 166 s, 143 Newton iterations, 24 GMRES
         iterations per solve (8 factorizations); 2: 152 s, 131, 12.5 per solve, but 57 s waiting
         for factorizations (64 of ~2.4 s each beside the solves); 3: 124-133 s over two runs, 145,
-        16.4 per solve, 9 s waiting (47). The factor in use depends on the count of solves only,
-        not on timing, so a run is reproducible.
+        16.4 per solve, 9 s waiting (47). With ``stick_on_reversal`` (84 Newton iterations): 2: 83 s,
+        18 s waiting; 3: 84-87 s over three runs, 2 s waiting. The factor in use depends on the
+        count of solves only, not on timing, so a run is reproducible.
     stick_on_reversal : a slave whose slip direction reversed since the previous Newton
         correction of the step is linearized on the Coulomb law's stick piece
         (:meth:`StepContact.linearize`), which ends the two-cycle of a nearly stuck skin node
         thrown back and forth across its ~1 um stick band. Paper face, deformable ball, 1.8 s:
-        84 Newton iterations against 145, 86 s against 124-127 s, the same skin displacements
+        84 Newton iterations against 145, 84-87 s against 124-127 s, the same skin displacements
         (0.143 mm RMSE to the explicit reference either way); coarse face: 70 against 75
         (deformable ball), 73 against 115 (rigid). Giving such a slave the stick tangent alone
         (its returned force kept) made it worse: 107 against 75 on the coarse face, 217
