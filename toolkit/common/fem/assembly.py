@@ -128,6 +128,7 @@ class SparsePattern:
         self._slot = inverse.ravel()
         self._vector_dofs = np.concatenate([d.ravel() for d in self.block_dofs])
         self._diagonal = np.flatnonzero(self.rows == self.cols)
+        self._held = None  # (dofs as bytes, entries to zero, diagonal entries to set) of the last constrain
 
     @property
     def dofs(self) -> np.ndarray:
@@ -163,10 +164,15 @@ class SparsePattern:
     def constrain(self, K: sp.csr_matrix, dofs: np.ndarray) -> sp.csr_matrix:
         """``K`` (this pattern) with the rows and columns of ``dofs`` zeroed and a unit diagonal
         there, so that a solve leaves those dofs unchanged (a zero right-hand side on them)."""
-        held = np.zeros(self.n_dofs, dtype=bool)
-        held[np.asarray(dofs, dtype=np.int64)] = True
+        dofs = np.asarray(dofs, dtype=np.int64)
+        key = dofs.tobytes()
+        if self._held is None or self._held[0] != key:  # a Newton run constrains the same dofs every time
+            held = np.zeros(self.n_dofs, dtype=bool)
+            held[dofs] = True
+            zero = np.flatnonzero(held[self.rows] | held[self.cols])
+            self._held = (key, zero, self._diagonal[held[self.rows[self._diagonal]]])
+        _, zero, diag = self._held
         data = K.data.copy()
-        data[held[self.rows] | held[self.cols]] = 0.0
-        diag = self._diagonal[held[self.rows[self._diagonal]]]
+        data[zero] = 0.0
         data[diag] = 1.0
         return sp.csr_matrix((data, self.indices, self.indptr), shape=K.shape)
