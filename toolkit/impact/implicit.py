@@ -519,7 +519,7 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
     stats["dt_s"] = duration / max(stats["steps"], 1)
     stats["cuts"] = steps.cuts
     stats["linear_solves"] = solver.solves
-    stats["stick_on_reversal"] = solver.reversals
+    stats["reversed_slips"] = solver.reversals  # slaves linearized on the stick piece
     stats["factorizations"] = solver.solver.factorizations
     stats["background_factorizations"] = solver.solver.background_factorizations
     stats["factorization_wait_s"] = solver.solver.waited_s  # the solves' wait for the worker
