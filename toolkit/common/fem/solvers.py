@@ -241,8 +241,9 @@ class LinearSolver:
     single_precision : factorize with SuperLU in float32 and use the factor only as a
         preconditioner (every solve then iterates to ``rtol``, later ones to ``reuse_rtol``):
         half the memory traffic of a back-solve. Paper impact face with the deformable ball
-        (54k dofs): factorization 3.1 s against 5.6 s, back-solve 0.035 s against 0.056 s; a
-        float32 direct solve alone leaves a relative residual of 3e-3 there. Other methods
+        (54k dofs, measured with the minimum-degree ordering): factorization 3.1 s against 5.6 s,
+        back-solve 0.035 s against 0.056 s; a float32 direct solve alone leaves a relative
+        residual of 3e-3 there. Other methods
         ignore it.
     ordering : SuperLU's fill-reducing ordering (:data:`ORDERINGS`; see :func:`superlu`)
     factorize_ahead : 0 factorizes only when a reuse fails. ``L > 0`` also factorizes a
