@@ -105,7 +105,8 @@ class ImplicitOptions:
     min_step : s, the smallest step before :class:`ConvergenceError`
     solver : linear solver (:data:`toolkit.common.fem.solvers.METHODS`); ``auto`` factorizes
         up to :data:`~toolkit.common.fem.solvers.REUSED_DIRECT_MAX_ENTRIES` (the paper face
-        with the deformable ball included), as one factorization serves many iterations
+        with the deformable ball included), as one factorization serves many iterations, with
+        MKL PARDISO where the ``pardiso`` extra is installed, else SuperLU
     linear_tolerance : relative residual of the iterative linear solves (CG, or GMRES while
         friction slips, preconditioned by the last factorization; or AMG): an inexact Newton,
         whose outer iterations still converge to ``tolerance``. GMRES minimizes the residual
@@ -125,7 +126,7 @@ class ImplicitOptions:
         181 s, 184 iterations, 6 cuts; both with linear_tolerance 1e-8)
     single_precision_factor : factorize in float32 and use the factor only as the Krylov
         solver's preconditioner (:class:`~toolkit.common.fem.solvers.LinearSolver`'s
-        ``single_precision``; SuperLU only): paper face, deformable ball, 1.8 s: 233 s against
+        ``single_precision``; SuperLU and PARDISO): paper face, deformable ball, 1.8 s: 233 s against
         325 s, the same 148 Newton iterations (both beside another run)
     factorize_ahead : factorize the tangent in a background thread (on the second core) and
         precondition with it from this many Newton iterations later on
@@ -137,8 +138,11 @@ class ImplicitOptions:
         iterations per solve (8 factorizations); 2: 152 s, 131, 12.5 per solve, but 57 s waiting
         for factorizations (64 of ~2.4 s each beside the solves); 3: 124-133 s over two runs, 145,
         16.4 per solve, 9 s waiting (47). With ``stick_on_reversal`` (84 Newton iterations): 2: 83 s,
-        18 s waiting; 3: 84-87 s over three runs, 2 s waiting. The factor in use depends on the
-        count of solves only, not on timing, so a run is reproducible.
+        18 s waiting; 3: 84-87 s over three runs, 2 s waiting. With PARDISO on this machine
+        (factorization 1.1 s): 1: 98 s, 48 s waiting (78 factorizations); 2: 58 s, 4 s waiting
+        (39), 15 GMRES iterations per solve; 3: 68 s, 0.3 s waiting (24). SuperLU on this
+        machine: 2: 93 s; 3: 94 s. The factor in use depends on the count of solves only, not
+        on timing, so a run is reproducible.
     stick_on_reversal : a slave whose slip direction reversed since the previous Newton
         correction of the step is linearized on the Coulomb law's stick piece
         (:meth:`StepContact.linearize`), which ends the two-cycle of a nearly stuck skin node
@@ -161,7 +165,7 @@ class ImplicitOptions:
     linear_tolerance: float = 1e-3
     line_search: str = "secant"
     single_precision_factor: bool = True
-    factorize_ahead: int = 3
+    factorize_ahead: int = 2
     stick_on_reversal: bool = True
 
     def __post_init__(self):
@@ -354,7 +358,7 @@ class _Newton:
         self.solver = LinearSolver(options.solver, factor_entries=entries, rtol=options.linear_tolerance,
                                    reuse_rtol=options.linear_tolerance, direct_max_entries=REUSED_DIRECT_MAX_ENTRIES,
                                    single_precision=options.single_precision_factor, timed_budget=False,
-                                   factorize_ahead=options.factorize_ahead)
+                                   factorize_ahead=options.factorize_ahead, direct="pardiso")
         self.modes = rigid_body_modes(model.points)
         self.solves = 0
         self.reversals = 0  # slaves linearized on the stick piece (StepContact.linearize)

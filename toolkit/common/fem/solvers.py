@@ -10,15 +10,20 @@ Options (measured in ``benchmarks/static_solvers.py``; SPEC.md has this machine'
   phantom shell up to ~10^4 dofs; a bulky 26k-dof tet block: 1.3 s and 560 MiB, against
   6.7 s and 1.0 GiB with minimum degree), hopeless when it does not (the fine phantom with
   minimum degree: > 3 min, > 5 GB).
+- ``"pardiso"``: Intel MKL PARDISO (:mod:`toolkit.common.fem.pardiso`; the ``pardiso``
+  extra) on the same ordering: on the paper impact face (float32) factorization 1.1 s and
+  back-solve 0.021 s against SuperLU's 1.7 s and 0.030 s on this machine. ``auto`` takes it
+  where a caller asks for it (``direct="pardiso"``, the implicit impact path) and MKL is
+  installed.
 - ``"amg"``: pyamg smoothed aggregation (rigid-body near-nullspace) as a
   preconditioner for conjugate gradients.
 - ``"cholmod"``: scikit-sparse's CHOLMOD when it is installed (needs the system
   SuiteSparse); otherwise refused with a hint.
 - ``"auto"``: by the **expected fill** of the factor, not the number of unknowns:
-  ``superlu`` when :func:`estimate_factor_entries` (the envelope of a reverse
-  Cuthill-McKee ordering of the mesh's node graph, times 9 for the 3x3 blocks) is below
-  :data:`AUTO_DIRECT_MAX_ENTRIES`, else ``amg``. A shell stays direct up to much larger
-  sizes than a bulky mesh of the same number of dofs.
+  ``superlu`` (or the ``direct`` method asked for) when :func:`estimate_factor_entries`
+  (the envelope of a reverse Cuthill-McKee ordering of the mesh's node graph, times 9 for
+  the 3x3 blocks) is below :data:`AUTO_DIRECT_MAX_ENTRIES`, else ``amg``. A shell stays
+  direct up to much larger sizes than a bulky mesh of the same number of dofs.
 
 :class:`LinearSolver` remembers its last factorization or AMG hierarchy. A later
 system of the same size (the next lip-contact iteration, the next Newton iteration) is
@@ -43,7 +48,7 @@ import scipy.sparse.linalg as spla
 
 __all__ = ["solve", "SolveInfo", "SolverError", "LinearSolver", "rigid_body_modes", "estimate_factor_entries",
            "choose_method", "superlu", "fill_reducing_order", "ORDERINGS", "AUTO_DIRECT_MAX_ENTRIES",
-           "REUSED_DIRECT_MAX_ENTRIES", "METHODS"]
+           "REUSED_DIRECT_MAX_ENTRIES", "METHODS", "DIRECT"]
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +62,9 @@ AUTO_DIRECT_MAX_ENTRIES = 30_000_000
 #: as a CG preconditioner ran a 2-step probe in 55 s against 176 s for AMG-CG, whose hierarchy
 #: the contact springs spoil (12 set-ups in 14 solves, 8.6 s per solve)
 REUSED_DIRECT_MAX_ENTRIES = 150_000_000
-METHODS = ("auto", "superlu", "amg", "cholmod")
+METHODS = ("auto", "superlu", "pardiso", "amg", "cholmod")
+#: the direct solvers ``auto`` may choose
+DIRECT = ("superlu", "pardiso")
 
 
 class SolverError(RuntimeError):
@@ -117,23 +124,37 @@ def estimate_factor_entries(node_graph: sp.spmatrix, block: int = 3) -> int:
 
 
 def choose_method(method: str, n_dofs: int, factor_entries: int | None,
-                  direct_max_entries: int = AUTO_DIRECT_MAX_ENTRIES) -> str:
+                  direct_max_entries: int = AUTO_DIRECT_MAX_ENTRIES, direct: str = "superlu") -> str:
     """The concrete solver for ``method`` (``auto`` decides by ``factor_entries`` against
-    ``direct_max_entries``, or by size when it is unknown: direct below 40k dofs)."""
+    ``direct_max_entries``, or by size when it is unknown: direct below 40k dofs; ``direct``
+    is its direct method, ``pardiso`` only where MKL is installed, else ``superlu``)."""
     if method not in METHODS:
         raise ValueError(f"unknown solver {method!r}; expected one of {METHODS}")
+    if direct not in DIRECT:
+        raise ValueError(f"unknown direct solver {direct!r}; expected one of {DIRECT}")
     if method != "auto":
         return method
+    if direct == "pardiso":
+        from toolkit.common.fem import pardiso
+
+        direct = "pardiso" if pardiso.available() else "superlu"
     if factor_entries is None:
-        return "superlu" if n_dofs <= 40_000 else "amg"
-    return "superlu" if factor_entries <= direct_max_entries else "amg"
+        return direct if n_dofs <= 40_000 else "amg"
+    return direct if factor_entries <= direct_max_entries else "amg"
 
 
 def _factorize(A: sp.spmatrix, method: str, near_nullspace, rtol: float, single: bool = False,
                ordering: str | np.ndarray = "nd"):
     """A callable ``b -> x`` for ``A`` (exact for direct methods, one AMG-CG solve otherwise;
-    ``single``: SuperLU in float32, an approximate inverse; ``ordering``: SuperLU's, see
-    :func:`superlu`)."""
+    ``single``: SuperLU or PARDISO in float32, an approximate inverse; ``ordering``: see
+    :func:`superlu`; PARDISO takes a permutation or runs METIS itself)."""
+    if method == "pardiso":
+        from toolkit.common.fem.pardiso import PardisoError, PardisoFactor
+
+        try:
+            return PardisoFactor(A, ordering if isinstance(ordering, np.ndarray) else None, single)
+        except PardisoError as exc:
+            raise SolverError(str(exc)) from exc
     if method == "superlu":
         if single:
             lu32 = superlu(A.astype(np.float32), ordering)
@@ -238,7 +259,9 @@ class LinearSolver:
     direct_max_entries : ``auto`` factorizes up to this expected factor size
         (:data:`AUTO_DIRECT_MAX_ENTRIES`; :data:`REUSED_DIRECT_MAX_ENTRIES` where many
         systems will share a factorization)
-    single_precision : factorize with SuperLU in float32 and use the factor only as a
+    direct : the direct method ``auto`` chooses (:data:`DIRECT`; ``pardiso`` falls back to
+        ``superlu`` where MKL is not installed)
+    single_precision : factorize with SuperLU or PARDISO in float32 and use the factor only as a
         preconditioner (every solve then iterates to ``rtol``, later ones to ``reuse_rtol``):
         half the memory traffic of a back-solve. Paper impact face with the deformable ball
         (54k dofs, measured with the minimum-degree ordering): factorization 3.1 s against 5.6 s,
@@ -247,8 +270,8 @@ class LinearSolver:
         ignore it.
     ordering : SuperLU's fill-reducing ordering (:data:`ORDERINGS`; see :func:`superlu`)
     factorize_ahead : 0 factorizes only when a reuse fails. ``L > 0`` also factorizes a
-        reused system in a background thread (one at a time; SuperLU and CHOLMOD release the
-        GIL, so on a second core) and preconditions with that factor from the ``L``-th later
+        reused system in a background thread (one at a time; SuperLU, PARDISO and CHOLMOD release
+        the GIL, so on a second core) and preconditions with that factor from the ``L``-th later
         solve on, waiting for it there if need be. The factor then stays ``L`` to ``2L - 1``
         systems old instead of going stale over a whole Newton path, and the choice of factor
         depends on the count of solves only, never on timing (the same answers on any machine).
@@ -257,9 +280,13 @@ class LinearSolver:
     def __init__(self, method: str = "auto", factor_entries: int | None = None, rtol: float = 1e-9,
                  reuse: bool = True, max_reuse_iterations: int = 60, reuse_rtol: float = 1e-13,
                  timed_budget: bool = True, direct_max_entries: int = AUTO_DIRECT_MAX_ENTRIES,
-                 single_precision: bool = False, ordering: str = "nd", factorize_ahead: int = 0):
+                 single_precision: bool = False, ordering: str = "nd", factorize_ahead: int = 0,
+                 direct: str = "superlu"):
         if method not in METHODS:
             raise ValueError(f"unknown solver {method!r}; expected one of {METHODS}")
+        if direct not in DIRECT:
+            raise ValueError(f"unknown direct solver {direct!r}; expected one of {DIRECT}")
+        self.direct = direct
         if ordering not in ORDERINGS:
             raise ValueError(f"unknown ordering {ordering!r}; expected one of {ORDERINGS}")
         if int(factorize_ahead) < 0:
@@ -290,7 +317,7 @@ class LinearSolver:
         """Solve ``A x = b`` (``A`` (m, m) sparse, ``b`` (m,)); returns ``x`` and :class:`SolveInfo`.
 
         ``A`` is SPD when ``symmetric``. Otherwise it may be unsymmetric with a dominant SPD part
-        (a consistent friction tangent): SuperLU factorizes ``A`` itself, CHOLMOD and AMG its
+        (a consistent friction tangent): SuperLU and PARDISO factorize ``A`` itself, CHOLMOD and AMG its
         symmetric part ``(A + A^T) / 2``, which then preconditions GMRES on ``A``; a reused
         factorization preconditions GMRES instead of CG.
         """
@@ -306,14 +333,20 @@ class LinearSolver:
             self._take_pending()
         x, iterations, reused = None, 0, False
         if self.reuse and self._A is not None and self._A.shape == A.shape:
+            if self.factorize_ahead and self._pending is None and self._kind in ("superlu", "pardiso", "cholmod"):
+                # started before this solve's Krylov iterations, so that the worker has them too
+                self._start_pending(A, symmetric, near_nullspace)
             x, iterations = self._reuse(A, b, x0, symmetric)
             reused = x is not None
         if x is None:
-            self._drop_pending()  # older than this system
             t_factor = time.perf_counter()
-            self._install(self._new_factor(A, symmetric, near_nullspace), A, symmetric, background=False)
+            if self._pending is not None and self._pending[2] is A:  # being factorized already
+                self._take_pending()
+            self._drop_pending()  # older than this system
+            if self._A is not A:
+                self._install(self._new_factor(A, symmetric, near_nullspace), A, symmetric, background=False)
+                self.factorizations += 1
             t_apply = time.perf_counter()
-            self.factorizations += 1
             x, iterations = self._apply(A, b, x0)
             t_end = time.perf_counter()
             per_application = (t_end - t_apply) / max(iterations, 1)
@@ -323,8 +356,6 @@ class LinearSolver:
                 if self.timed_budget else self.max_reuse_iterations
         else:
             self.reuses += 1
-            if self.factorize_ahead and self._pending is None and self._kind in ("superlu", "cholmod"):
-                self._start_pending(A, symmetric, near_nullspace)
         bn = np.linalg.norm(b)
         res = float(np.linalg.norm(A @ x - b) / bn) if bn > 0 else 0.0
         # a loose rtol (an inexact Newton's 1e-2) still rejects a solve that did not halve the residual
@@ -348,11 +379,11 @@ class LinearSolver:
     def _new_factor(self, A, symmetric: bool, near_nullspace):
         """``(factor, kind, exact)`` for ``A``: of ``A`` itself, or of its symmetric part (AMG,
         CHOLMOD on an unsymmetric ``A``); exact unless float32 or of the symmetric part."""
-        kind = choose_method(self.method, A.shape[0], self.factor_entries, self.direct_max_entries)
-        own = symmetric or kind == "superlu"
-        single = self.single_precision and kind == "superlu"
+        kind = choose_method(self.method, A.shape[0], self.factor_entries, self.direct_max_entries, self.direct)
+        own = symmetric or kind in DIRECT
+        single = self.single_precision and kind in DIRECT
         ordering = self.ordering
-        if kind == "superlu" and ordering == "nd":
+        if kind in DIRECT and ordering == "nd":
             # the first system's ordering serves all of its size: they share the mesh's pattern.
             # Contact couplings added later cost little fill (paper impact face: 41.7 M entries
             # against 39.7 M), ordering each system 0.2 s, most of it holding the GIL.

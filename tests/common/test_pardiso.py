@@ -1,0 +1,167 @@
+"""MKL PARDISO through ctypes (``toolkit.common.fem.pardiso``): exact solves of the systems
+the toolkit factorizes (SPD stiffness, and with an unsymmetric friction part), the
+fill-reducing ordering honoured, float32 factors as preconditioners, and its place in
+:class:`~toolkit.common.fem.solvers.LinearSolver` (automatic choice, factorizing ahead on a
+worker thread)."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from toolkit.common.fem import pardiso
+from toolkit.common.fem.solvers import LinearSolver, SolverError, choose_method, fill_reducing_order
+
+needs_mkl = pytest.mark.skipif(not pardiso.available(), reason="MKL (the 'pardiso' extra) is not installed")
+
+
+def _stiffness(n):
+    """An SPD 3-dof-per-node matrix on an ``n^3`` grid (a 7-point Laplacian coupled to 3
+    components per node, nodes numbered lexicographically), as an elasticity stiffness is."""
+    one = sp.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    eye = sp.identity(n)
+    lap = sp.kron(sp.kron(one, eye), eye) + sp.kron(sp.kron(eye, one), eye) + sp.kron(sp.kron(eye, eye), one)
+    block = np.array([[3.0, 1.0, 0.5], [1.0, 3.0, 1.0], [0.5, 1.0, 3.0]])
+    return sp.kron(lap + 0.01 * sp.identity(n ** 3), block).tocsr()
+
+
+def _with_friction(A, seed=0, count=40):
+    """``A`` plus unsymmetric 3x3 blocks on ``count`` nodes' diagonals (the consistent tangent of
+    slipping Coulomb friction, ``mu k m n^T``, is such a block: rank one, not symmetric)."""
+    rng = np.random.default_rng(seed)
+    nodes = rng.choice(A.shape[0] // 3, count, replace=False)
+    m, n = rng.standard_normal((count, 3)), rng.standard_normal((count, 3))
+    blocks = 0.2 * m[:, :, None] * n[:, None, :]
+    rows = np.broadcast_to((3 * nodes[:, None] + np.arange(3))[:, :, None], blocks.shape)
+    cols = np.broadcast_to((3 * nodes[:, None] + np.arange(3))[:, None, :], blocks.shape)
+    return (A + sp.csr_matrix((blocks.ravel(), (rows.ravel(), cols.ravel())), shape=A.shape)).tocsr()
+
+
+@needs_mkl
+@pytest.mark.parametrize("ordering", ["nested dissection", "pardiso's metis"])
+@pytest.mark.parametrize("unsymmetric", [False, True])
+def test_a_float64_factor_solves_to_round_off(ordering, unsymmetric):
+    """Backward error at round-off (relative residual <= 1e-12) for one and for several
+    right-hand sides, with the toolkit's ordering or PARDISO's own, SPD or with a friction part."""
+    A = _stiffness(10)
+    if unsymmetric:
+        A = _with_friction(A)
+        assert abs(A - A.T).max() > 0.01
+    perm = fill_reducing_order(A) if ordering == "nested dissection" else None
+    factor = pardiso.PardisoFactor(A, perm)
+    b = np.random.default_rng(1).standard_normal((A.shape[0], 3))
+    x = factor(b[:, 0])
+    assert x.shape == (A.shape[0],) and x.dtype == np.float64
+    assert np.linalg.norm(A @ x - b[:, 0]) <= 1e-12 * np.linalg.norm(b[:, 0])
+    X = factor(b)
+    assert X.shape == b.shape
+    assert np.linalg.norm(A @ X - b) <= 1e-12 * np.linalg.norm(b)
+    assert factor.perturbed == 0
+
+
+@needs_mkl
+def test_the_ordering_given_is_the_one_used():
+    """PARDISO reads ``perm[i]`` as the new position of unknown ``i``, SuperLU's ``perm_c``
+    convention the other way round; the module converts. With the toolkit's nested dissection
+    the factor has as many entries as SuperLU's on the same ordering (within 10 %: both are
+    supernodal LU of the same pattern); read the wrong way round, the permutation would be a
+    scrambled one with over 5x the fill (measured 12x on a 25^3 grid)."""
+    import scipy.sparse.linalg as spla
+
+    A = _stiffness(14)
+    perm = fill_reducing_order(A)
+    lu = spla.splu(sp.csc_matrix(A[perm][:, perm]), permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                   options={"SymmetricMode": True})
+    superlu_entries = lu.L.nnz + lu.U.nnz - A.shape[0]  # SuperLU stores the unit diagonal of L
+    entries = pardiso.PardisoFactor(A, perm).entries
+    assert abs(entries - superlu_entries) <= 0.1 * superlu_entries, (entries, superlu_entries)
+    inverse = np.empty_like(perm)
+    inverse[perm] = np.arange(perm.size)
+    assert pardiso.PardisoFactor(A, inverse).entries > 2 * entries
+
+
+@needs_mkl
+def test_a_float32_factor_preconditions_to_any_tolerance():
+    """A float32 factor alone leaves a residual near float32's precision times the condition
+    (here 1e-7..1e-4), and as the preconditioner of the solver's Krylov iterations it reaches a
+    1e-10 residual in a few iterations (each contracts the error by ~that residual)."""
+    A = _with_friction(_stiffness(10))
+    b = np.random.default_rng(2).standard_normal(A.shape[0])
+    x = pardiso.PardisoFactor(A, single=True)(b)
+    residual = np.linalg.norm(A @ x - b) / np.linalg.norm(b)
+    assert 1e-9 < residual < 1e-4
+    solver = LinearSolver("pardiso", single_precision=True, rtol=1e-10)
+    x, info = solver.solve(A, b, symmetric=False)
+    assert np.linalg.norm(A @ x - b) <= 1e-10 * np.linalg.norm(b)
+    assert info.method == "pardiso" and 1 <= info.iterations <= 4
+
+
+@needs_mkl
+def test_factorizing_ahead_with_pardiso_gives_superlus_answers():
+    """The Newton-like sequence of the SuperLU test (``A + k D``, unsymmetric here) through a
+    solver that factorizes ahead on its worker thread: every answer meets the residual, the
+    factor in use is chosen by the count of solves (the same Krylov iteration counts as with
+    SuperLU, whose factors are equally exact), and ``close`` frees them."""
+    A0 = _with_friction(_stiffness(8))
+    D = sp.diags(np.linspace(0.0, 2.0, A0.shape[0]))
+    systems = [(A0 + k * D).tocsr() for k in range(1, 8)]
+    b = np.random.default_rng(3).standard_normal(A0.shape[0])
+    counts = {}
+    for method in ("pardiso", "superlu"):
+        solver = LinearSolver(method, reuse_rtol=1e-10, timed_budget=False, factorize_ahead=2)
+        counts[method] = []
+        for S in systems:
+            x, info = solver.solve(S, b, symmetric=False)
+            assert np.linalg.norm(S @ x - b) <= 1e-9 * np.linalg.norm(b)
+            counts[method].append(info.iterations)
+        assert solver.background_factorizations >= 2
+        solver.close()
+    assert np.abs(np.subtract(counts["pardiso"], counts["superlu"])).max() <= 1, counts
+
+
+@needs_mkl
+def test_bad_input_and_a_closed_factor_are_refused():
+    A = _stiffness(4)
+    with pytest.raises(ValueError, match=r"shape \(3,\); expected a permutation of shape \(192,\)"):
+        pardiso.PardisoFactor(A, np.arange(3))
+    with pytest.raises(ValueError, match="nonempty square"):
+        pardiso.PardisoFactor(sp.csr_matrix(np.ones((3, 4))))
+    factor = pardiso.PardisoFactor(A)
+    with pytest.raises(ValueError, match="right-hand side has 5 rows; expected 192"):
+        factor(np.ones(5))
+    factor.close()
+    with pytest.raises(pardiso.PardisoError, match="closed"):
+        factor(np.ones(192))
+
+
+@needs_mkl
+def test_a_singular_system_is_reported_by_the_solver():
+    """PARDISO perturbs tiny pivots instead of refusing a singular matrix (an under-constrained
+    model: here a free-floating body, whose stiffness has a rigid-body null space); the
+    solver's residual check turns the answer into a :class:`SolverError`."""
+    one = sp.diags([-np.ones(3), np.r_[1.0, 2.0, 2.0, 1.0], -np.ones(3)], [-1, 0, 1])  # free ends
+    eye = sp.identity(4)
+    lap = sp.kron(sp.kron(one, eye), eye) + sp.kron(sp.kron(eye, one), eye) + sp.kron(sp.kron(eye, eye), one)
+    A = sp.kron(lap, np.eye(3)).tocsr()  # constant displacements cost nothing
+    assert np.abs(A @ np.ones(A.shape[0])).max() < 1e-12
+    b = np.random.default_rng(4).standard_normal(A.shape[0])
+    with pytest.raises(SolverError, match="singular"):
+        LinearSolver("pardiso").solve(A, b)
+
+
+def test_auto_takes_pardiso_only_where_mkl_is_installed(monkeypatch):
+    """``direct="pardiso"`` asks ``auto`` for PARDISO; without MKL it keeps SuperLU (with the
+    same limits on the expected fill), and an explicit ``"pardiso"`` names the missing package."""
+    monkeypatch.setattr(pardiso, "available", lambda: False)
+    assert choose_method("auto", 1000, 10, direct="pardiso") == "superlu"
+    assert choose_method("auto", 10 ** 6, 10 ** 10, direct="pardiso") == "amg"
+    monkeypatch.setattr(pardiso, "available", lambda: True)
+    assert choose_method("auto", 1000, 10, direct="pardiso") == "pardiso"
+    assert choose_method("auto", 1000, 10) == "superlu"
+    with pytest.raises(ValueError, match="unknown direct solver 'mumps'"):
+        choose_method("auto", 1000, 10, direct="mumps")
+
+
+def test_without_mkl_pardiso_names_the_package(monkeypatch):
+    monkeypatch.setattr(pardiso, "_library", lambda: None)
+    with pytest.raises(SolverError, match=r"pip install 'facial-biomech-toolkit\[pardiso\]'"):
+        LinearSolver("pardiso").solve(_stiffness(3), np.ones(81))
