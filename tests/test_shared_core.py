@@ -167,6 +167,34 @@ def test_the_compiled_element_tangent_equals_the_einsum_reference(symmetric):
     assert not symmetric or np.array_equal(K, np.swapaxes(K, 1, 2))
 
 
+@pytest.mark.parametrize("jit", ["compiled", "numpy"])
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_the_fused_tangent_assembly_equals_element_tangents_assembled(symmetric, jit):
+    """``SparsePattern.assemble_tangent`` (element matrices written straight into the CSR data,
+    upper node blocks only when symmetric) equals ``assemble`` of ``element_tangent`` to
+    round-off, on a pattern of two element blocks sharing nodes (a tet10 face and a tet4 box
+    glued onto its first nodes) with an unsymmetric random ``dP/dF``; symmetric, the result is
+    exactly symmetric."""
+    rng = np.random.default_rng(6)
+    face10 = face_tet("coarse", order=2)
+    box = _distorted("tet4")
+    k10, k4 = tet_kinematics(face10), kinematics(box, mean_dilatation=False).blocks[0]
+    conn4 = box.cells["tet4"] + 5  # shares nodes 5.. with the face
+    pattern = SparsePattern([face10.cells["tet10"], conn4], face10.n_points)
+    blocks = [(kb.grad, kb.weight, rng.standard_normal(kb.weight.shape + (3, 3, 3, 3))) for kb in (k10, k4)]
+    with mock.patch.dict(os.environ, {"TOOLKIT_JIT": "1" if jit == "compiled" else "0"}):
+        if jit == "compiled" and not HAVE_NUMBA:
+            pytest.skip("the compiled kernel needs numba")
+        K = pattern.assemble_tangent(blocks, symmetric)
+    K0 = pattern.assemble([element_tangent(g, w, A, symmetric) for g, w, A in blocks])
+    assert np.array_equal(K.indptr, K0.indptr) and np.array_equal(K.indices, K0.indices)
+    assert np.abs(K.data - K0.data).max() <= 1e-13 * np.abs(K0.data).max()
+    assert not symmetric or abs(K - K.T).max() <= 1e-15 * np.abs(K0.data).max()
+    assert symmetric or abs(K - K.T).max() > 0.1 * np.abs(K0.data).max()
+    with pytest.raises(ValueError, match="1 tangent blocks for a pattern of 2"):
+        pattern.assemble_tangent(blocks[:1])
+
+
 def _distorted(ctype):
     """A 2 x 2 x 2 box of 1 mm cells of ``ctype`` with nodes jittered by 0.1 mm."""
     axes = [np.linspace(0, 2, 3)] * 3

@@ -122,6 +122,9 @@ def test_sparse_pattern_assembles_and_constrains_like_a_dense_loop():
     expected[held], expected[:, held] = 0.0, 0.0
     expected[held, held] = 1.0
     assert np.abs(pattern.constrain(K, held).toarray() - expected).max() < 1e-12
+    assert np.abs(K.toarray() - dense).max() < 1e-12  # a copy by default
+    assert pattern.constrain(K, held, copy=False) is K
+    assert np.abs(K.toarray() - expected).max() < 1e-12
 
 
 def _contact_check(pair, x0, step_contact, t, h, start=None):

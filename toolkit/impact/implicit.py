@@ -63,7 +63,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from toolkit.common.fem.assembly import SparsePattern, element_tangent
+from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.fem.kinematics import deformation_gradient
 from toolkit.common.fem.newton import (InadmissibleState, LoadSteps, NewtonFailed, ResidualDecrease, SecantOnDirection,
                                        Trial, newton)
@@ -390,8 +390,8 @@ class _Newton:
                 _, A = b.material.tangent(F.reshape(-1, 3, 3), st)
             except FloatingPointError as exc:
                 raise NewtonFailed(f"{b.name}: {exc}") from None
-            blocks.append(element_tangent(b.kin.grad, b.kin.weight, A.reshape(E, Q, 3, 3, 3, 3), symmetric=True))
-        K = self.pattern.constrain(self.pattern.assemble(blocks), self.prescribed)
+            blocks.append((b.kin.grad, b.kin.weight, A.reshape(E, Q, 3, 3, 3, 3)))
+        K = self.pattern.constrain(self.pattern.assemble_tangent(blocks, symmetric=True), self.prescribed, copy=False)
         k_contact = None if contact is None else contact.tangent
         if k_contact is not None and k_contact.nnz:
             k_contact = k_contact.tocoo()

@@ -92,6 +92,59 @@ def _scatter_add(slot, values, out):  # pragma: no cover - compiled
         out[slot[i]] += values[i]
 
 
+@njit
+def _assemble_tangent_kernel(grad, weight, A, symmetric, pair_pos, conn, node_start, row_len, order,
+                             data):  # pragma: no cover - compiled
+    """:func:`element_tangent` of one block scattered straight into the CSR ``data``: entry
+    ``(3 a + i, 3 b + k)`` of element ``e`` goes to ``node_start[na] + i row_len[na] +
+    pair_pos[e, a, b] + k`` (``na = conn[e, a]``; every dof row of a node has the same columns,
+    each node's three consecutive). ``symmetric``: from the major-symmetrized
+    ``(A_iJkL + A_kLiJ) / 2``, whose element matrix is ``(K + K^T) / 2``, computing the node
+    blocks ``b >= a`` only and mirroring them. Elements are visited in ``order`` (by their
+    lowest node), so that consecutive ones write to nearby rows."""
+    E, Q, n, _ = grad.shape
+    G = np.empty((n, 3, 3, 3))  # w dN_a/dX_J A_iJkL of one point: (a, i, k, L)
+    As = np.empty((3, 3, 3, 3))
+    Ke = np.empty((3 * n, 3 * n))
+    for e in order:
+        Ke[:] = 0.0
+        for q in range(Q):
+            w = weight[e, q]
+            if symmetric:
+                for i in range(3):
+                    for J in range(3):
+                        for k in range(3):
+                            for L in range(3):
+                                As[i, J, k, L] = 0.5 * (A[e, q, i, J, k, L] + A[e, q, k, L, i, J])
+            else:
+                As[:] = A[e, q]
+            for a in range(n):  # the loads hoisted and the J sum unrolled: 4x faster than loops
+                g0, g1, g2 = w * grad[e, q, a, 0], w * grad[e, q, a, 1], w * grad[e, q, a, 2]
+                for i in range(3):
+                    for k in range(3):
+                        for L in range(3):
+                            G[a, i, k, L] = g0 * As[i, 0, k, L] + g1 * As[i, 1, k, L] + g2 * As[i, 2, k, L]
+            for b in range(n):
+                h0, h1, h2 = grad[e, q, b, 0], grad[e, q, b, 1], grad[e, q, b, 2]
+                for a in range(b + 1 if symmetric else n):
+                    for i in range(3):
+                        for k in range(3):
+                            Ke[3 * a + i, 3 * b + k] += G[a, i, k, 0] * h0 + G[a, i, k, 1] * h1 + G[a, i, k, 2] * h2
+        for a in range(n):
+            na = conn[e, a]
+            for b in range(a if symmetric else 0, n):  # Ke holds the blocks b >= a when symmetric
+                nb = conn[e, b]
+                for i in range(3):
+                    row = node_start[na] + i * row_len[na] + pair_pos[e, a, b]
+                    for k in range(3):
+                        data[row + k] += Ke[3 * a + i, 3 * b + k]
+                if symmetric and b != a:  # the mirrored block (b, a)
+                    for k in range(3):
+                        row = node_start[nb] + k * row_len[nb] + pair_pos[e, b, a]
+                        for i in range(3):
+                            data[row + i] += Ke[3 * a + i, 3 * b + k]
+
+
 def _as_blocks(a) -> list[np.ndarray]:
     """One array, or a sequence of per-block arrays, as a list."""
     return [a] if isinstance(a, np.ndarray) else list(a)
@@ -112,23 +165,41 @@ class SparsePattern:
     """
 
     def __init__(self, blocks: np.ndarray | Sequence[np.ndarray], n_nodes: int):
-        self.n_dofs = 3 * int(n_nodes)
+        n = int(n_nodes)
+        self.n_dofs = 3 * n
         self.block_dofs = []
-        keys = []
-        for conn in _as_blocks(blocks):
-            conn = np.asarray(conn, dtype=np.int64)
-            dofs = (3 * conn[:, :, None] + np.arange(3)).reshape(conn.shape[0], -1)  # (E, 3n)
-            self.block_dofs.append(dofs)
-            keys.append((dofs[:, :, None] * self.n_dofs + dofs[:, None, :]).ravel())
-        unique, inverse = np.unique(np.concatenate(keys), return_inverse=True)
-        self.rows, self.cols = unique // self.n_dofs, unique % self.n_dofs
+        conns = [np.asarray(conn, dtype=np.int64) for conn in _as_blocks(blocks)]
+        # the node graph first (an element's n^2 node pairs, not its 9 n^2 dof pairs): each
+        # node's three dof rows hold the same columns, each neighbour's three dofs side by side
+        pairs, inverse = np.unique(np.concatenate([(c[:, :, None] * n + c[:, None, :]).ravel() for c in conns]),
+                                   return_inverse=True)
+        first, second = pairs // n, pairs % n
+        degree = np.bincount(first, minlength=n)
+        pair_start = np.concatenate([[0], np.cumsum(degree)[:-1]])  # each node's first pair
+        row_len = 3 * degree
+        node_start = np.concatenate([[0], np.cumsum(3 * row_len)[:-1]])  # data index of each node's first row
+        self.nnz = int(9 * pairs.size)
+        self.indptr = np.concatenate([[0], np.cumsum(np.repeat(row_len, 3))]).astype(np.int32)
+        self.rows = np.repeat(np.arange(self.n_dofs), np.repeat(row_len, 3))
+        # column of entry j of row 3 a + i: 3 second[pair_start[a] + j // 3] + j % 3
+        offset = np.arange(self.nnz) - self.indptr[:-1].astype(np.int64)[self.rows]
+        self.cols = 3 * second[pair_start[self.rows // 3] + offset // 3] + offset % 3
         self.indices = self.cols.astype(np.int32)
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.rows, minlength=self.n_dofs))]).astype(np.int32)
-        self.nnz = unique.size
-        self._slot = inverse.ravel()
+        slots, start = [], 0
+        for conn in conns:
+            E, m = conn.shape
+            self.block_dofs.append((3 * conn[:, :, None] + np.arange(3)).reshape(E, -1))  # (E, 3n)
+            p = inverse[start:start + E * m * m].reshape(E, m, m)  # the pair of nodes (a, b)
+            start += E * m * m
+            a = first[p]
+            base = node_start[a] + 3 * (p - pair_start[a])  # entry (3a, 3b) in the data
+            ik = (np.arange(3)[:, None] * row_len[a][..., None, None] + np.arange(3))  # (E, m, m, 3, 3)
+            slots.append((base[..., None, None] + ik).transpose(0, 1, 3, 2, 4).ravel())
+        self._slot = np.concatenate(slots)
         self._vector_dofs = np.concatenate([d.ravel() for d in self.block_dofs])
         self._diagonal = np.flatnonzero(self.rows == self.cols)
         self._held = None  # (dofs as bytes, entries to zero, diagonal entries to set) of the last constrain
+        self._layout = None  # node blocks' places in the CSR data (assemble_tangent)
 
     @property
     def dofs(self) -> np.ndarray:
@@ -156,14 +227,63 @@ class SparsePattern:
             data = np.bincount(self._slot, weights=np.concatenate(blocks), minlength=self.nnz)
         return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_dofs, self.n_dofs))
 
+    def assemble_tangent(self, blocks: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                         symmetric: bool = False) -> sp.csr_matrix:
+        """The global tangent ``(3 n_nodes, 3 n_nodes)`` N/mm from ``(grad, weight, A)`` per
+        block (the arguments of :func:`element_tangent`, blocks in the pattern's order):
+        ``assemble([element_tangent(*b, symmetric) for b in blocks])``, and equal to it to
+        round-off. Compiled, it writes each element's matrix straight into the CSR data
+        (no ``(E, 3n, 3n)`` array: 72 MB for the paper impact face) and, ``symmetric``,
+        computes only the upper node blocks; paper impact face with its ball: 0.044 s against
+        0.092 s."""
+        blocks = list(blocks)
+        if len(blocks) != len(self.block_dofs):
+            raise ValueError(f"{len(blocks)} tangent blocks for a pattern of {len(self.block_dofs)} element blocks")
+        if not use_jit():
+            return self.assemble([element_tangent(g, w, A, symmetric) for g, w, A in blocks])
+        node_start, row_len, layout = self._node_layout()
+        data = np.zeros(self.nnz)
+        for (grad, weight, A), dofs, (pos, conn, order) in zip(blocks, self.block_dofs, layout):
+            E, Q, n, _ = grad.shape
+            if dofs.shape != (E, 3 * n):
+                raise ValueError(f"tangent block of {E} elements x {n} nodes for a pattern block of {dofs.shape[0]} "
+                                 f"elements x {dofs.shape[1] // 3} nodes")
+            _assemble_tangent_kernel(np.asarray(grad, dtype=np.float64), np.asarray(weight, dtype=np.float64),
+                                     np.asarray(A, dtype=np.float64).reshape(E, Q, 3, 3, 3, 3), bool(symmetric),
+                                     pos, conn, node_start, row_len, order, data)
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_dofs, self.n_dofs))
+
+    def _node_layout(self):
+        """Where a node pair's 3x3 block sits in the CSR data (built at the first
+        :meth:`assemble_tangent`): the first entry of each node's rows ``(n_nodes,)``, the
+        length of each of its three rows ``(n_nodes,)``, and per block ``(pair_pos, conn,
+        order)``: ``(E, n, n)`` int32 the offset of column node ``b``'s first dof in the rows of
+        node ``a``, the ``(E, n)`` nodes, and the elements by their lowest node (paper impact
+        face: 0.036 s against 0.058 s in storage order, whose tet10 mid-edge nodes are numbered
+        far from the corners)."""
+        if self._layout is None:
+            node_start = self.indptr[:-1:3].astype(np.int64)
+            row_len = np.diff(self.indptr)[::3].astype(np.int64)
+            blocks, start = [], 0
+            for dofs in self.block_dofs:
+                E, m = dofs.shape
+                slot = self._slot[start:start + E * m * m].reshape(E, m, m)[:, ::3, ::3]
+                start += E * m * m
+                conn = np.ascontiguousarray(dofs[:, ::3] // 3)
+                pos = (slot - node_start[conn][:, :, None]).astype(np.int32)
+                blocks.append((pos, conn, np.argsort(conn.min(axis=1), kind="stable")))
+            self._layout = (node_start, row_len, blocks)
+        return self._layout
+
     def assemble_vector(self, element_vectors: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
         """The global vector ``(3 n_nodes,)`` from one ``(E, 3n)`` array per block."""
         data = np.concatenate([np.asarray(f, dtype=np.float64).reshape(-1) for f in _as_blocks(element_vectors)])
         return np.bincount(self._vector_dofs, weights=data, minlength=self.n_dofs)
 
-    def constrain(self, K: sp.csr_matrix, dofs: np.ndarray) -> sp.csr_matrix:
+    def constrain(self, K: sp.csr_matrix, dofs: np.ndarray, copy: bool = True) -> sp.csr_matrix:
         """``K`` (this pattern) with the rows and columns of ``dofs`` zeroed and a unit diagonal
-        there, so that a solve leaves those dofs unchanged (a zero right-hand side on them)."""
+        there, so that a solve leaves those dofs unchanged (a zero right-hand side on them);
+        ``copy=False`` changes ``K``'s values in place (a matrix just assembled)."""
         dofs = np.asarray(dofs, dtype=np.int64)
         key = dofs.tobytes()
         if self._held is None or self._held[0] != key:  # a Newton run constrains the same dofs every time
@@ -172,6 +292,10 @@ class SparsePattern:
             zero = np.flatnonzero(held[self.rows] | held[self.cols])
             self._held = (key, zero, self._diagonal[held[self.rows[self._diagonal]]])
         _, zero, diag = self._held
+        if not copy:
+            K.data[zero] = 0.0
+            K.data[diag] = 1.0
+            return K
         data = K.data.copy()
         data[zero] = 0.0
         data[diag] = 1.0
