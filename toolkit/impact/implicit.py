@@ -379,9 +379,12 @@ class _Newton:
         r[~self.free] = 0.0
         return internal, contact, state, r
 
-    def tangent(self, u: np.ndarray, states: list, contact: ContactLinearization | None) -> tuple[sp.csr_matrix, bool]:
-        """The constrained tangent ``(3n, 3n)`` N/mm at ``u`` (material and ``contact``) and
-        whether it is symmetric (no slipping contact)."""
+    def tangent(self, u: np.ndarray, states: list,
+                contact: ContactLinearization | None) -> tuple[sp.csr_matrix, bool, sp.csr_matrix | None]:
+        """The constrained tangent ``(3n, 3n)`` N/mm at ``u`` (material and ``contact``), whether
+        it is symmetric (no slipping contact), and its contact part (None without contact): the
+        few dofs whose entries change most between iterations, which the linear solver corrects
+        for exactly when it reuses an older factorization (its ``local``)."""
         blocks = []
         for b, st in zip(self.model.bodies, states):
             F = deformation_gradient(b.kin, u[b.offset:b.offset + b.n_nodes])
@@ -400,8 +403,8 @@ class _Newton:
                                       shape=K.shape)
             skew = abs(k_contact - k_contact.T)
             symmetric = skew.nnz == 0 or skew.max() <= 1e-12 * abs(k_contact).max()
-            return K + k_contact, symmetric
-        return K, True
+            return K + k_contact, symmetric, k_contact
+        return K, True, None
 
     def solve_step(self, u: np.ndarray, states: list, guess: np.ndarray, t: float, h: float):
         """Equilibrium at ``t`` from the converged ``u`` (``guess`` sets the free dofs' start)
@@ -434,9 +437,9 @@ class _Newton:
                 self.reversals += contact.reversed
                 if contact.reversed:
                     rhs = rhs + np.where(self.free, contact.force_shift, 0.0)
-            K, symmetric = self.tangent(trial.x, states, contact)
+            K, symmetric, local = self.tangent(trial.x, states, contact)
             try:
-                du, _ = self.solver.solve(K, rhs, near_nullspace=self.modes, symmetric=symmetric)
+                du, _ = self.solver.solve(K, rhs, near_nullspace=self.modes, symmetric=symmetric, local=local)
             except SolverError as exc:
                 raise NewtonFailed(f"linear solve failed: {exc}") from None
             self.solves += 1
@@ -527,6 +530,7 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
     stats["factorizations"] = solver.solver.factorizations
     stats["background_factorizations"] = solver.solver.background_factorizations
     stats["factorization_wait_s"] = solver.solver.waited_s  # the solves' wait for the worker
+    stats["correction_columns"] = solver.solver.correction_columns  # back-solves of the contact corrections
     stats["energy_error"] = frames[-1].energies.balance_error if frames else 0.0
     stats["max_energy_error"] = max((f.energies.balance_error for f in frames if f.energies.external > 1e-12),
                                     default=0.0)

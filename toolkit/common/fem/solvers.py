@@ -46,6 +46,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from toolkit.common.fem.woodbury import LocalCorrection
+
 __all__ = ["solve", "SolveInfo", "SolverError", "LinearSolver", "rigid_body_modes", "estimate_factor_entries",
            "choose_method", "superlu", "fill_reducing_order", "ORDERINGS", "AUTO_DIRECT_MAX_ENTRIES",
            "REUSED_DIRECT_MAX_ENTRIES", "METHODS", "DIRECT"]
@@ -311,15 +313,24 @@ class LinearSolver:
         self.background_factorizations = 0  # made ahead (``factorize_ahead``) and taken into use
         self.waited_s = 0.0  # seconds the solves waited for those
         self.reuses = 0
+        self.correction_columns = 0  # back-solves of the Woodbury corrections (solve's ``local``)
+        self._local = None
+        self._correction = None
 
     def solve(self, A: sp.spmatrix, b: np.ndarray, near_nullspace: np.ndarray | None = None,
-              x0: np.ndarray | None = None, symmetric: bool = True) -> tuple[np.ndarray, SolveInfo]:
+              x0: np.ndarray | None = None, symmetric: bool = True,
+              local: sp.spmatrix | None = None) -> tuple[np.ndarray, SolveInfo]:
         """Solve ``A x = b`` (``A`` (m, m) sparse, ``b`` (m,)); returns ``x`` and :class:`SolveInfo`.
 
         ``A`` is SPD when ``symmetric``. Otherwise it may be unsymmetric with a dominant SPD part
         (a consistent friction tangent): SuperLU and PARDISO factorize ``A`` itself, CHOLMOD and AMG its
         symmetric part ``(A + A^T) / 2``, which then preconditions GMRES on ``A``; a reused
         factorization preconditions GMRES instead of CG.
+
+        ``local`` (m, m) sparse: the part of ``A`` that lives on few dofs and changes much from
+        one system to the next (penalty contact). A reused SuperLU or PARDISO factorization then
+        takes the change of that part since it was made exactly, by a Woodbury correction on
+        its dofs (:mod:`toolkit.common.fem.woodbury`), and GMRES iterates.
         """
         if not np.isfinite(b).all():
             raise SolverError("right-hand side holds NaN/inf")
@@ -335,8 +346,8 @@ class LinearSolver:
         if self.reuse and self._A is not None and self._A.shape == A.shape:
             if self.factorize_ahead and self._pending is None and self._kind in ("superlu", "pardiso", "cholmod"):
                 # started before this solve's Krylov iterations, so that the worker has them too
-                self._start_pending(A, symmetric, near_nullspace)
-            x, iterations = self._reuse(A, b, x0, symmetric)
+                self._start_pending(A, symmetric, near_nullspace, local)
+            x, iterations = self._reuse(A, b, x0, symmetric, local)
             reused = x is not None
         if x is None:
             t_factor = time.perf_counter()
@@ -344,7 +355,8 @@ class LinearSolver:
                 self._take_pending()
             self._drop_pending()  # older than this system
             if self._A is not A:
-                self._install(self._new_factor(A, symmetric, near_nullspace), A, symmetric, background=False)
+                self._install(self._new_factor(A, symmetric, near_nullspace), A, symmetric, background=False,
+                              local=local)
                 self.factorizations += 1
             t_apply = time.perf_counter()
             x, iterations = self._apply(A, b, x0)
@@ -393,7 +405,7 @@ class LinearSolver:
         factor = _factorize(A if own else 0.5 * (A + A.T), kind, near_nullspace, self.rtol, single, ordering)
         return factor, kind, own and not single
 
-    def _install(self, made: tuple, A, symmetric: bool, background: bool) -> None:
+    def _install(self, made: tuple, A, symmetric: bool, background: bool, local=None) -> None:
         """Precondition with ``made`` = ``(factor, kind, exact)`` of ``A`` from now on. A factor
         made on the worker thread is freed on it: scipy's SuperLU objects freed on another
         thread than the one that made them keep their memory (scipy issue #15921; a paper impact
@@ -401,6 +413,8 @@ class LinearSolver:
         box = [self._factor] if self._background else None  # the old factor's last reference
         self._factor, self._kind, self._exact = made
         self._A, self._symmetric, self._background = A, symmetric, background
+        self._local = local  # the local part of A (solve's ``local``), for the Woodbury corrections
+        self._correction = None
         if box is not None:
             self._worker.submit(box.clear)
 
@@ -411,22 +425,22 @@ class LinearSolver:
             self._pending = None
             self._worker.submit(box.clear)
 
-    def _start_pending(self, A, symmetric: bool, near_nullspace) -> None:
+    def _start_pending(self, A, symmetric: bool, near_nullspace, local=None) -> None:
         """Factorize ``A`` on the worker thread (:attr:`factorize_ahead`)."""
         if self._worker is None:
             self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="toolkit-factorize-ahead")
         future = self._worker.submit(self._new_factor, A, symmetric, near_nullspace)
-        self._pending = (future, self._count, A, symmetric)
+        self._pending = (future, self._count, A, symmetric, local)
 
     def _take_pending(self) -> None:
         """Wait for the background factorization and precondition with it from now on (a failed
         one is dropped: the next failed reuse factorizes in the foreground and reports)."""
-        future, _, A, symmetric = self._pending
+        future, _, A, symmetric, local = self._pending
         t0 = time.perf_counter()
         error = future.exception()  # waits
         self.waited_s += time.perf_counter() - t0
         if error is None:
-            self._install(future.result(), A, symmetric, background=True)
+            self._install(future.result(), A, symmetric, background=True, local=local)
             self.background_factorizations += 1
         else:
             log.warning("background factorization failed (%s); keeping the previous factor", error)
@@ -449,9 +463,10 @@ class LinearSolver:
         x, count = _krylov(A, b, x0, self._preconditioner(A.shape), self.rtol, 500, symmetric=self._symmetric)
         return (x, count) if x is not None else (np.full_like(b, np.nan), count)
 
-    def _reuse(self, A, b, x0, symmetric) -> tuple[np.ndarray | None, int]:
+    def _reuse(self, A, b, x0, symmetric, local=None) -> tuple[np.ndarray | None, int]:
         """A Krylov solve of ``A`` preconditioned by the stored factorization (CG when both are
-        symmetric, GMRES otherwise); None if it does not converge within the budget."""
+        symmetric, GMRES otherwise), corrected for the change of ``local`` (see :meth:`solve`);
+        None if it does not converge within the budget."""
         same = (A.nnz == self._A.nnz and np.array_equal(A.indptr, self._A.indptr)
                 and np.array_equal(A.indices, self._A.indices) and np.array_equal(A.data, self._A.data))
         if same:
@@ -459,6 +474,16 @@ class LinearSolver:
         if self._budget < 2:
             return None, 0
         rtol = self.rtol if self._kind == "amg" else self.reuse_rtol
+        corrected = None
+        if self._kind in DIRECT and (local is not None or self._local is not None):
+            if self._correction is None:
+                self._correction = LocalCorrection(self._factor, A.shape[0], self._local)
+            before = self._correction.columns
+            corrected = self._correction.preconditioner(local)
+            self.correction_columns += self._correction.columns - before
+        if corrected is not None:
+            M = spla.LinearOperator(A.shape, matvec=corrected, dtype=float)
+            return _krylov(A, b, x0, M, rtol, self._budget, symmetric=False)
         return _krylov(A, b, x0, self._preconditioner(A.shape), rtol, self._budget,
                        symmetric=symmetric and self._symmetric)
 
