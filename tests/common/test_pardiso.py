@@ -165,3 +165,51 @@ def test_without_mkl_pardiso_names_the_package(monkeypatch):
     monkeypatch.setattr(pardiso, "_library", lambda: None)
     with pytest.raises(SolverError, match=r"pip install 'facial-biomech-toolkit\[pardiso\]'"):
         LinearSolver("pardiso").solve(_stiffness(3), np.ones(81))
+
+
+@needs_mkl
+def test_a_refactorization_reuses_the_analysis_and_leaves_out_only_what_it_may():
+    """``refactorize`` factorizes a new matrix on the analysed pattern (exact solves after),
+    refuses an entry outside the pattern unless it belongs to the droppable term (then that
+    entry is left out of the factor and returned), and refuses more left-out entries than
+    ``max_left``; a refused refactorization leaves the factor as it was."""
+    A1 = _stiffness(5)
+    m = A1.shape[0]
+    b = np.random.default_rng(6).standard_normal(m)
+    factor = pardiso.PardisoFactor(A1, fill_reducing_order(A1))
+    A2 = (A1 + sp.diags(np.linspace(0.0, 2.0, m))).tocsr()
+    left = factor.refactorize(A2)
+    assert left.nnz == 0 and np.linalg.norm(A2 @ factor(b) - b) <= 1e-12 * np.linalg.norm(b)
+    coupling = sp.csr_matrix(([5.0, 5.0], ([0, m - 1], [m - 1, 0])), shape=(m, m))  # far apart: not in A1
+    A3 = (A2 + coupling).tocsr()
+    assert factor.refactorize(A3) is None  # not droppable
+    assert factor.refactorize(A3, droppable=coupling, max_left=1) is None  # two to leave out
+    assert np.linalg.norm(A2 @ factor(b) - b) <= 1e-12 * np.linalg.norm(b)  # unchanged
+    left = factor.refactorize(A3, droppable=coupling)
+    assert abs(left - coupling).max() == 0
+    assert np.linalg.norm((A3 - left) @ factor(b) - b) <= 1e-12 * np.linalg.norm(b)
+
+
+@needs_mkl
+def test_factors_made_ahead_are_refactorized_and_the_local_term_left_out_is_corrected():
+    """A Newton-like sequence ``K_k + C_k`` whose contact-like term ``C_k`` moves to new dofs
+    (entries outside the first pattern): with the term passed as ``local``, the solver's
+    background factors after the first two are refactorizations of retired ones, the moved
+    couplings left out and taken by the Woodbury correction, and every answer meets the
+    residual."""
+    K0 = _stiffness(6)
+    m = K0.shape[0]
+    D = sp.diags(np.linspace(0.0, 1.0, m))
+    b = np.random.default_rng(7).standard_normal(m)
+    solver = LinearSolver("pardiso", single_precision=True, reuse_rtol=1e-10, timed_budget=False, factorize_ahead=1)
+    for k in range(8):
+        nodes = np.array([k, k + 40, 2 * k + 100])
+        dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
+        rows, cols = np.meshgrid(dofs, dofs, indexing="ij")
+        C = sp.csr_matrix((np.full(rows.size, 2.0) + np.eye(dofs.size).ravel() * 20.0, (rows.ravel(), cols.ravel())),
+                          shape=(m, m))
+        A = (K0 + k * D + C).tocsr()
+        x, info = solver.solve(A, b, symmetric=False, local=C)
+        assert np.linalg.norm(A @ x - b) <= 1e-9 * np.linalg.norm(b)
+    assert solver.refactorizations >= 4 and solver.correction_columns > 0
+    solver.close()

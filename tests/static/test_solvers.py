@@ -216,8 +216,8 @@ def test_factors_made_ahead_are_freed_on_the_thread_that_made_them(monkeypatch):
 
     original = LinearSolver._new_factor
 
-    def tracked(self, A, symmetric, near_nullspace):
-        result = original(self, A, symmetric, near_nullspace)
+    def tracked(self, A, symmetric, near_nullspace, local=None):
+        result = original(self, A, symmetric, near_nullspace, local)
         record = [threading.current_thread().name, None]
         made.append(record)
         weakref.finalize(result[0], lambda r=record: r.__setitem__(1, threading.current_thread().name))

@@ -531,6 +531,7 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
     stats["background_factorizations"] = solver.solver.background_factorizations
     stats["factorization_wait_s"] = solver.solver.waited_s  # the solves' wait for the worker
     stats["correction_columns"] = solver.solver.correction_columns  # back-solves of the contact corrections
+    stats["refactorizations"] = solver.solver.refactorizations  # PARDISO factors made without a new analysis
     stats["energy_error"] = frames[-1].energies.balance_error if frames else 0.0
     stats["max_energy_error"] = max((f.energies.balance_error for f in frames if f.energies.external > 1e-12),
                                     default=0.0)

@@ -28,6 +28,8 @@ import threading
 import numpy as np
 import scipy.sparse as sp
 
+from toolkit.common.fem.jit import njit, use_jit
+
 __all__ = ["available", "PardisoFactor", "PardisoError"]
 
 #: PARDISO's error codes (``error`` of ``pardiso``), from MKL's reference
@@ -115,9 +117,7 @@ class PardisoFactor:
         if lib is None:
             raise PardisoError("MKL PARDISO is not installed: pip install 'facial-biomech-toolkit[pardiso]' "
                                "(the mkl wheel), or set TOOLKIT_MKL_RT to the path of libmkl_rt")
-        A = sp.csr_matrix(A)  # shares the caller's arrays: never sorted in place (another thread may use them)
-        if not A.has_sorted_indices:
-            A = A.sorted_indices()
+        A = _sorted_csr(A)
         m = A.shape[0]
         if A.shape != (m, m) or m == 0:
             raise ValueError(f"PARDISO needs a nonempty square matrix; got shape {A.shape}")
@@ -150,6 +150,39 @@ class PardisoFactor:
             raise
         self.entries = int(p[17])
         self.perturbed = int(p[13])
+
+    def refactorize(self, A: sp.spmatrix, droppable: sp.spmatrix | None = None,
+                    max_left: int | None = None) -> sp.csr_matrix | None:
+        """Factorize ``A`` in place of the matrix this factor holds, on its analysed pattern:
+        PARDISO's numerical phase only (paper impact face: 0.75 s against 1.0 s with the
+        analysis). Entries of ``A`` outside that pattern are left out of the factor when they
+        are entries of ``droppable`` (a term the caller corrects for) and at most ``max_left``
+        of them (default: any number); otherwise nothing changes and None is returned.
+        Returns the entries left out ``(m, m)`` CSR (empty when none). Never call it on a
+        factor another thread may be solving with."""
+        if not self._live:
+            raise PardisoError("this PARDISO factor was closed; factorize the matrix again")
+        A = _sorted_csr(A)
+        if A.shape != (self._m, self._m):
+            raise ValueError(f"matrix of shape {A.shape}; this factor is of shape {(self._m, self._m)}")
+        data = np.zeros(self._indices.size, dtype=self._dtype)
+        outside = np.zeros(A.nnz, dtype=np.bool_)
+        if use_jit():
+            _project(self._indptr, self._indices, A.indptr, A.indices, A.data, data, outside)
+        else:
+            _project_numpy(self._indptr, self._indices, A, data, outside)
+        rows = np.repeat(np.arange(self._m), np.diff(A.indptr))[outside]  # (a copy: A's arrays stay A's)
+        left = sp.csr_matrix((A.data[outside], (rows, A.indices[outside])), shape=A.shape)
+        if left.nnz:
+            if droppable is None or (max_left is not None and left.nnz > max_left):
+                return None
+            keys = _keys(left)
+            if not np.isin(keys, _keys(_sorted_csr(droppable))).all():
+                return None
+        self._data[:] = data
+        self._call(22)
+        self.perturbed = int(self._iparm[13])
+        return left
 
     def __call__(self, b: np.ndarray) -> np.ndarray:
         """``x`` with ``A x = b`` (``b`` (m,) or (m, k)); float64."""
@@ -191,3 +224,43 @@ class PardisoFactor:
         if error.value != 0:
             raise PardisoError(f"PARDISO phase {phase} failed: error {error.value} "
                                f"({_ERRORS.get(error.value, 'unknown')})")
+
+
+def _sorted_csr(A: sp.spmatrix) -> sp.csr_matrix:
+    """``A`` as CSR with sorted indices, sharing the caller's arrays when it already is one
+    (never sorted in place: another thread may be using them)."""
+    A = sp.csr_matrix(A)
+    return A if A.has_sorted_indices else A.sorted_indices()
+
+
+def _keys(A: sp.csr_matrix) -> np.ndarray:
+    """``row * m + column`` of every stored entry (int64)."""
+    m = A.shape[1]
+    return np.repeat(np.arange(A.shape[0], dtype=np.int64), np.diff(A.indptr)) * m + A.indices
+
+
+@njit
+def _project(indptr, indices, a_indptr, a_indices, a_data, out, outside):  # pragma: no cover - compiled
+    """``out[k] = a`` for every entry ``a`` of the sorted CSR ``A`` found at position ``k`` of
+    the sorted pattern ``(indptr, indices)``; ``outside[q]`` marks the entries not found."""
+    for r in range(indptr.size - 1):
+        p, end = indptr[r], indptr[r + 1]
+        for q in range(a_indptr[r], a_indptr[r + 1]):
+            c = a_indices[q]
+            while p < end and indices[p] < c:
+                p += 1
+            if p < end and indices[p] == c:
+                out[p] = a_data[q]
+            else:
+                outside[q] = True
+
+
+def _project_numpy(indptr, indices, A, out, outside) -> None:
+    """:func:`_project` without numba."""
+    m = A.shape[1]
+    keys = np.repeat(np.arange(indptr.size - 1, dtype=np.int64), np.diff(indptr)) * m + indices
+    a_keys = _keys(A)
+    at = np.minimum(np.searchsorted(keys, a_keys), keys.size - 1)
+    found = keys[at] == a_keys
+    out[at[found]] = A.data[found]
+    outside[:] = ~found
