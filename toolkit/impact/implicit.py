@@ -19,7 +19,10 @@ Each load step ``t -> t + h``:
    normal, ``k_t (I - n n^T)`` for sticking friction and the radial return's consistent
    (unsymmetric) tangent for slipping friction, shared with the master triangle's corners by
    the barycentric weights for a deformable ball. A tangent with slipping contact is solved by
-   GMRES (:class:`~toolkit.common.fem.solvers.LinearSolver` with ``symmetric=False``). Why the
+   GMRES (:class:`~toolkit.common.fem.solvers.LinearSolver` with ``symmetric=False``),
+   preconditioned by the factorization of a tangent a few iterations old whose contact part is
+   brought up to date exactly (the contact tangent is the solver's ``local`` term:
+   :mod:`toolkit.common.fem.woodbury`). Why the
    consistent tangent: the symmetric secant ``k_t |t| / |t_trial| (I - n n^T)`` it replaced let
    Newton converge only linearly once the skin slid under the ball (coarse face, deformable
    ball, 1.8 s: 199 iterations in 38 steps, against 71 in 36 without friction; with the
@@ -141,8 +144,9 @@ class ImplicitOptions:
         18 s waiting; 3: 84-87 s over three runs, 2 s waiting. With PARDISO on this machine
         (factorization 1.1 s): 1: 98 s, 48 s waiting (78 factorizations); 2: 58 s, 4 s waiting
         (39), 15 GMRES iterations per solve; 3: 68 s, 0.3 s waiting (24). SuperLU on this
-        machine: 2: 93 s; 3: 94 s. The factor in use depends on the count of solves only, not
-        on timing, so a run is reproducible.
+        machine: 2: 93 s; 3: 94 s. With the contact correction and PARDISO refactorizing: 2:
+        48-51 s, 8 GMRES iterations per solve; 3: 53-58 s; 4: 57 s. The factor in use depends
+        on the count of solves only, not on timing, so a run is reproducible.
     stick_on_reversal : a slave whose slip direction reversed since the previous Newton
         correction of the step is linearized on the Coulomb law's stick piece
         (:meth:`StepContact.linearize`), which ends the two-cycle of a nearly stuck skin node

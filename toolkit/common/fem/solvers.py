@@ -421,7 +421,8 @@ class LinearSolver:
                 if spare._dtype == (np.float32 if single else np.float64) and spare._m == A.shape[0]:
                     left = spare.refactorize(A, local, int(self.max_left_out * local.nnz))
                     if left is not None:
-                        self.refactorizations += 1
+                        with self._lock:  # the worker and a foreground factorization may count at once
+                            self.refactorizations += 1
                         return spare, kind, not single and left.nnz == 0, local - left if left.nnz else local
                 spare.close()
         ordering = self.ordering
