@@ -1,9 +1,10 @@
 """The finite-element core shared by both workflows: one reference-element record per
 cell type (shape functions, quadrature, faces, edges, file-format names), the fixed-pattern
 sparse assembly (:mod:`~toolkit.common.fem.assembly`), material tangents by differentiating
-a material's update (:mod:`~toolkit.common.fem.tangent`), the sparse SPD solvers
-(:mod:`~toolkit.common.fem.solvers`) and Newton's method with its line searches and load-step
-cutting (:mod:`~toolkit.common.fem.newton`).
+a material's update (:mod:`~toolkit.common.fem.tangent`), the sparse solvers
+(:mod:`~toolkit.common.fem.solvers`, with MKL PARDISO in :mod:`~toolkit.common.fem.pardiso` and
+the Woodbury correction of a reused factor in :mod:`~toolkit.common.fem.woodbury`) and Newton's
+method with its line searches and load-step cutting (:mod:`~toolkit.common.fem.newton`).
 
 Imports nothing from :mod:`toolkit.static` or :mod:`toolkit.impact`.
 """
