@@ -418,7 +418,7 @@ class LinearSolver:
             with self._lock:
                 spare, self._spare = self._spare, None
             if spare is not None:
-                if spare._dtype == (np.float32 if single else np.float64) and spare._m == A.shape[0]:
+                if spare.single == single and spare.shape == A.shape:
                     left = spare.refactorize(A, local, int(self.max_left_out * local.nnz))
                     if left is not None:
                         with self._lock:  # the worker and a foreground factorization may count at once
