@@ -145,7 +145,7 @@ class ImplicitOptions:
         (factorization 1.1 s): 1: 98 s, 48 s waiting (78 factorizations); 2: 58 s, 4 s waiting
         (39), 15 GMRES iterations per solve; 3: 68 s, 0.3 s waiting (24). SuperLU on this
         machine: 2: 93 s; 3: 94 s. With the contact correction and PARDISO refactorizing: 2:
-        48-51 s, 8 GMRES iterations per solve; 3: 53-58 s; 4: 57 s. The factor in use depends
+        48-54 s, 8 GMRES iterations per solve; 3: 53-58 s; 4: 57 s. The factor in use depends
         on the count of solves only, not on timing, so a run is reproducible.
     stick_on_reversal : a slave whose slip direction reversed since the previous Newton
         correction of the step is linearized on the Coulomb law's stick piece
