@@ -172,14 +172,17 @@ def test_a_refactorization_reuses_the_analysis_and_leaves_out_only_what_it_may()
     """``refactorize`` factorizes a new matrix on the analysed pattern (exact solves after),
     refuses an entry outside the pattern unless it belongs to the droppable term (then that
     entry is left out of the factor and returned), and refuses more left-out entries than
-    ``max_left``; a refused refactorization leaves the factor as it was."""
+    ``max_left``; a refused refactorization leaves the factor as it was. The matrices given
+    stay as they were (a float64 factor once held the caller's values array and overwrote it)."""
     A1 = _stiffness(5)
     m = A1.shape[0]
     b = np.random.default_rng(6).standard_normal(m)
+    original = A1.data.copy()
     factor = pardiso.PardisoFactor(A1, fill_reducing_order(A1))
     A2 = (A1 + sp.diags(np.linspace(0.0, 2.0, m))).tocsr()
     left = factor.refactorize(A2)
     assert left.nnz == 0 and np.linalg.norm(A2 @ factor(b) - b) <= 1e-12 * np.linalg.norm(b)
+    assert np.array_equal(A1.data, original)
     coupling = sp.csr_matrix(([5.0, 5.0], ([0, m - 1], [m - 1, 0])), shape=(m, m))  # far apart: not in A1
     A3 = (A2 + coupling).tocsr()
     assert factor.refactorize(A3) is None  # not droppable
@@ -213,3 +216,31 @@ def test_factors_made_ahead_are_refactorized_and_the_local_term_left_out_is_corr
         assert np.linalg.norm(A @ x - b) <= 1e-9 * np.linalg.norm(b)
     assert solver.refactorizations >= 4 and solver.correction_columns > 0
     solver.close()
+
+
+@needs_mkl
+def test_factors_made_ahead_without_a_local_term_are_refactorized():
+    """Systems of one pattern and no local term (an impact run before contact): every
+    background factor after the first is a refactorization of a retired one, and the answers
+    and Krylov iteration counts are those of fresh factors."""
+    A0 = _with_friction(_stiffness(6))
+    D = sp.diags(np.linspace(0.0, 1.0, A0.shape[0]))
+    systems = [(A0 + k * D).tocsr() for k in range(8)]
+    b = np.random.default_rng(8).standard_normal(A0.shape[0])
+    counts = {}
+    for refactorize in (True, False):
+        solver = LinearSolver("pardiso", reuse_rtol=1e-10, timed_budget=False, factorize_ahead=2)
+        if not refactorize:
+            solver._retire = lambda factor: factor.close()  # no spare: every factor fresh
+        counts[refactorize] = []
+        for S in systems:
+            x, info = solver.solve(S, b, symmetric=False)
+            assert np.linalg.norm(S @ x - b) <= 1e-9 * np.linalg.norm(b)
+            counts[refactorize].append(info.iterations)
+        # (the first background factor has no retired one to refactorize; the count includes one
+        # started ahead that the run's end leaves unused)
+        assert (solver.refactorizations >= solver.background_factorizations - 1) if refactorize \
+            else solver.refactorizations == 0
+        solver.close()
+    assert solver.background_factorizations >= 3
+    assert counts[True] == counts[False]

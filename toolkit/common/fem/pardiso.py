@@ -128,10 +128,11 @@ class PardisoFactor:
         self._lib, self._m = lib, m
         self.shape, self.single = (m, m), bool(single)
         self._dtype = np.float32 if single else np.float64
-        # PARDISO keeps pointers to the matrix (iterative refinement): the arrays live with the factor
-        self._data = np.ascontiguousarray(A.data, dtype=self._dtype)
-        self._indptr = np.ascontiguousarray(A.indptr, dtype=np.int32)
-        self._indices = np.ascontiguousarray(A.indices, dtype=np.int32)
+        # PARDISO keeps pointers to the matrix (iterative refinement): the arrays live with the
+        # factor, copies of the caller's (refactorize overwrites the values in place)
+        self._data = np.array(A.data, dtype=self._dtype)
+        self._indptr = np.array(A.indptr, dtype=np.int32)
+        self._indices = np.array(A.indices, dtype=np.int32)
         self._handle = np.zeros(64, dtype=np.int64)  # PARDISO's internal memory pointers
         self._iparm = np.zeros(64, dtype=np.int32)
         p = self._iparm
