@@ -522,7 +522,9 @@ class LinearSolver:
         corrected = None
         if self._kind in DIRECT and (local is not None or self._local is not None):
             if self._correction is None:
-                self._correction = LocalCorrection(self._factor, A.shape[0], self._local)
+                single = self.single_precision and self._kind in DIRECT  # as _new_factor decides
+                self._correction = LocalCorrection(self._factor, A.shape[0], self._local,
+                                                   dtype=np.float32 if single else np.float64)
             before = self._correction.columns
             corrected = self._correction.preconditioner(local)
             self.correction_columns += self._correction.columns - before
