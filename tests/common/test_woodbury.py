@@ -49,6 +49,24 @@ def test_the_correction_inverts_the_factored_matrix_plus_the_change_exactly():
     assert correction.preconditioner(C1) is None  # no change: the factor alone is right
 
 
+def test_float32_columns_of_a_float32_factor_correct_as_well_as_float64_ones():
+    """Columns kept in float32 (``dtype``, for a float32 factor) give the preconditioner of
+    float64 columns to float32 round-off (measured 6e-8), and the corrected float32 factor
+    inverts ``K + C2`` to its own float32 accuracy (measured 1.1e-6 with either)."""
+    K = _stiffness()
+    C1, C2 = _contact([3, 4, 5, 60, 61], 1), _contact([4, 5, 6, 100, 101, 102], 2)
+    lu32 = spla.splu((K + C1).astype(np.float32).tocsc())
+
+    def factor(b):
+        return lu32.solve(np.asarray(b, dtype=np.float32)).astype(np.float64)
+
+    x = np.random.default_rng(4).standard_normal(N)
+    y = {dtype: LocalCorrection(factor, N, C1, threshold=0.0, dtype=dtype).preconditioner(C2)((K + C2) @ x)
+         for dtype in (np.float32, np.float64)}
+    assert np.abs(y[np.float32] - y[np.float64]).max() <= 1e-6 * np.abs(x).max()
+    assert np.abs(y[np.float32] - x).max() <= 1e-5 * np.abs(x).max()
+
+
 def test_small_changes_are_left_to_the_krylov_iterations_and_large_zones_are_not_corrected():
     K = _stiffness()
     C1 = _contact([10, 11, 12], 5)
