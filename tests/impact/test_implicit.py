@@ -266,6 +266,8 @@ def test_the_integrator_is_a_fidelity_option():
         ImplicitOptions(min_step=0.0)
     with pytest.raises(ValueError, match="linear_tolerance 2"):
         ImplicitOptions(linear_tolerance=2)
+    with pytest.raises(ValueError, match=r"linear_target -0.1 must lie in \[0, 1\)"):
+        ImplicitOptions(linear_target=-0.1)
     with pytest.raises(ValueError, match="line_search 'wolfe' must be one of"):
         ImplicitOptions(line_search="wolfe")
 

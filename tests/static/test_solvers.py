@@ -234,3 +234,25 @@ def test_factors_made_ahead_are_freed_on_the_thread_that_made_them(monkeypatch):
     ahead = [r for r in made if r[0].startswith("toolkit-factorize-ahead")]
     assert len(ahead) >= 3
     assert all(r[1] is not None and r[1].startswith("toolkit-factorize-ahead") for r in ahead), made
+
+
+def test_a_solve_may_set_its_own_krylov_tolerance():
+    """``solve(..., rtol=)`` replaces the solver's ``rtol`` and ``reuse_rtol`` for that solve
+    only (an inexact Newton's forcing term): a reused factor of a nearby system then stops at a
+    residual below the given tolerance, in fewer iterations than at the solver's own; the next
+    solve is back at the solver's tolerance. A tolerance outside (0, 1) is refused."""
+    A0 = _grid_laplacian_3d(8)
+    m = A0.shape[0]
+    D = sp.diags(np.linspace(0.0, 2.0, m))
+    b = np.random.default_rng(2).standard_normal(m)
+    solver = LinearSolver("superlu", reuse_rtol=1e-10, timed_budget=False)
+    solver.solve(A0.tocsc(), b)
+    S = (A0 + D).tocsc()
+    x, loose = solver.solve(S, b, rtol=1e-2)
+    assert loose.reused and np.linalg.norm(S @ x - b) <= 1e-2 * np.linalg.norm(b)
+    x, tight = solver.solve(S, b)
+    assert tight.reused and np.linalg.norm(S @ x - b) <= 1e-9 * np.linalg.norm(b)
+    assert 1 <= loose.iterations < tight.iterations
+    for bad in (0.0, 1.0, -1e-3):
+        with pytest.raises(ValueError, match=f"rtol {bad} must lie in"):
+            solver.solve(S, b, rtol=bad)

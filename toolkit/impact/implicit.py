@@ -80,6 +80,9 @@ __all__ = ["ImplicitOptions", "StepContact", "ContactLinearization", "Convergenc
 
 log = logging.getLogger(__name__)
 
+#: the loosest relative residual of a correction's linear solve (ImplicitOptions.linear_target)
+MAX_LINEAR_TOLERANCE = 0.1
+
 #: line searches of the Newton iterations (:mod:`toolkit.common.fem.newton`)
 LINE_SEARCHES = {"secant": SecantOnDirection, "residual": ResidualDecrease}
 
@@ -118,6 +121,14 @@ class ImplicitOptions:
         1e-3, 69 at 1e-4 and at 1e-6. (With CG and the symmetric friction secant used before,
         1e-2 against 1e-8 gave the same skin displacements within 0.003 mm RMSE on the paper
         face, in 922 s against 1,410 s.)
+    linear_target : share of the Newton target (``tolerance`` times the force scale) left to
+        a correction's linear solve, which then stops at the relative residual
+        ``max(linear_tolerance, min(0.1, linear_target * tolerance * scale / |r|))``: a
+        correction made close to convergence is not solved a thousand times tighter than its
+        step needs (a forcing term in the manner of Eisenstat and Walker's, tied to the
+        Newton target). 0: always ``linear_tolerance``. Paper face, deformable ball, 1.8 s:
+        481 GMRES iterations against 620 at 0.1, for 81 Newton iterations against 79 (0.3:
+        463 and 83)
     line_search : ``"secant"`` (:class:`~toolkit.common.fem.newton.SecantOnDirection`, the
         zero of ``r . dx`` along the correction) or ``"residual"``
         (:class:`~toolkit.common.fem.newton.ResidualDecrease`, fixed fractions judged by the
@@ -167,6 +178,7 @@ class ImplicitOptions:
     min_step: float = 1e-5
     solver: str = "auto"
     linear_tolerance: float = 1e-3
+    linear_target: float = 0.1
     line_search: str = "secant"
     single_precision_factor: bool = True
     factorize_ahead: int = 2
@@ -183,6 +195,8 @@ class ImplicitOptions:
             raise ValueError(f"implicit options: factorize_ahead {self.factorize_ahead} must be >= 0")
         if not 0 < self.linear_tolerance < 1:
             raise ValueError(f"implicit options: linear_tolerance {self.linear_tolerance} must lie in (0, 1)")
+        if not 0 <= self.linear_target < 1:
+            raise ValueError(f"implicit options: linear_target {self.linear_target} must lie in [0, 1)")
         if not self.growth > 1 or not self.min_step > 0:
             raise ValueError(f"implicit options: growth {self.growth} must be > 1 and min_step {self.min_step} s > 0")
 
@@ -383,6 +397,12 @@ class _Newton:
         r[~self.free] = 0.0
         return internal, contact, state, r
 
+    def force_scale(self, internal, contact: ContactResponse) -> float:
+        """N, the force a residual is judged against: the reactions at the prescribed dofs plus
+        the contact force."""
+        return float(np.linalg.norm((internal.force - contact.forces).reshape(-1)[self.prescribed])
+                     + np.linalg.norm(contact.forces))
+
     def tangent(self, u: np.ndarray, states: list,
                 contact: ContactLinearization | None) -> tuple[sp.csr_matrix, bool, sp.csr_matrix | None]:
         """The constrained tangent ``(3n, 3n)`` N/mm at ``u`` (material and ``contact``), whether
@@ -423,9 +443,7 @@ class _Newton:
             return Trial(x, r, float(np.linalg.norm(r)), (internal, contact, state))
 
         def converged(trial):
-            internal, contact, _ = trial.data
-            scale = np.linalg.norm((internal.force - contact.forces).reshape(-1)[self.prescribed]) \
-                + np.linalg.norm(contact.forces)
+            scale = self.force_scale(*trial.data[:2])
             log.debug("t = %.5g s: residual %.3g N (scale %.3g N) at node %d", t, trial.norm, scale,
                       int(np.argmax(np.abs(trial.residual))) // 3)
             return trial.norm <= opt.tolerance * scale or trial.norm < 1e-9
@@ -442,8 +460,13 @@ class _Newton:
                 if contact.reversed:
                     rhs = rhs + np.where(self.free, contact.force_shift, 0.0)
             K, symmetric, local = self.tangent(trial.x, states, contact)
+            rtol, norm = None, float(np.linalg.norm(rhs))
+            if opt.linear_target > 0 and norm > 0:  # the forcing term (ImplicitOptions.linear_target)
+                target = opt.linear_target * opt.tolerance * self.force_scale(*trial.data[:2])
+                rtol = min(MAX_LINEAR_TOLERANCE, max(opt.linear_tolerance, target / norm))
             try:
-                du, _ = self.solver.solve(K, rhs, near_nullspace=self.modes, symmetric=symmetric, local=local)
+                du, _ = self.solver.solve(K, rhs, near_nullspace=self.modes, symmetric=symmetric, local=local,
+                                          rtol=rtol)
             except SolverError as exc:
                 raise NewtonFailed(f"linear solve failed: {exc}") from None
             self.solves += 1

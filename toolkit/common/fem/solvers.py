@@ -330,7 +330,7 @@ class LinearSolver:
 
     def solve(self, A: sp.spmatrix, b: np.ndarray, near_nullspace: np.ndarray | None = None,
               x0: np.ndarray | None = None, symmetric: bool = True,
-              local: sp.spmatrix | None = None) -> tuple[np.ndarray, SolveInfo]:
+              local: sp.spmatrix | None = None, rtol: float | None = None) -> tuple[np.ndarray, SolveInfo]:
         """Solve ``A x = b`` (``A`` (m, m) sparse, ``b`` (m,)); returns ``x`` and :class:`SolveInfo`.
 
         ``A`` is SPD when ``symmetric``. Otherwise it may be unsymmetric with a dominant SPD part
@@ -342,9 +342,15 @@ class LinearSolver:
         one system to the next (penalty contact). A reused SuperLU or PARDISO factorization then
         takes the change of that part since it was made exactly, by a Woodbury correction on
         its dofs (:mod:`toolkit.common.fem.woodbury`), and GMRES iterates.
+
+        ``rtol``: the relative residual of this solve's Krylov iterations, in place of the
+        solver's ``rtol`` and ``reuse_rtol`` (an inexact Newton's forcing term).
         """
         if not np.isfinite(b).all():
             raise SolverError("right-hand side holds NaN/inf")
+        if rtol is not None and not 0 < rtol < 1:
+            raise ValueError(f"rtol {rtol} must lie in (0, 1)")
+        fresh_rtol, reuse_rtol = (self.rtol, self.reuse_rtol) if rtol is None else (float(rtol), float(rtol))
         t0 = time.perf_counter()
         m = A.shape[0]
         if m == 0:
@@ -358,7 +364,7 @@ class LinearSolver:
             if self.factorize_ahead and self._pending is None and self._kind in ("superlu", "pardiso", "cholmod"):
                 # started before this solve's Krylov iterations, so that the worker has them too
                 self._start_pending(A, symmetric, near_nullspace, local)
-            x, iterations = self._reuse(A, b, x0, symmetric, local)
+            x, iterations = self._reuse(A, b, x0, symmetric, local, fresh_rtol, reuse_rtol)
             reused = x is not None
         if x is None:
             t_factor = time.perf_counter()
@@ -370,7 +376,7 @@ class LinearSolver:
                               background=False)
                 self.factorizations += 1
             t_apply = time.perf_counter()
-            x, iterations = self._apply(A, b, x0)
+            x, iterations = self._apply(A, b, x0, fresh_rtol)
             t_end = time.perf_counter()
             per_application = (t_end - t_apply) / max(iterations, 1)
             # a reuse may spend what a new factorization costs, in preconditioned Krylov iterations
@@ -382,7 +388,7 @@ class LinearSolver:
         bn = np.linalg.norm(b)
         res = float(np.linalg.norm(A @ x - b) / bn) if bn > 0 else 0.0
         # a loose rtol (an inexact Newton's 1e-2) still rejects a solve that did not halve the residual
-        limit = max(1e-5, min(1e3 * self.rtol, 0.5), 10.0 * self.reuse_rtol if reused else 0.0)
+        limit = max(1e-5, min(1e3 * fresh_rtol, 0.5), 10.0 * reuse_rtol if reused else 0.0)
         if not np.isfinite(x).all() or res > limit:
             raise SolverError(f"{self._kind} solve did not converge: relative residual {res:.2e} after {iterations} "
                               f"iterations; the system may be singular (under-constrained model)")
@@ -497,28 +503,29 @@ class LinearSolver:
             return self._factor.aspreconditioner(cycle="V")
         return spla.LinearOperator(shape, matvec=self._factor, dtype=float)
 
-    def _apply(self, A, b, x0) -> tuple[np.ndarray, int]:
+    def _apply(self, A, b, x0, rtol: float) -> tuple[np.ndarray, int]:
         """Solve with the fresh factorization of ``A`` (or of its symmetric part, or in float32)."""
         if self._kind == "amg" and self._symmetric:
             residuals = []
-            x = self._factor.solve(b, x0=x0, tol=self.rtol, accel="cg", maxiter=500, residuals=residuals)
+            x = self._factor.solve(b, x0=x0, tol=rtol, accel="cg", maxiter=500, residuals=residuals)
             return x, len(residuals) - 1
         if self._exact:
             return self._factor(b), 0
-        x, count = _krylov(A, b, x0, self._preconditioner(A.shape), self.rtol, 500, symmetric=self._symmetric)
+        x, count = _krylov(A, b, x0, self._preconditioner(A.shape), rtol, 500, symmetric=self._symmetric)
         return (x, count) if x is not None else (np.full_like(b, np.nan), count)
 
-    def _reuse(self, A, b, x0, symmetric, local=None) -> tuple[np.ndarray | None, int]:
+    def _reuse(self, A, b, x0, symmetric, local, fresh_rtol: float,
+               reuse_rtol: float) -> tuple[np.ndarray | None, int]:
         """A Krylov solve of ``A`` preconditioned by the stored factorization (CG when both are
         symmetric, GMRES otherwise), corrected for the change of ``local`` (see :meth:`solve`);
         None if it does not converge within the budget."""
         same = (A.nnz == self._A.nnz and np.array_equal(A.indptr, self._A.indptr)
                 and np.array_equal(A.indices, self._A.indices) and np.array_equal(A.data, self._A.data))
         if same:
-            return self._apply(A, b, x0)
+            return self._apply(A, b, x0, fresh_rtol)
         if self._budget < 2:
             return None, 0
-        rtol = self.rtol if self._kind == "amg" else self.reuse_rtol
+        rtol = fresh_rtol if self._kind == "amg" else reuse_rtol
         corrected = None
         if self._kind in DIRECT and (local is not None or self._local is not None):
             if self._correction is None:
