@@ -25,9 +25,10 @@ from unittest import mock
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from toolkit.common.fem import TET_EDGES
-from toolkit.common.fem.assembly import SparsePattern, element_tangent
+from toolkit.common.fem.assembly import SparsePattern, add_local, element_tangent
 from toolkit.common.fem.jit import HAVE_NUMBA
 from toolkit.common.fem.kinematics import deformation_gradient, internal_force, kinematics
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic, isotropic_tangent
@@ -193,6 +194,39 @@ def test_the_fused_tangent_assembly_equals_element_tangents_assembled(symmetric,
     assert symmetric or abs(K - K.T).max() > 0.1 * np.abs(K0.data).max()
     with pytest.raises(ValueError, match="1 tangent blocks for a pattern of 2"):
         pattern.assemble_tangent(blocks[:1])
+
+
+@pytest.mark.parametrize("jit", ["compiled", "numpy"])
+def test_adding_a_local_term_equals_scipys_sum(jit):
+    """``add_local(K, C)`` for an assembled tangent and a contact-like term on a few rows (inside
+    and outside ``K``'s pattern, unsorted with duplicates, first and last rows included) equals
+    scipy's ``K + C`` entry for entry, with sorted indices; the pattern's matrices are flagged
+    canonical and truly are (a copy without the flag passes scipy's own check)."""
+    face10 = face_tet("coarse", order=2)
+    pattern = SparsePattern([face10.cells["tet10"]], face10.n_points)
+    rng = np.random.default_rng(7)
+    K = pattern.assemble([rng.standard_normal((face10.cells["tet10"].shape[0], 30, 30))])
+    assert K.has_canonical_format
+    unflagged = sp.csr_matrix((K.data.copy(), K.indices.copy(), K.indptr.copy()), shape=K.shape)
+    assert unflagged.has_canonical_format  # scipy's O(nnz) check
+    m = K.shape[0]
+    rows = np.concatenate([[0, m - 1], rng.integers(0, m, 40)])
+    rows = np.concatenate([rows, rows])  # duplicates
+    cols = np.concatenate([rng.integers(0, m, rows.size // 2), rows[: rows.size // 2]])  # far and diagonal
+    C = sp.coo_matrix((rng.standard_normal(rows.size), (rows, cols)), shape=K.shape)
+    with mock.patch.dict(os.environ, {"TOOLKIT_JIT": "1" if jit == "compiled" else "0"}):
+        if jit == "compiled" and not HAVE_NUMBA:
+            pytest.skip("the compiled merge needs numba")
+        S = add_local(K, C)
+    R = (K + C.tocsr()).tocsr()
+    R.sum_duplicates()
+    assert np.array_equal(S.indptr, R.indptr) and np.array_equal(S.indices, R.indices)
+    assert np.abs(S.data - R.data).max() <= 1e-14 * np.abs(R.data).max()
+    assert add_local(K, sp.csr_matrix(K.shape)).nnz == K.nnz
+    with pytest.raises(ValueError, match="shapes differ"):
+        add_local(K, sp.csr_matrix((3, 3)))
+    with pytest.raises(ValueError, match="sorted, unique indices"):
+        add_local(sp.csr_matrix((np.ones(2), [1, 0], [0, 2, 2]), shape=(2, 2)), sp.csr_matrix((2, 2)))
 
 
 def _distorted(ctype):

@@ -66,7 +66,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from toolkit.common.fem.assembly import SparsePattern
+from toolkit.common.fem.assembly import SparsePattern, add_local
 from toolkit.common.fem.kinematics import deformation_gradient
 from toolkit.common.fem.newton import (InadmissibleState, LoadSteps, NewtonFailed, ResidualDecrease, SecantOnDirection,
                                        Trial, newton)
@@ -427,7 +427,7 @@ class _Newton:
                                       shape=K.shape)
             skew = abs(k_contact - k_contact.T)
             symmetric = skew.nnz == 0 or skew.max() <= 1e-12 * abs(k_contact).max()
-            return K + k_contact, symmetric, k_contact
+            return add_local(K, k_contact), symmetric, k_contact
         return K, True, None
 
     def solve_step(self, u: np.ndarray, states: list, guess: np.ndarray, t: float, h: float):

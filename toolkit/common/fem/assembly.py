@@ -19,7 +19,7 @@ import scipy.sparse as sp
 
 from toolkit.common.fem.jit import njit, use_jit
 
-__all__ = ["SparsePattern", "element_tangent"]
+__all__ = ["SparsePattern", "element_tangent", "add_local"]
 
 
 def element_tangent(grad: np.ndarray, weight: np.ndarray, A: np.ndarray, symmetric: bool = False) -> np.ndarray:
@@ -225,7 +225,7 @@ class SparsePattern:
                 start += values.size
         else:
             data = np.bincount(self._slot, weights=np.concatenate(blocks), minlength=self.nnz)
-        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_dofs, self.n_dofs))
+        return self._matrix(data)
 
     def assemble_tangent(self, blocks: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
                          symmetric: bool = False) -> sp.csr_matrix:
@@ -251,7 +251,14 @@ class SparsePattern:
             _assemble_tangent_kernel(np.asarray(grad, dtype=np.float64), np.asarray(weight, dtype=np.float64),
                                      np.asarray(A, dtype=np.float64).reshape(E, Q, 3, 3, 3, 3), bool(symmetric),
                                      pos, conn, node_start, row_len, order, data)
-        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_dofs, self.n_dofs))
+        return self._matrix(data)
+
+    def _matrix(self, data: np.ndarray) -> sp.csr_matrix:
+        """The pattern's CSR matrix with values ``data``, flagged canonical (its column indices
+        are sorted and unique by construction: no O(nnz) check later)."""
+        K = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_dofs, self.n_dofs))
+        K.has_canonical_format = True
+        return K
 
     def _node_layout(self):
         """Where a node pair's 3x3 block sits in the CSR data (built at the first
@@ -299,4 +306,75 @@ class SparsePattern:
         data = K.data.copy()
         data[zero] = 0.0
         data[diag] = 1.0
-        return sp.csr_matrix((data, self.indices, self.indptr), shape=K.shape)
+        return self._matrix(data)
+
+
+def add_local(K: sp.csr_matrix, C: sp.csr_matrix) -> sp.csr_matrix:
+    """``K + C`` as CSR with sorted indices, for an assembled ``K`` and a term ``C`` on few rows
+    (penalty contact): the runs of rows ``C`` leaves alone are copied whole, the others merged.
+    ``K`` must be CSR with sorted, unique indices (as :class:`SparsePattern` makes them); ``C``
+    is brought to that form. Paper impact face (3.8 M entries, a contact term on 300 rows):
+    7 ms against scipy's 12-16 ms, which merges every row."""
+    if K.shape != C.shape:
+        raise ValueError(f"shapes differ: {K.shape} and {C.shape}")
+    if not sp.isspmatrix_csr(K) or not K.has_canonical_format:
+        raise ValueError("add_local needs K as CSR with sorted, unique indices (call K.sum_duplicates())")
+    C = sp.csr_matrix(C)
+    if not C.has_canonical_format:
+        C = C.copy()
+        C.sum_duplicates()
+    if not use_jit():
+        return (K + C).tocsr()
+    rows = np.flatnonzero(np.diff(C.indptr))  # the rows C touches
+    new = np.zeros(K.shape[0] + 1, dtype=np.int64)  # per row: C's columns not in K's row
+    new[rows + 1] = _new_columns(K.indptr, K.indices, C.indptr, C.indices, rows)
+    indptr = K.indptr + np.cumsum(new)
+    indices = np.empty(indptr[-1], dtype=K.indices.dtype)
+    data = np.empty(indptr[-1], dtype=np.result_type(K.dtype, C.dtype))
+    _merge_rows(K.indptr, K.indices, K.data, C.indptr, C.indices, C.data, rows, indptr, indices, data)
+    out = sp.csr_matrix((data, indices, indptr.astype(K.indptr.dtype, copy=False)), shape=K.shape)
+    out.has_sorted_indices = True
+    return out
+
+
+@njit
+def _new_columns(k_ptr, k_idx, c_ptr, c_idx, rows):  # pragma: no cover - compiled
+    """For each of ``rows``: how many of ``C``'s columns ``K``'s row lacks."""
+    out = np.zeros(rows.size, dtype=np.int64)
+    for i in range(rows.size):
+        r = rows[i]
+        a, a_end = k_ptr[r], k_ptr[r + 1]
+        for b in range(c_ptr[r], c_ptr[r + 1]):
+            while a < a_end and k_idx[a] < c_idx[b]:
+                a += 1
+            if a >= a_end or k_idx[a] != c_idx[b]:
+                out[i] += 1
+    return out
+
+
+@njit
+def _merge_rows(k_ptr, k_idx, k_val, c_ptr, c_idx, c_val, rows, indptr, indices, data):  # pragma: no cover
+    """Fill the sum: the runs of rows between ``rows`` as blocks, ``rows`` merged."""
+    n = k_ptr.size - 1
+    done = 0  # rows before this are written
+    for i in range(rows.size + 1):
+        r = rows[i] if i < rows.size else n
+        a, a_end, p = k_ptr[done], k_ptr[r], indptr[done]  # the run of untouched rows
+        indices[p:p + a_end - a] = k_idx[a:a_end]
+        data[p:p + a_end - a] = k_val[a:a_end]
+        if r == n:
+            break
+        a, a_end, b, b_end, p = k_ptr[r], k_ptr[r + 1], c_ptr[r], c_ptr[r + 1], indptr[r]
+        while a < a_end or b < b_end:
+            if b >= b_end or (a < a_end and k_idx[a] < c_idx[b]):
+                indices[p], data[p] = k_idx[a], k_val[a]
+                a += 1
+            elif a >= a_end or c_idx[b] < k_idx[a]:
+                indices[p], data[p] = c_idx[b], c_val[b]
+                b += 1
+            else:
+                indices[p], data[p] = k_idx[a], k_val[a] + c_val[b]
+                a += 1
+                b += 1
+            p += 1
+        done = r + 1
