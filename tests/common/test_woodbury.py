@@ -49,6 +49,28 @@ def test_the_correction_inverts_the_factored_matrix_plus_the_change_exactly():
     assert correction.preconditioner(C1) is None  # no change: the factor alone is right
 
 
+def test_a_first_solve_joins_the_back_solve_of_the_new_columns():
+    """``preconditioner_and_solve`` gives the preconditioner and ``M^-1 rhs`` from one call of
+    the factor (the new columns and ``rhs`` together), equal to applying the preconditioner to
+    ``rhs`` (1e-12); with no new column it leaves the first solve to the caller."""
+    K = _stiffness()
+    C1, C2 = _contact([3, 4, 5, 60, 61], 1), _contact([4, 5, 6, 100, 101, 102], 2)
+    lu = spla.splu((K + C1).tocsc())
+    calls = []
+
+    def factor(b):
+        calls.append(np.shape(b))
+        return lu.solve(b)
+
+    correction = LocalCorrection(factor, N, C1, threshold=0.0)
+    rhs = np.random.default_rng(5).standard_normal(N)
+    apply, first = correction.preconditioner_and_solve(C2, rhs)
+    assert calls == [(N, 10)]  # 9 columns and rhs
+    assert np.abs(first - apply(rhs)).max() <= 1e-12 * np.abs(first).max()
+    apply, first = correction.preconditioner_and_solve(_contact([4, 60], 3), rhs)
+    assert apply is not None and first is None and len(calls) == 2  # no new column: nothing solved
+
+
 def test_float32_columns_of_a_float32_factor_correct_as_well_as_float64_ones():
     """Columns kept in float32 (``dtype``, for a float32 factor) give the preconditioner of
     float64 columns to float32 round-off (measured 6e-8), and the corrected float32 factor

@@ -533,11 +533,12 @@ class LinearSolver:
                 self._correction = LocalCorrection(self._factor, A.shape[0], self._local,
                                                    dtype=np.float32 if single else np.float64)
             before = self._correction.columns
-            corrected = self._correction.preconditioner(local)
+            # with no x0, GMRES's first application is to b: solved with the new columns
+            corrected, first = self._correction.preconditioner_and_solve(local, b if x0 is None else None)
             self.correction_columns += self._correction.columns - before
         if corrected is not None:
             M = spla.LinearOperator(A.shape, matvec=corrected, dtype=float)
-            return _krylov(A, b, x0, M, rtol, self._budget, symmetric=False)
+            return _gmres(A, b, x0, M, rtol, self._budget, first=first)
         return _krylov(A, b, x0, self._preconditioner(A.shape), rtol, self._budget,
                        symmetric=symmetric and self._symmetric)
 
@@ -556,13 +557,16 @@ def _krylov(A, b, x0, M, rtol: float, maxiter: int, symmetric: bool) -> tuple[np
     return (x, count[0]) if info == 0 else (None, count[0])
 
 
-def _gmres(A, b, x0, M, rtol: float, maxiter: int) -> tuple[np.ndarray | None, int]:
+def _gmres(A, b, x0, M, rtol: float, maxiter: int, first: np.ndarray | None = None) -> tuple[np.ndarray | None, int]:
     """Right-preconditioned GMRES without restarts: ``x = x0 + M^-1 V y`` minimizes the true
     residual ``|b - A x|`` over the Krylov space, so it stops when that residual is below
     ``rtol |b|``. (scipy's ``gmres`` preconditions on the left and judges the preconditioned
     residual, which a stale factorization makes a poor proxy: with one restart cycle it
     failed 61 of 93 reuses on the coarse impact face that converged in 3 iterations when
-    they did.) Returns ``(x, iterations)``, ``x`` None after ``maxiter`` iterations."""
+    they did.) ``first``: ``M^-1 b`` when already known (``x0`` must then be None). Returns
+    ``(x, iterations)``, ``x`` None after ``maxiter`` iterations."""
+    if first is not None and x0 is not None:
+        raise ValueError("first is M^-1 b, the first application only without x0")
     x = np.zeros_like(b) if x0 is None else np.array(x0, dtype=float)
     r = b - A @ x
     beta, target = float(np.linalg.norm(r)), rtol * float(np.linalg.norm(b))
@@ -573,7 +577,7 @@ def _gmres(A, b, x0, M, rtol: float, maxiter: int) -> tuple[np.ndarray | None, i
     H = np.zeros((maxiter + 1, maxiter))  # Hessenberg matrix of the Arnoldi process
     V[0] = r / beta
     for k in range(maxiter):
-        Z[k] = M.matvec(V[k])
+        Z[k] = first / beta if k == 0 and first is not None else M.matvec(V[k])
         w = A @ Z[k]
         for _ in range(2):  # classical Gram-Schmidt, twice (as accurate as modified, vectorised)
             h = V[:k + 1] @ w
