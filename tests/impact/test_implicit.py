@@ -16,6 +16,7 @@ import pytest
 import scipy.sparse as sp
 
 from toolkit.common.fem.assembly import SparsePattern
+from toolkit.common.fem.jit import HAVE_NUMBA
 from toolkit.common.fem.tangent import algorithmic_tangent
 from toolkit.common.materials import isotropic_tangent
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact
@@ -101,6 +102,28 @@ def test_the_closed_form_j2_tangent_is_the_derivative_of_the_update(stretches):
     with mock.patch.dict(os.environ, {"TOOLKIT_JIT": "0"}):
         _, A_numpy = mat.tangent(F, state)
     assert np.abs(A_numpy - A).max() <= 1e-5 * np.abs(A).max()
+
+
+def test_the_tangent_of_a_finished_update_is_the_tangent_bit_for_bit():
+    """``J2Plasticity.tangent_of(update)`` (from the update's stored eigenvalues and return
+    factors, no second update) equals ``tangent(F, state)`` exactly, at yielding and elastic
+    points alike and without hardening; a numpy update, which stores no return mapping, is
+    refused with the remedy."""
+    if not HAVE_NUMBA:
+        pytest.skip("tangent_of reads the compiled update's return mapping")
+    rng = np.random.default_rng(9)
+    for table in (HardeningTable.from_pairs([(0.002, 0.0), (0.004, 1.0)]), None):
+        mat = J2Plasticity(0.015, 0.45, 1e-9, table)
+        F0 = np.eye(3) + 0.15 * rng.standard_normal((50, 3, 3))
+        state = mat.update(F0, mat.initial_state(50)).state
+        F = F0 + np.concatenate([0.1 * rng.standard_normal((25, 3, 3)), 1e-5 * rng.standard_normal((25, 3, 3))])
+        update = mat.update(F, state)
+        assert table is None or (update.plastic[:25].any() and not update.plastic.all())
+        assert np.array_equal(mat.tangent_of(update), mat.tangent(F, state)[1])
+    with mock.patch.dict(os.environ, {"TOOLKIT_JIT": "0"}):
+        numpy_update = mat.update(F, state)
+    with pytest.raises(ValueError, match="no return_mapping"):
+        mat.tangent_of(numpy_update)
 
 
 def test_sparse_pattern_assembles_and_constrains_like_a_dense_loop():

@@ -216,13 +216,14 @@ class _InternalForces:
     cauchy: list  # per body (E*Q, 3, 3) MPa; von Mises is computed at output frames only
     eps_p: list  # per body (E, Q)
     dissipation: float  # mJ, plastic work of the step
+    updates: list  # per body, the material's update (a quasi-static tangent may start from it)
 
 
 def _internal_forces(model: ExplicitModel, u: np.ndarray, states: list) -> _InternalForces:
     """Every body's internal force and new material state at displacement ``u (n, 3)`` mm.
     Raises :class:`_Inverted` where ``det F <= 0``."""
     f = np.zeros_like(model.points)
-    new_states, cauchy, eps_p, diss = [], [], [], 0.0
+    new_states, cauchy, eps_p, diss, updates = [], [], [], 0.0, []
     for b, st in zip(model.bodies, states):
         F = deformation_gradient(b.kin, u[b.offset:b.offset + b.n_nodes])
         E, Q = F.shape[:2]
@@ -233,10 +234,11 @@ def _internal_forces(model: ExplicitModel, u: np.ndarray, states: list) -> _Inte
             raise _Inverted(b.name, None if point is None else int(point) // Q) from exc
         f[b.offset:b.offset + b.n_nodes] = internal_force(b.kin, upd.first_piola.reshape(E, Q, 3, 3), b.n_nodes)
         new_states.append(upd.state)
+        updates.append(upd)
         cauchy.append(upd.cauchy)
         eps_p.append(np.asarray(upd.state.eps_p).reshape(E, Q))
         diss += float(np.sum(np.asarray(upd.dissipation).reshape(E, Q) * b.kin.weight))
-    return _InternalForces(f, new_states, cauchy, eps_p, diss)
+    return _InternalForces(f, new_states, cauchy, eps_p, diss, updates)
 
 
 def _contact(model: ExplicitModel, u: np.ndarray, v: np.ndarray, t: float, dt: float) -> ContactResponse:

@@ -403,18 +403,26 @@ class _Newton:
         return float(np.linalg.norm((internal.force - contact.forces).reshape(-1)[self.prescribed])
                      + np.linalg.norm(contact.forces))
 
-    def tangent(self, u: np.ndarray, states: list,
-                contact: ContactLinearization | None) -> tuple[sp.csr_matrix, bool, sp.csr_matrix | None]:
+    def tangent(self, u: np.ndarray, states: list, contact: ContactLinearization | None,
+                updates: list | None = None) -> tuple[sp.csr_matrix, bool, sp.csr_matrix | None]:
         """The constrained tangent ``(3n, 3n)`` N/mm at ``u`` (material and ``contact``), whether
         it is symmetric (no slipping contact), and its contact part (None without contact): the
         few dofs whose entries change most between iterations, which the linear solver corrects
-        for exactly when it reuses an older factorization (its ``local``)."""
+        for exactly when it reuses an older factorization (its ``local``). ``updates``: every
+        body's material update at ``u`` (from the residual), whose tangent a material with
+        ``tangent_of`` (:meth:`~toolkit.impact.plasticity.J2Plasticity.tangent_of`) makes
+        without updating again."""
         blocks = []
-        for b, st in zip(self.model.bodies, states):
-            F = deformation_gradient(b.kin, u[b.offset:b.offset + b.n_nodes])
-            E, Q = F.shape[:2]
+        for i, (b, st) in enumerate(zip(self.model.bodies, states)):
+            E, Q = b.kin.weight.shape
+            update = None if updates is None else updates[i]
             try:
-                _, A = b.material.tangent(F.reshape(-1, 3, 3), st)
+                if update is not None and getattr(update, "return_mapping", None) is not None \
+                        and hasattr(b.material, "tangent_of"):
+                    A = b.material.tangent_of(update)
+                else:
+                    F = deformation_gradient(b.kin, u[b.offset:b.offset + b.n_nodes])
+                    _, A = b.material.tangent(F.reshape(-1, 3, 3), st)
             except FloatingPointError as exc:
                 raise NewtonFailed(f"{b.name}: {exc}") from None
             blocks.append((b.kin.grad, b.kin.weight, A.reshape(E, Q, 3, 3, 3, 3)))
@@ -459,7 +467,7 @@ class _Newton:
                 self.reversals += contact.reversed
                 if contact.reversed:
                     rhs = rhs + np.where(self.free, contact.force_shift, 0.0)
-            K, symmetric, local = self.tangent(trial.x, states, contact)
+            K, symmetric, local = self.tangent(trial.x, states, contact, trial.data[0].updates)
             rtol, norm = None, float(np.linalg.norm(rhs))
             if opt.linear_target > 0 and norm > 0:  # the forcing term (ImplicitOptions.linear_target)
                 target = opt.linear_target * opt.tolerance * self.force_scale(*trial.data[:2])
