@@ -175,8 +175,9 @@ class PardisoFactor:
             _project(self._indptr, self._indices, A.indptr, A.indices, A.data, data, outside)
         else:
             _project_numpy(self._indptr, self._indices, A, data, outside)
-        rows = np.repeat(np.arange(self._m), np.diff(A.indptr))[outside]  # (a copy: A's arrays stay A's)
-        left = sp.csr_matrix((A.data[outside], (rows, A.indices[outside])), shape=A.shape)
+        at = np.flatnonzero(outside)  # (copies: A's arrays stay A's)
+        rows = np.searchsorted(A.indptr, at, side="right") - 1
+        left = sp.csr_matrix((A.data[at], (rows, A.indices[at])), shape=A.shape)
         if left.nnz:
             if droppable is None or (max_left is not None and left.nnz > max_left):
                 return None
