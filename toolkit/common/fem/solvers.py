@@ -372,6 +372,7 @@ class LinearSolver:
                 self._take_pending()
             self._drop_pending()  # older than this system
             if self._A is not A:
+                self._spare_ahead(A, symmetric, near_nullspace)
                 self._install(self._new_factor(A, symmetric, near_nullspace, local), A, symmetric,
                               background=False)
                 self.factorizations += 1
@@ -475,6 +476,24 @@ class LinearSolver:
             box = [self._pending[0]]  # the future holds the factor
             self._pending = None
             self._worker.submit(box.clear)
+
+    def _spare_ahead(self, A, symmetric: bool, near_nullspace) -> None:
+        """At the first factorization of a solver that factorizes ahead with PARDISO: the worker,
+        idle until then, factorizes the same system beside the foreground and keeps it as the
+        spare that the first factor made ahead refactorizes (paper impact face: 0.75 s instead
+        of 1.25 s with the analysis, where the worker is furthest behind the solves). Either
+        factor is the same, whichever thread finishes first."""
+        kind = choose_method(self.method, A.shape[0], self.factor_entries, self.direct_max_entries, self.direct)
+        if not (self.factorize_ahead and kind == "pardiso" and self._worker is None):
+            return
+        if self.ordering == "nd" and (self._perm is None or self._perm.size != A.shape[0]):
+            self._perm = fill_reducing_order(A)  # before the worker starts: one ordering for both
+
+        def spare() -> None:
+            self._retire(self._new_factor(A, symmetric, near_nullspace)[0])
+
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="toolkit-factorize-ahead")
+        self._worker.submit(spare)
 
     def _start_pending(self, A, symmetric: bool, near_nullspace, local=None) -> None:
         """Factorize ``A`` on the worker thread (:attr:`factorize_ahead`)."""
