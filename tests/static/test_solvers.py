@@ -256,3 +256,29 @@ def test_a_solve_may_set_its_own_krylov_tolerance():
     for bad in (0.0, 1.0, -1e-3):
         with pytest.raises(ValueError, match=f"rtol {bad} must lie in"):
             solver.solve(S, b, rtol=bad)
+
+
+def test_no_factorization_is_made_ahead_after_an_easy_solve():
+    """``factorize_ahead_above``: a solve starts a background factorization only when the one
+    before it needed more Krylov iterations than that (or factorized); the systems below
+    (reused factors need 5-20 iterations) get only the one started after the first
+    factorization above 100 and the usual two at 0, every answer meeting the residual; a
+    negative count is refused."""
+    A0 = _grid_laplacian_3d(8)
+    m = A0.shape[0]
+    D = sp.diags(np.linspace(0.0, 2.0, m))
+    systems = [(A0 + k * D).tocsc() for k in range(1, 7)]
+    b = np.random.default_rng(1).standard_normal(m)
+    made = {}
+    for above in (0, 100):
+        solver = LinearSolver("superlu", reuse_rtol=1e-10, timed_budget=False, factorize_ahead=2,
+                              factorize_ahead_above=above)
+        for S in systems:
+            x, info = solver.solve(S, b)
+            assert np.linalg.norm(S @ x - b) <= 1e-9 * np.linalg.norm(b)
+            assert info.iterations <= 100
+        made[above] = solver.background_factorizations
+        solver.close()
+    assert made == {0: 2, 100: 1}
+    with pytest.raises(ValueError, match="factorize_ahead_above -1 must be >= 0"):
+        LinearSolver("superlu", factorize_ahead_above=-1)

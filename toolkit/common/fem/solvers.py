@@ -278,6 +278,10 @@ class LinearSolver:
         solve on, waiting for it there if need be. The factor then stays ``L`` to ``2L - 1``
         systems old instead of going stale over a whole Newton path, and the choice of factor
         depends on the count of solves only, never on timing (the same answers on any machine).
+    factorize_ahead_above : a solve starts a factorization ahead only when the solve before it
+        needed more than this many Krylov iterations, or factorized (0: always): a factor that still
+        preconditions in one or two is nearly exact, and another would buy nothing. The choice
+        depends on iteration counts only, so it stays reproducible.
     """
 
     #: a retired PARDISO factor is refactorized for a new matrix (no new symbolic analysis) when
@@ -291,7 +295,7 @@ class LinearSolver:
                  reuse: bool = True, max_reuse_iterations: int = 60, reuse_rtol: float = 1e-13,
                  timed_budget: bool = True, direct_max_entries: int = AUTO_DIRECT_MAX_ENTRIES,
                  single_precision: bool = False, ordering: str = "nd", factorize_ahead: int = 0,
-                 direct: str = "superlu"):
+                 direct: str = "superlu", factorize_ahead_above: int = 0):
         if method not in METHODS:
             raise ValueError(f"unknown solver {method!r}; expected one of {METHODS}")
         if direct not in DIRECT:
@@ -302,7 +306,11 @@ class LinearSolver:
         if int(factorize_ahead) < 0:
             raise ValueError(f"factorize_ahead {factorize_ahead} must be >= 0 (solves before a background factor "
                              "is used; 0 for none)")
+        if int(factorize_ahead_above) < 0:
+            raise ValueError(f"factorize_ahead_above {factorize_ahead_above} must be >= 0 (Krylov iterations)")
         self.ordering, self.factorize_ahead = ordering, int(factorize_ahead)
+        self.factorize_ahead_above = int(factorize_ahead_above)
+        self._last_iterations = None  # the Krylov iterations of the last solve (None: it factorized)
         self._perm = None  # the nested-dissection ordering of this size's systems
         self._worker = None  # the thread pool of one that factorizes ahead
         self._background = False  # whether the factor in use was made on the worker
@@ -361,7 +369,9 @@ class LinearSolver:
             self._take_pending()
         x, iterations, reused = None, 0, False
         if self.reuse and self._A is not None and self._A.shape == A.shape:
-            if self.factorize_ahead and self._pending is None and self._kind in ("superlu", "pardiso", "cholmod"):
+            stale = self._last_iterations is None or self._last_iterations > self.factorize_ahead_above
+            if self.factorize_ahead and self._pending is None and stale \
+                    and self._kind in ("superlu", "pardiso", "cholmod"):
                 # started before this solve's Krylov iterations, so that the worker has them too
                 self._start_pending(A, symmetric, near_nullspace, local)
             x, iterations = self._reuse(A, b, x0, symmetric, local, fresh_rtol, reuse_rtol)
@@ -393,6 +403,7 @@ class LinearSolver:
         if not np.isfinite(x).all() or res > limit:
             raise SolverError(f"{self._kind} solve did not converge: relative residual {res:.2e} after {iterations} "
                               f"iterations; the system may be singular (under-constrained model)")
+        self._last_iterations = iterations if reused else None
         return x, SolveInfo(self._kind, iterations, res, time.perf_counter() - t0, reused)
 
     def close(self) -> None:
