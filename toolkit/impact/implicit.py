@@ -156,8 +156,11 @@ class ImplicitOptions:
         (factorization 1.1 s): 1: 98 s, 48 s waiting (78 factorizations); 2: 58 s, 4 s waiting
         (39), 15 GMRES iterations per solve; 3: 68 s, 0.3 s waiting (24). SuperLU on this
         machine: 2: 93 s; 3: 94 s. With the contact correction and PARDISO refactorizing: 2:
-        48-54 s, 8 GMRES iterations per solve; 3: 53-58 s; 4: 57 s. The factor in use depends
-        on the count of solves only, not on timing, so a run is reproducible.
+        48-54 s, 8 GMRES iterations per solve; 3: 53-58 s; 4: 57 s. With ``linear_target`` and
+        the rest: 2: 40-44 s the run alone, 6.5 GMRES iterations per solve, 3.5 s waiting (the
+        worker limits); 3: 56 s, 777 GMRES iterations against 490. The factor in use depends on
+        the count of solves (and iteration counts, ``factorize_ahead_above``) only, not on
+        timing, so a run is reproducible.
     factorize_ahead_above : no factorization ahead after a solve that needed at most this many
         Krylov iterations (:class:`~toolkit.common.fem.solvers.LinearSolver`'s
         ``factorize_ahead_above``): its factor is still nearly exact. Paper face, deformable
@@ -378,7 +381,8 @@ class _Newton:
         self.free[self.prescribed] = False
         self.pattern = SparsePattern([b.kin.conn + b.offset for b in model.bodies], n)
         # later systems are solved by CG (GMRES while friction slips) preconditioned with the last
-        # factorization, to options.linear_tolerance (an inexact Newton)
+        # factorization, to options.linear_tolerance or looser (the forcing term of
+        # options.linear_target: an inexact Newton)
         entries = estimate_factor_entries(self.pattern.node_graph(), 3)
         self.solver = LinearSolver(options.solver, factor_entries=entries, rtol=options.linear_tolerance,
                                    reuse_rtol=options.linear_tolerance, direct_max_entries=REUSED_DIRECT_MAX_ENTRIES,
