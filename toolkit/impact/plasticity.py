@@ -352,6 +352,22 @@ def _slope(x, e_k, y_k):  # pragma: no cover - compiled
 
 
 @njit
+def _log_deviator(A, eps, dev):  # pragma: no cover - compiled
+    """The principal logarithmic strains ``ln(x_k) / 2`` of the eigenvalues ``x_k`` on ``A``'s
+    diagonal into ``eps (3,)``, their deviator into ``dev (3,)``; returns the volumetric strain
+    and ``|dev|^2``."""
+    vol = 0.0
+    for k in range(3):
+        eps[k] = 0.5 * np.log(A[k, k])
+        vol += eps[k]
+    ss = 0.0
+    for k in range(3):
+        dev[k] = eps[k] - vol / 3.0
+        ss += dev[k] * dev[k]
+    return vol, ss
+
+
+@njit
 def _j2_tangent_point(A, V, C, J, unit, lam, mu, flow, c2, P, out):  # pragma: no cover - compiled
     """Consistent tangent ``out[i, J, k, L] = dP_iJ / dF_kL`` (MPa) of one point's update.
 
@@ -486,14 +502,7 @@ def _j2_points(F_new, F_old, be_old, eps_p_old, N_old, lam, mu, e_k, y_k, w_k, h
         if not (A[0, 0] > 0.0 and A[1, 1] > 0.0 and A[2, 2] > 0.0):
             status[0], status[1] = 3, i
             return
-        vol = 0.0
-        for k in range(3):
-            eps[k] = 0.5 * np.log(A[k, k])
-            vol += eps[k]
-        ss = 0.0
-        for k in range(3):
-            dev[k] = eps[k] - vol / 3.0
-            ss += dev[k] * dev[k]
+        vol, ss = _log_deviator(A, eps, dev)
         eps_p_new[i] = eps_p_old[i]
         diss[i] = 0.0
         q = np.sqrt(1.5) * mu2 * np.sqrt(ss)
@@ -545,20 +554,15 @@ def _j2_tangent_points(F_new, N_new, P, mapping, lam, mu, tangent):  # pragma: n
     C = np.empty((3, 3))
     A = np.zeros((3, 3))
     eps = np.empty(3)
+    dev = np.empty(3)
     unit = np.empty(3)
     for i in range(F_new.shape[0]):
         J = _cofactor3(F_new[i], C)
-        vol = 0.0
         for k in range(3):
             A[k, k] = mapping[i, k]
-            eps[k] = 0.5 * np.log(A[k, k])
-            vol += eps[k]
-        ss = 0.0
+        _, ss = _log_deviator(A, eps, dev)
         for k in range(3):
-            eps[k] = eps[k] - vol / 3.0
-            ss += eps[k] * eps[k]
-        for k in range(3):
-            unit[k] = eps[k] / np.sqrt(ss) if ss > 0.0 else 0.0
+            unit[k] = dev[k] / np.sqrt(ss) if ss > 0.0 else 0.0
         _j2_tangent_point(A, N_new[i], C, J, unit, lam, mu, mapping[i, 3], mapping[i, 4], P[i], tangent[i])
 
 
