@@ -445,14 +445,7 @@ class LinearSolver:
                             self.refactorizations += 1
                         return spare, kind, not single and left.nnz == 0, local - left if left.nnz else local
                 spare.close()
-        ordering = self.ordering
-        if kind in DIRECT and ordering == "nd":
-            # the first system's ordering serves all of its size: they share the mesh's pattern.
-            # Contact couplings added later cost little fill (paper impact face: 41.7 M entries
-            # against 39.7 M), ordering each system 0.2 s, most of it holding the GIL.
-            if self._perm is None or self._perm.size != A.shape[0]:
-                self._perm = fill_reducing_order(A)
-            ordering = self._perm
+        ordering = self._nd_ordering(A) if kind in DIRECT and self.ordering == "nd" else self.ordering
         factor = _factorize(A if own else 0.5 * (A + A.T), kind, near_nullspace, self.rtol, single, ordering)
         return factor, kind, own and not single, local
 
@@ -488,6 +481,15 @@ class LinearSolver:
             self._pending = None
             self._worker.submit(box.clear)
 
+    def _nd_ordering(self, A) -> np.ndarray:
+        """The nested-dissection ordering of ``A``'s size, computed for the first system: the
+        first system's ordering serves all of its size, as they share the mesh's pattern.
+        Contact couplings added later cost little fill (paper impact face: 41.7 M entries
+        against 39.7 M), ordering each system 0.2 s, most of it holding the GIL."""
+        if self._perm is None or self._perm.size != A.shape[0]:
+            self._perm = fill_reducing_order(A)
+        return self._perm
+
     def _spare_ahead(self, A, symmetric: bool, near_nullspace) -> None:
         """At the first factorization of a solver that factorizes ahead with PARDISO: the worker,
         idle until then, factorizes the same system beside the foreground and keeps it as the
@@ -497,8 +499,8 @@ class LinearSolver:
         kind = choose_method(self.method, A.shape[0], self.factor_entries, self.direct_max_entries, self.direct)
         if not (self.factorize_ahead and kind == "pardiso" and self._worker is None):
             return
-        if self.ordering == "nd" and (self._perm is None or self._perm.size != A.shape[0]):
-            self._perm = fill_reducing_order(A)  # before the worker starts: one ordering for both
+        if self.ordering == "nd":
+            self._nd_ordering(A)  # before the worker starts: one ordering for both
 
         def spare() -> None:
             self._retire(self._new_factor(A, symmetric, near_nullspace)[0])

@@ -80,7 +80,7 @@ class LocalCorrection:
             return None, None
         y_rhs = self._add_columns(dofs[self._slot[dofs] < 0], rhs)
         cols = self._slot[dofs]
-        G = self._Wt[cols][:, dofs].T.astype(np.float64)  # (F^-1)_RR
+        G = self._Wt[np.ix_(cols, dofs)].T.astype(np.float64)  # (F^-1)_RR: only the k x k block read
         D = delta[dofs][:, dofs].toarray()
         lu = sla.lu_factor(np.eye(dofs.size) + D @ G)
         Wt = self._Wt[:self.columns]
