@@ -123,3 +123,19 @@ def test_a_reused_factor_with_the_local_term_corrected_converges_at_once(method)
         counts[told] = info.iterations
         assert solver.correction_columns == (10 if told else 0)  # 20-24, 150-154
     assert counts[True] <= (1 if method == "superlu" else 4) < counts[False], counts
+
+
+def test_a_symmetric_factor_with_the_skew_part_corrected_preconditions_as_the_lu_does():
+    """The LDL^T of the symmetric part of ``K + C1`` (``C1`` unsymmetric, a friction tangent),
+    with the correction told that the factor holds the symmetric part of ``C1``, is the exact
+    inverse of ``K + C2`` for any later ``C2`` on the corrected dofs: the skew part, local as
+    friction's is, costs no accuracy."""
+    K = _stiffness()
+    C1, C2 = _contact([3, 4, 5, 60, 61], 1), _contact([4, 5, 6, 60, 100, 101, 102], 2)
+    S1 = 0.5 * (C1 + C1.T)
+    factor = spla.splu((K + S1).tocsc())  # the factor of the symmetric part
+    correction = LocalCorrection(factor.solve, N, S1, threshold=0.0)
+    x = np.random.default_rng(5).standard_normal(N)
+    for C in (C1, C2):
+        apply = correction.preconditioner(C)
+        assert np.abs(apply((K + C) @ x) - x).max() <= 1e-10 * np.abs(x).max()

@@ -293,6 +293,8 @@ def test_the_integrator_is_a_fidelity_option():
         ImplicitOptions(linear_target=-0.1)
     with pytest.raises(ValueError, match="line_search 'wolfe' must be one of"):
         ImplicitOptions(line_search="wolfe")
+    with pytest.raises(ValueError, match=r"correction_threshold 1.5 must lie in \[0, 1\)"):
+        ImplicitOptions(correction_threshold=1.5)
 
 
 def test_a_rigid_sphere_needs_its_motion():

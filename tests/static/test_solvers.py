@@ -282,3 +282,5 @@ def test_no_factorization_is_made_ahead_after_an_easy_solve():
     assert made == {0: 2, 100: 1}
     with pytest.raises(ValueError, match="factorize_ahead_above -1 must be >= 0"):
         LinearSolver("superlu", factorize_ahead_above=-1)
+    with pytest.raises(ValueError, match=r"correction_threshold -0.1 must lie in \[0, 1\)"):
+        LinearSolver("superlu", correction_threshold=-0.1)

@@ -147,15 +147,17 @@ def choose_method(method: str, n_dofs: int, factor_entries: int | None,
 
 
 def _factorize(A: sp.spmatrix, method: str, near_nullspace, rtol: float, single: bool = False,
-               ordering: str | np.ndarray = "nd"):
+               ordering: str | np.ndarray = "nd", symmetric_part: bool = False):
     """A callable ``b -> x`` for ``A`` (exact for direct methods, one AMG-CG solve otherwise;
     ``single``: SuperLU or PARDISO in float32, an approximate inverse; ``ordering``: see
-    :func:`superlu`; PARDISO takes a permutation or runs METIS itself)."""
+    :func:`superlu`; PARDISO takes a permutation or runs METIS itself; ``symmetric_part``:
+    PARDISO's LDL^T of ``(A + A^T) / 2``)."""
     if method == "pardiso":
         from toolkit.common.fem.pardiso import PardisoError, PardisoFactor
 
         try:
-            return PardisoFactor(A, ordering if isinstance(ordering, np.ndarray) else None, single)
+            return PardisoFactor(A, ordering if isinstance(ordering, np.ndarray) else None, single,
+                                 symmetric=symmetric_part)
         except PardisoError as exc:
             raise SolverError(str(exc)) from exc
     if method == "superlu":
@@ -282,6 +284,16 @@ class LinearSolver:
         needed more than this many Krylov iterations, or factorized (0: always): a factor that still
         preconditions in one or two is nearly exact, and another would buy nothing. The choice
         depends on iteration counts only, so it stays reproducible.
+    correction_threshold : the Woodbury correction of a reused direct factor for the change of
+        the ``local`` term (:meth:`solve`) leaves dofs whose change is below this fraction of the
+        largest to the Krylov iterations (:class:`~toolkit.common.fem.woodbury.LocalCorrection`'s
+        ``threshold``; 0: every dof the change touches)
+    symmetric_factor : PARDISO factorizes the symmetric part ``(A + A^T) / 2`` of every system by
+        LDL^T (:class:`~toolkit.common.fem.pardiso.PardisoFactor`'s ``symmetric``) instead of ``A``
+        by LU: half the factorization time and memory. An unsymmetric ``A`` is then solved by
+        GMRES, and the skew part of its ``local`` term (slipping friction's) is taken exactly by
+        the Woodbury correction, so a factor preconditions as the LU of ``A`` does where the skew
+        part is local. Other methods ignore it.
     """
 
     #: a retired PARDISO factor is refactorized for a new matrix (no new symbolic analysis) when
@@ -295,7 +307,8 @@ class LinearSolver:
                  reuse: bool = True, max_reuse_iterations: int = 60, reuse_rtol: float = 1e-13,
                  timed_budget: bool = True, direct_max_entries: int = AUTO_DIRECT_MAX_ENTRIES,
                  single_precision: bool = False, ordering: str = "nd", factorize_ahead: int = 0,
-                 direct: str = "superlu", factorize_ahead_above: int = 0):
+                 direct: str = "superlu", factorize_ahead_above: int = 0, symmetric_factor: bool = False,
+                 correction_threshold: float = 0.05):
         if method not in METHODS:
             raise ValueError(f"unknown solver {method!r}; expected one of {METHODS}")
         if direct not in DIRECT:
@@ -310,6 +323,11 @@ class LinearSolver:
             raise ValueError(f"factorize_ahead_above {factorize_ahead_above} must be >= 0 (Krylov iterations)")
         self.ordering, self.factorize_ahead = ordering, int(factorize_ahead)
         self.factorize_ahead_above = int(factorize_ahead_above)
+        self.symmetric_factor = bool(symmetric_factor)
+        if not 0 <= correction_threshold < 1:
+            raise ValueError(f"correction_threshold {correction_threshold} must lie in [0, 1) (a fraction of the "
+                             "largest change of the local term)")
+        self.correction_threshold = float(correction_threshold)
         self._last_iterations = None  # the Krylov iterations of the last solve (None: it factorized)
         self._perm = None  # the nested-dissection ordering of this size's systems
         self._worker = None  # the thread pool of one that factorizes ahead
@@ -329,6 +347,7 @@ class LinearSolver:
         self.background_factorizations = 0  # made ahead (``factorize_ahead``) and taken into use
         self.waited_s = 0.0  # seconds the solves waited for those
         self.reuses = 0
+        self.krylov_iterations = 0  # over all solves
         self.correction_columns = 0  # back-solves of the Woodbury corrections (solve's ``local``)
         self.refactorizations = 0  # PARDISO factors refactorized without a new analysis
         self._local = None
@@ -387,7 +406,7 @@ class LinearSolver:
                               background=False)
                 self.factorizations += 1
             t_apply = time.perf_counter()
-            x, iterations = self._apply(A, b, x0, fresh_rtol)
+            x, iterations = self._apply(A, b, x0, fresh_rtol, local)
             t_end = time.perf_counter()
             per_application = (t_end - t_apply) / max(iterations, 1)
             # a reuse may spend what a new factorization costs, in preconditioned Krylov iterations
@@ -404,6 +423,7 @@ class LinearSolver:
             raise SolverError(f"{self._kind} solve did not converge: relative residual {res:.2e} after {iterations} "
                               f"iterations; the system may be singular (under-constrained model)")
         self._last_iterations = iterations if reused else None
+        self.krylov_iterations += iterations
         return x, SolveInfo(self._kind, iterations, res, time.perf_counter() - t0, reused)
 
     def close(self) -> None:
@@ -423,30 +443,38 @@ class LinearSolver:
 
     def _new_factor(self, A, symmetric: bool, near_nullspace, local=None):
         """``(factor, kind, exact, local_in_factor)`` for ``A``: of ``A`` itself, or of its
-        symmetric part (AMG, CHOLMOD on an unsymmetric ``A``); exact unless float32 or of the
-        symmetric part. With PARDISO a retired factor is refactorized on its own analysed
-        pattern when that holds all of ``A``, or all but some entries of the ``local`` term (see
-        :meth:`solve`; at most :attr:`max_left_out` of its entries): those are left out and
-        ``local_in_factor`` is the rest of ``local``, so that the Woodbury correction takes
-        them. (Paper impact run: the systems before contact, which have no local term, were
-        factorized afresh before, 4 analyses of ~0.5 s each where the worker was behind.)"""
+        symmetric part (AMG, CHOLMOD on an unsymmetric ``A``; PARDISO with
+        :attr:`symmetric_factor`, whose ``local_in_factor`` is then the symmetric part of
+        ``local``); exact unless float32 or of the symmetric part of an unsymmetric ``A``. With
+        PARDISO a retired factor is refactorized on its own analysed pattern when that holds
+        all of ``A``, or all but some entries of the ``local`` term (see :meth:`solve`; at
+        most :attr:`max_left_out` of its entries): those are left out and ``local_in_factor``
+        is the rest, so that the Woodbury correction takes them. (Paper impact run: the
+        systems before contact, which have no local term, were factorized afresh before, 4
+        analyses of ~0.5 s each where the worker was behind.)"""
         kind = choose_method(self.method, A.shape[0], self.factor_entries, self.direct_max_entries, self.direct)
-        own = symmetric or kind in DIRECT
         single = self.single_precision and kind in DIRECT
+        halves = kind == "pardiso" and self.symmetric_factor  # LDL^T of the symmetric part
+        own = (symmetric or kind in DIRECT) and not (halves and not symmetric)
+        if halves and local is not None:
+            local = 0.5 * (local + local.T)
         if kind == "pardiso":
             with self._lock:
                 spare, self._spare = self._spare, None
             if spare is not None:
-                if spare.single == single and spare.shape == A.shape:
+                if spare.single == single and spare.symmetric == halves and spare.shape == A.shape:
                     # without a local term nothing may be left out: A must fit the analysed pattern
                     left = spare.refactorize(A, local, 0 if local is None else int(self.max_left_out * local.nnz))
                     if left is not None:
                         with self._lock:  # the worker and a foreground factorization may count at once
                             self.refactorizations += 1
-                        return spare, kind, not single and left.nnz == 0, local - left if left.nnz else local
+                        return spare, kind, own and not single and left.nnz == 0, local - left if left.nnz else local
                 spare.close()
         ordering = self._nd_ordering(A) if kind in DIRECT and self.ordering == "nd" else self.ordering
-        factor = _factorize(A if own else 0.5 * (A + A.T), kind, near_nullspace, self.rtol, single, ordering)
+        if halves:
+            factor = _factorize(A, kind, near_nullspace, self.rtol, single, ordering, symmetric_part=True)
+        else:
+            factor = _factorize(A if own else 0.5 * (A + A.T), kind, near_nullspace, self.rtol, single, ordering)
         return factor, kind, own and not single, local
 
     def _install(self, made: tuple, A, symmetric: bool, background: bool) -> None:
@@ -535,7 +563,7 @@ class LinearSolver:
             return self._factor.aspreconditioner(cycle="V")
         return spla.LinearOperator(shape, matvec=self._factor, dtype=float)
 
-    def _apply(self, A, b, x0, rtol: float) -> tuple[np.ndarray, int]:
+    def _apply(self, A, b, x0, rtol: float, local=None) -> tuple[np.ndarray, int]:
         """Solve with the fresh factorization of ``A`` (or of its symmetric part, or in float32)."""
         if self._kind == "amg" and self._symmetric:
             residuals = []
@@ -543,7 +571,7 @@ class LinearSolver:
             return x, len(residuals) - 1
         if self._exact:
             return self._factor(b), 0
-        x, count = _krylov(A, b, x0, self._preconditioner(A.shape), rtol, 500, symmetric=self._symmetric)
+        x, count = self._iterate(A, b, x0, self._symmetric, local, rtol, 500)
         return (x, count) if x is not None else (np.full_like(b, np.nan), count)
 
     def _reuse(self, A, b, x0, symmetric, local, fresh_rtol: float,
@@ -554,24 +582,31 @@ class LinearSolver:
         same = (A.nnz == self._A.nnz and np.array_equal(A.indptr, self._A.indptr)
                 and np.array_equal(A.indices, self._A.indices) and np.array_equal(A.data, self._A.data))
         if same:
-            return self._apply(A, b, x0, fresh_rtol)
+            return self._apply(A, b, x0, fresh_rtol, local)
         if self._budget < 2:
             return None, 0
         rtol = fresh_rtol if self._kind == "amg" else reuse_rtol
-        corrected = None
+        return self._iterate(A, b, x0, symmetric, local, rtol, self._budget)
+
+    def _iterate(self, A, b, x0, symmetric, local, rtol: float, maxiter: int) -> tuple[np.ndarray | None, int]:
+        """Krylov iterations on ``A`` preconditioned by the stored factor or hierarchy: for a
+        direct factor, corrected exactly for the difference between ``local`` and the local
+        term it holds (GMRES), else CG when ``A`` and the factor are symmetric, GMRES otherwise;
+        ``x`` None when they do not converge in ``maxiter``."""
         if self._kind in DIRECT and (local is not None or self._local is not None):
             if self._correction is None:
                 single = self.single_precision and self._kind in DIRECT  # as _new_factor decides
                 self._correction = LocalCorrection(self._factor, A.shape[0], self._local,
+                                                   threshold=self.correction_threshold,
                                                    dtype=np.float32 if single else np.float64)
             before = self._correction.columns
             # with no x0, GMRES's first application is to b: solved with the new columns
             corrected, first = self._correction.preconditioner_and_solve(local, b if x0 is None else None)
             self.correction_columns += self._correction.columns - before
-        if corrected is not None:
-            M = spla.LinearOperator(A.shape, matvec=corrected, dtype=float)
-            return _gmres(A, b, x0, M, rtol, self._budget, first=first)
-        return _krylov(A, b, x0, self._preconditioner(A.shape), rtol, self._budget,
+            if corrected is not None:
+                M = spla.LinearOperator(A.shape, matvec=corrected, dtype=float)
+                return _gmres(A, b, x0, M, rtol, maxiter, first=first)
+        return _krylov(A, b, x0, self._preconditioner(A.shape), rtol, maxiter,
                        symmetric=symmetric and self._symmetric)
 
 
