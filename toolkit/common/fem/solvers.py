@@ -455,7 +455,7 @@ class LinearSolver:
         kind = choose_method(self.method, A.shape[0], self.factor_entries, self.direct_max_entries, self.direct)
         single = self.single_precision and kind in DIRECT
         halves = kind == "pardiso" and self.symmetric_factor  # LDL^T of the symmetric part
-        own = (symmetric or kind in DIRECT) and not (halves and not symmetric)
+        own = symmetric or (kind in DIRECT and not halves)  # a factor of A itself
         if halves and local is not None:
             local = 0.5 * (local + local.T)
         if kind == "pardiso":
