@@ -471,10 +471,8 @@ class LinearSolver:
                         return spare, kind, own and not single and left.nnz == 0, local - left if left.nnz else local
                 spare.close()
         ordering = self._nd_ordering(A) if kind in DIRECT and self.ordering == "nd" else self.ordering
-        if halves:
-            factor = _factorize(A, kind, near_nullspace, self.rtol, single, ordering, symmetric_part=True)
-        else:
-            factor = _factorize(A if own else 0.5 * (A + A.T), kind, near_nullspace, self.rtol, single, ordering)
+        factor = _factorize(A if own or halves else 0.5 * (A + A.T), kind, near_nullspace, self.rtol, single, ordering,
+                            symmetric_part=halves)
         return factor, kind, own and not single, local
 
     def _install(self, made: tuple, A, symmetric: bool, background: bool) -> None:
@@ -595,10 +593,9 @@ class LinearSolver:
         ``x`` None when they do not converge in ``maxiter``."""
         if self._kind in DIRECT and (local is not None or self._local is not None):
             if self._correction is None:
-                single = self.single_precision and self._kind in DIRECT  # as _new_factor decides
                 self._correction = LocalCorrection(self._factor, A.shape[0], self._local,
                                                    threshold=self.correction_threshold,
-                                                   dtype=np.float32 if single else np.float64)
+                                                   dtype=np.float32 if self.single_precision else np.float64)
             before = self._correction.columns
             # with no x0, GMRES's first application is to b: solved with the new columns
             corrected, first = self._correction.preconditioner_and_solve(local, b if x0 is None else None)
