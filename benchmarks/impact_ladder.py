@@ -1,4 +1,4 @@
-"""Speed/accuracy ladder of the impact simulation (seed 002's scene, 30 mm/s).
+"""Speed/accuracy ladder of the impact simulation (the impact paper's scene, 30 mm/s).
 
 Each fidelity option (element order, rigid or deformable ball, mass scaling, time-step
 safety factor, and the integrator: explicit dynamics or quasi-static Newton with its residual
@@ -44,14 +44,14 @@ import pandas as pd
 
 RESULTS = Path(__file__).parent / "results"
 FIDELITY = ["integrator", "order", "ball", "mass_scaling", "safety"]
-SEED_VELOCITY = 30.0  # mm/s, seed 002's ball
+SEED_VELOCITY = 30.0  # mm/s, the impact paper's ball
 TOLERANCE = 3e-3  # the implicit Newton tolerance of rows written before the tolerance column
 
 
 def _key(r) -> str:
     implicit = "_implicit" if r.get("integrator", "explicit") == "implicit" else ""
     v = float(r.get("velocity", SEED_VELOCITY))
-    speed = "" if v == SEED_VELOCITY else f"_v{v:g}"  # rows of seed 002's 30 mm/s keep their names
+    speed = "" if v == SEED_VELOCITY else f"_v{v:g}"  # rows of the impact paper's 30 mm/s keep their names
     tol = float(r.get("tolerance", TOLERANCE))
     if implicit and tol != TOLERANCE:
         implicit += f"_tol{tol:g}"
@@ -168,9 +168,9 @@ def main(argv=None) -> pd.DataFrame:
     p.add_argument("--safety", nargs="+", type=float, default=[0.9])
     p.add_argument("--integrators", nargs="+", default=["explicit"], choices=["explicit", "implicit"],
                    help="implicit: quasi-static Newton (mass scaling and safety do not apply; run once)")
-    p.add_argument("--duration", type=float, default=1.8, help="simulated time, s (seed 002: 1.8)")
+    p.add_argument("--duration", type=float, default=1.8, help="simulated time, s (the impact paper: 1.8)")
     p.add_argument("--velocities", nargs="+", type=float, default=[SEED_VELOCITY],
-                   help="ball speeds, mm/s (seed 002: 30; its range 20-50); each speed has its own reference")
+                   help="ball speeds, mm/s (the impact paper: 30; its range 20-50); each speed has its own reference")
     p.add_argument("--tolerances", nargs="+", type=float, default=[TOLERANCE],
                    help="Newton tolerances of the implicit runs (relative residual; Fidelity.tolerance)")
     p.add_argument("--out", type=Path, default=RESULTS / "impact_ladder.csv")

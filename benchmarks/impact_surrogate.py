@@ -1,11 +1,11 @@
-"""Impact surrogate benchmark: the paper-scale database, then seed 002's LSTM, the stronger
-LSTM and the non-recurrent baseline side by side against seed 002's figures.
+"""Impact surrogate benchmark: the paper-scale database, then the impact paper's LSTM, the stronger
+LSTM and the non-recurrent baseline side by side against the impact paper's figures.
 
 Stages (each resumable; rerun the same command to continue):
 
 1. ``database``: the skull-held yielding scene (``toolkit.impact.yielding_scene``) on the
-   paper face at seed 002's six velocities plus the held-out 23, 35 and 47 mm/s, at the
-   chosen fidelity (default: tet10 face, deformable ball, no mass scaling, seed 002's own
+   paper face at the impact paper's six velocities plus the held-out 23, 35 and 47 mm/s, at the
+   chosen fidelity (default: tet10 face, deformable ball, no mass scaling, the impact paper's own
    model) -> ``results/impact_paper.h5``; the per-velocity yield table
    -> ``results/impact_surrogate_yield.csv``.
 2. ``sweep`` (optional, ``--sweep``): candidate LSTM sizes on the random split with a
@@ -34,7 +34,7 @@ import pandas as pd
 
 RESULTS = Path(__file__).parent / "results"
 
-#: seed 002's reported figures (Abaqus FE, Keras LSTM hidden 5 / output 1, ~3 h training)
+#: the impact paper's reported figures (Abaqus FE, Keras LSTM hidden 5 / output 1, ~3 h training)
 SEED_002 = {"displacement_rmse_mm": 3.13, "displacement_pearson": 0.98, "von_mises_rmse_mpa": 0.001,
             "von_mises_pearson": 0.94, "train_seconds": 3 * 3600.0}
 #: the issue's goals
@@ -42,10 +42,10 @@ GOALS = {"displacement_rmse_mm": ("<", 1.0), "displacement_pearson": (">=", 0.99
          "von_mises_pearson": (">=", 0.97), "train_seconds": ("<", 900.0)}
 
 #: candidates for the stronger LSTM (sweep stage), each a change of CONFIGS["strong"]: the inputs and
-#: loss of seed 002 with a bigger LSTM, then one knob at a time (output scaling by the travel,
+#: loss of the impact paper with a bigger LSTM, then one knob at a time (output scaling by the travel,
 #: positional encoding, sizes, separate single-output LSTMs)
 SWEEP = {
-    "lstm64x2_seed_inputs_mae": dict(features="seed", loss="mae", fourier=0, per_travel=False),
+    "lstm64x2_seed_inputs_mae": dict(features="paper", loss="mae", fourier=0, per_travel=False),
     "lstm64x2_ball_mse": dict(fourier=0, per_travel=False),
     "lstm64x2_ball_mse_travel": dict(fourier=0),
     "lstm64x2_ball_mse_travel_fourier6": dict(),
@@ -87,9 +87,9 @@ def stage_database(args, db_path: Path) -> pd.DataFrame:
 
 
 def _train_eval(db, cfg, split, out: Path, seed: int) -> dict:
-    from toolkit.common.compat import IncompatibleError
+    from toolkit.common.config_diff import IncompatibleError
     from toolkit.impact.evaluation import evaluate_surrogate, write_evaluation
-    from toolkit.impact.lstm import ImpactSurrogate, train_surrogate
+    from toolkit.impact.surrogate import ImpactSurrogate, train_surrogate
 
     model = None
     if (out / "config.json").exists():
@@ -108,7 +108,7 @@ def _train_eval(db, cfg, split, out: Path, seed: int) -> dict:
 def stage_sweep(args, db) -> pd.DataFrame:
     from dataclasses import asdict
 
-    from toolkit.impact.lstm import CONFIGS
+    from toolkit.impact.surrogate import CONFIGS
 
     path = RESULTS / f"impact_surrogate_sweep{args.suffix}.csv"
     rows = pd.read_csv(path).to_dict(orient="records") if path.exists() else []
@@ -129,11 +129,11 @@ def stage_sweep(args, db) -> pd.DataFrame:
 
 
 def stage_models(args, db) -> pd.DataFrame:
-    from toolkit.impact.lstm import CONFIGS
+    from toolkit.impact.surrogate import CONFIGS
 
     rows = []
     for split in ("random", "velocity"):
-        for name in ("seed", "strong", "baseline"):
+        for name in ("paper", "strong", "baseline"):
             cfg = CONFIGS[name]
             minutes = args.strong_minutes if name == "strong" and args.strong_minutes else args.max_minutes
             if minutes:
@@ -147,7 +147,7 @@ def stage_models(args, db) -> pd.DataFrame:
                 "inference_ms", "fe_ms_per_frame", "speedup_vs_fe", "n_train_items", "n_test_items")}})
             pd.DataFrame(rows).to_csv(RESULTS / f"impact_surrogate{args.suffix}.csv", index=False)
     table = pd.DataFrame(rows)
-    seed_row = {"config": "seed 002 (paper)", "split": "random", **SEED_002}
+    seed_row = {"config": "the impact paper (paper)", "split": "random", **SEED_002}
     print(pd.concat([table, pd.DataFrame([seed_row])], ignore_index=True)[
         ["config", "split", "displacement_rmse_mm", "displacement_pearson", "displacement_nrmse", "von_mises_rmse_mpa",
          "von_mises_pearson", "von_mises_nrmse", "train_seconds", "inference_ms", "fe_ms_per_frame"]].to_string(
@@ -177,7 +177,7 @@ def _plot(table: pd.DataFrame, path: Path) -> None:
             sub = table[table.split == split].set_index("config").reindex(configs)
             ax.bar(np.arange(len(configs)) + (j - 0.5) * width, sub[key], width, label=f"{split} split")
         if key in SEED_002:
-            ax.axhline(SEED_002[key], color="k", ls="--", lw=1, label="seed 002")
+            ax.axhline(SEED_002[key], color="k", ls="--", lw=1, label="the impact paper")
         if key in GOALS:
             ax.axhline(GOALS[key][1], color="C3", ls=":", lw=1, label="goal")
         if key == "inference_ms":

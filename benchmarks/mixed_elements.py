@@ -25,9 +25,9 @@ from toolkit.common.mesh import Mesh
 from toolkit.common.mixed_bar import mixed_bar
 from toolkit.common.phantom import block
 from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
-from toolkit.static.assembly import MaterialAssignment
+from toolkit.static.stiffness import MaterialAssignment
 from toolkit.static.constraints import Constraints
-from toolkit.static.fem import StaticProblem
+from toolkit.static.problem import StaticProblem
 
 CENTRE = np.array([-12.0, 5.0, 5.0])  # cavity centre, mm
 B = 20.0  # p a^3 / (4 mu), mm^3

@@ -1,7 +1,7 @@
 """Robustness of the static FE over the physiological plan space (issue: static ground truth).
 
 For every combination of resolution x material x sliding model x sampler mode, runs
-``--plans`` plans drawn by :func:`toolkit.static.plan.sample_plans` (seed 001's ranges,
+``--plans`` plans drawn by :func:`toolkit.static.plan.sample_plans` (the lip-sliding paper's ranges,
 both segments moved) and records per plan: status (ok / the error's class), wall time,
 minimum corner scaled Jacobian of every increment's deformed mesh, increments cut, the
 release band used, the fixed nodes of the cut freed (``SimulationOptions.free_cut_radius``),

@@ -3,7 +3,7 @@ baselines and the FE, on the same test samples of a paper-resolution database.
 
 Stages (each resumable; rerun the same command to continue):
 
-1. ``database``: ``--plans`` plans (``--mode``, seed 001's ranges, 3 increments, linear,
+1. ``database``: ``--plans`` plans (``--mode``, the lip-sliding paper's ranges, 3 increments, linear,
    mucosa + lip sliding) on the default face -> ``results/static_paper.h5``; and, for the
    held-out-subject goal, ``--subject-plans`` plans on each of ``--subjects`` phantom shapes
    -> ``results/static_paper_subjects.h5``.
@@ -40,7 +40,7 @@ import numpy as np
 import pandas as pd
 
 RESULTS = Path(__file__).resolve().parent / "results"
-#: seed 000's reported test mean errors (mm) and the issue's goals
+#: the PointNet++ paper's reported test mean errors (mm) and the issue's goals
 SEED_000 = (0.159, 0.642)
 GOALS = {"one subject": 0.2, "unseen subject": 0.4, "inference_ms": 20.0}
 VARIANTS = {
@@ -240,7 +240,7 @@ def _plot(table: pd.DataFrame, path: Path) -> None:
     for i, r in table.iterrows():
         ax.scatter(r.inference_ms, r.mean_error_mm, s=40, color=f"C{i}", label=f"{r.method} ({r.test})")
     ax.axvline(float(table.fe_ms.median()), color="k", ls="--", lw=1, label="FE per increment")
-    ax.axhspan(*SEED_000, color="0.9", label="seed 000 (GPU, MRI faces)")
+    ax.axhspan(*SEED_000, color="0.9", label="the PointNet++ paper (GPU, MRI faces)")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("time per prediction (ms, this CPU, batch 1)")

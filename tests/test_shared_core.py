@@ -3,7 +3,7 @@ patch test on the tet faces (issue 11, item 6; the hex8 and wedge6 patch tests a
 tests/static).
 
 Both map their cells through the shared kinematics (:mod:`toolkit.common.fem.kinematics`).
-The static linear path builds stiffness from Voigt B matrices (:mod:`toolkit.static.assembly`);
+The static linear path builds stiffness from Voigt B matrices (:mod:`toolkit.static.stiffness`);
 the impact workflow integrates finite-strain J2 (:mod:`toolkit.impact.plasticity`) and its
 critical time step and implicit path use ``element_tangent`` of ``dP/dF``
 (:mod:`toolkit.common.fem.assembly`). On the same tet4 and tet10 faces and the same
@@ -37,9 +37,9 @@ from toolkit.common.phantom import block, face_tet
 from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
 from toolkit.impact.elements import _element_stiffness, tet_kinematics
 from toolkit.impact.plasticity import FACE_TABLE, J2Plasticity
-from toolkit.static.assembly import MaterialAssignment, _block_stiffness, linear_stiffness
+from toolkit.static.stiffness import MaterialAssignment, _block_stiffness, linear_stiffness
 from toolkit.static.constraints import Constraints
-from toolkit.static.fem import StaticProblem
+from toolkit.static.problem import StaticProblem
 
 E_MPA, NU = 0.015, 0.45
 

@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(ph)
     ph.set_defaults(func=_cmd_phantom)
 
-    st = sub.add_parser("static", help="orthognathic-surgery workflow (seed 001)",
+    st = sub.add_parser("static", help="orthognathic-surgery workflow (the lip-sliding paper)",
                         description="Static workflow: incremental FEM of the face after orthognathic surgery.")
     st_sub = st.add_subparsers(dest="static_command", metavar="STATIC_COMMAND")
     st_sub.required = True
@@ -69,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="bone surface of a segment (lefort, distal, proximal_left, proximal_right, skull) as "
                           "STL/OBJ/PLY/VTK/VTU/OFF in mm, e.g. --bone lefort=maxilla.stl; repeatable. Without it a "
                           "--mesh run rebuilds the surfaces from the mesh's bone-side faces")
-    sim.add_argument("--increments", type=int, default=3, help="number of increments (default 3, seed 001)")
+    sim.add_argument("--increments", type=int, default=3, help="number of increments (default 3, the lip-sliding paper)")
     sim.add_argument("--material", default="linear", choices=["linear", "neo-hookean"])
     sim.add_argument("--sliding", default="mucosa+lip", choices=["none", "mucosa", "mucosa+lip"])
     sim.add_argument("--solver", default="auto", choices=["auto", "superlu", "amg", "cholmod"])
@@ -81,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     ds = st_sub.add_parser("dataset", help="generate the surrogate's learning database",
                            description="Simulate sampled plans on phantom subjects; every increment is a learning "
-                                       "sample (seed 000). Resumable: a rerun skips finished simulations; failures "
+                                       "sample (the PointNet++ paper). Resumable: a rerun skips finished simulations; failures "
                                        "are recorded with their reason. Ctrl-C loses no finished simulation.")
     ds.add_argument("--resolution", default="coarse", choices=["coarse", "paper", "fine"])
     ds.add_argument("--subjects", type=int, default=1, help="phantom subjects (0: default shape; k: FaceShape.sample(k))")
@@ -98,12 +98,12 @@ def build_parser() -> argparse.ArgumentParser:
     ds.set_defaults(func=_cmd_static_dataset)
 
     tr = st_sub.add_parser("train", help="train the PointNet++ surrogate on a database",
-                           description="Train PointNet++ (seed 000) on a static database; writes model.pt and "
+                           description="Train PointNet++ (the PointNet++ paper) on a static database; writes model.pt and "
                                        "config.json (checkpoint.pt while training; --resume continues it).")
     tr.add_argument("--data", required=True, type=Path)
     tr.add_argument("--out", required=True, type=Path, help="model directory")
     tr.add_argument("--variant", default="explicit", choices=["explicit", "implicit", "hard"],
-                    help="boundary types as inputs (explicit, seed 000), none (implicit), or explicit with exact "
+                    help="boundary types as inputs (explicit, the PointNet++ paper), none (implicit), or explicit with exact "
                          "boundary values (hard)")
     tr.add_argument("--extra-channels", action="store_true", help="mucosa/lip one-hot, jaw side, mucosa bone motion")
     tr.add_argument("--material-channels", action="store_true", help="Poisson's ratio per node")
@@ -151,15 +151,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(pr)
     pr.set_defaults(func=_cmd_static_predict)
 
-    im = sub.add_parser("impact", help="ball-impact workflow (seed 002)",
+    im = sub.add_parser("impact", help="ball-impact workflow (the impact paper)",
                         description="Impact workflow: explicit elastoplastic simulation of a ball pressed into the face.")
     im_sub = im.add_subparsers(dest="impact_command", metavar="IMPACT_COMMAND")
     im_sub.required = True
     isim = im_sub.add_parser("simulate", help="run an impact scene",
                              description="Run the simulation (explicit or quasi-static) and write face.xdmf (displacement, von_mises), "
                                          "ball.xdmf (deformable ball), history.h5, summary.json and preview.png.")
-    isim.add_argument("--scene", type=Path, help="scene TOML (default: seed 002's scene)")
-    isim.add_argument("--velocity", type=float, help="ball velocity, mm/s (seed 002: 20-50)")
+    isim.add_argument("--scene", type=Path, help="scene TOML (default: the impact paper's scene)")
+    isim.add_argument("--velocity", type=float, help="ball velocity, mm/s (the impact paper: 20-50)")
     isim.add_argument("--resolution", choices=["coarse", "paper"], help="face resolution")
     isim.add_argument("--ball", choices=["deformable", "rigid"], help="ball model")
     isim.add_argument("--order", type=int, choices=[1, 2], help="tetrahedron order (1: tet4, 2: tet10)")
@@ -178,7 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "displacement and von Mises time series in one resumable HDF5 file (rerun to resume; failures "
                     "are recorded). Default scene: the face held by the skull, 0.36 s (yielding_scene).")
     ids.add_argument("--velocities", type=_floats, default=None,
-                     help="training velocities, mm/s, comma-separated (default seed 002's 20,26,32,38,44,50)")
+                     help="training velocities, mm/s, comma-separated (default the impact paper's 20,26,32,38,44,50)")
     ids.add_argument("--held-out", type=_floats, default=None,
                      help="held-out velocities, mm/s (default: midpoints of every other gap, 23,35,47); '' for none")
     ids.add_argument("--scene", type=Path, help="scene TOML (default: the skull-held yielding scene)")
@@ -192,13 +192,13 @@ def build_parser() -> argparse.ArgumentParser:
     ids.set_defaults(func=_cmd_impact_dataset)
 
     itr = im_sub.add_parser("train", help="train a surrogate on a database",
-                            description="Train the seed 002 LSTM, the stronger LSTM or the non-recurrent baseline; "
+                            description="Train the the impact paper LSTM, the stronger LSTM or the non-recurrent baseline; "
                                         "writes model.pt, config.json (with the scalers) and checkpoint.pt.")
     itr.add_argument("--data", required=True, type=Path, help="database (.h5) from `toolkit impact dataset`")
     itr.add_argument("--out", required=True, type=Path, help="model directory")
-    itr.add_argument("--config", default="seed", choices=["seed", "strong", "baseline"])
+    itr.add_argument("--config", default="paper", choices=["paper", "strong", "baseline", "seed"])
     itr.add_argument("--split", default="random", choices=["random", "velocity"],
-                     help="random: 76%% of the items train (seed 002); velocity: held-out velocities are the test set")
+                     help="random: 76%% of the items train (the impact paper); velocity: held-out velocities are the test set")
     itr.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or auto")
     itr.add_argument("--seed", type=int, default=0, help="weights, batch order and split (default 0)")
     itr.add_argument("--epochs", type=int, default=None, help="maximum epochs (default: the configuration's)")
@@ -317,7 +317,7 @@ def _cmd_impact_dataset(args) -> int:
 
 def _cmd_impact_train(args) -> int:
     _torch_threads(args)
-    from toolkit.impact.lstm import CONFIGS, train_surrogate
+    from toolkit.impact.surrogate import CONFIGS, train_surrogate
 
     cfg = CONFIGS[args.config]
     if args.epochs is not None:
@@ -337,7 +337,7 @@ def _cmd_impact_evaluate(args) -> int:
     _torch_threads(args)
     from toolkit.impact.dataset import load_database
     from toolkit.impact.evaluation import evaluate_surrogate, write_evaluation
-    from toolkit.impact.lstm import ImpactSurrogate
+    from toolkit.impact.surrogate import ImpactSurrogate
 
     model = ImpactSurrogate.load(args.model)
     db = load_database(args.data)
@@ -358,7 +358,7 @@ def _cmd_impact_evaluate(args) -> int:
 
 def _cmd_impact_predict(args) -> int:
     _torch_threads(args)
-    from toolkit.impact.lstm import ImpactSurrogate, predict_scene
+    from toolkit.impact.surrogate import ImpactSurrogate, predict_scene
 
     pred = predict_scene(ImpactSurrogate.load(args.model), args.velocity)
     pred.write(args.out)

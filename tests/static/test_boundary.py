@@ -116,7 +116,7 @@ def test_fewer_than_three_fixed_or_moving_nodes_raise(phantom):
 
 
 def test_sliding_models(bc):
-    """'none' (seed 001's method 1): mucosa attached to its segment, i.e. moving with the
+    """'none' (the lip-sliding paper's method 1): mucosa attached to its segment, i.e. moving with the
     same segment, lips free; 'mucosa': lips free, mucosa kept; 'mucosa+lip': unchanged."""
     mucosa = bc.nodes(NodeType.MUCOSA_SLIDING)
     lips = bc.nodes(NodeType.LIP_SLIDING)
@@ -137,7 +137,7 @@ def test_sliding_models(bc):
 
 
 def test_one_hot_encoding(bc):
-    """Seed 000's explicit encoding (free, moving, fixed): one 1 per row; sliding nodes
+    """The PointNet++ paper's explicit encoding (free, moving, fixed): one 1 per row; sliding nodes
     (mucosa, lips) are not prescribed, so they count as free."""
     oh = bc.one_hot()
     assert oh.shape == (bc.n_nodes, 3)
@@ -176,7 +176,7 @@ def test_knn_labels_majority_vote_hand_computed():
 
 
 def test_knn_labels_transfers_phantom_types_to_itself(phantom, bc):
-    """Seed 000's transfer of types from a labelled mesh: labelling the phantom's own
+    """The PointNet++ paper's transfer of types from a labelled mesh: labelling the phantom's own
     nodes from themselves with k = 1 (each node is its own nearest neighbour at distance 0;
     coincident lip copies share a type) gives back the types exactly."""
     P = phantom.mesh.points

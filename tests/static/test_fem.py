@@ -18,7 +18,7 @@ from toolkit.common.materials import (
     lame,
 )
 from toolkit.common.mesh import Mesh
-from toolkit.static.assembly import (
+from toolkit.static.stiffness import (
     MaterialAssignment,
     kinematics,
     linear_stiffness,
@@ -27,7 +27,7 @@ from toolkit.static.assembly import (
     small_strain,
 )
 from toolkit.static.constraints import Constraints
-from toolkit.static.fem import StaticProblem, solve_with_lip_contact
+from toolkit.static.problem import StaticProblem, solve_with_lip_contact
 from toolkit.common.fem.solvers import solve
 
 # VTK hex8 corner order by local (i, j, k) bits

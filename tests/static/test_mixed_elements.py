@@ -12,7 +12,7 @@ from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsot
 from toolkit.common.mesh import Mesh, MeshError
 from toolkit.common.mixed_bar import mixed_bar
 from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
-from toolkit.static.assembly import (
+from toolkit.static.stiffness import (
     MaterialAssignment,
     kinematics,
     linear_stiffness,
@@ -20,7 +20,7 @@ from toolkit.static.assembly import (
     neo_hookean_system,
 )
 from toolkit.static.constraints import Constraints
-from toolkit.static.fem import ConvergenceError, StaticProblem
+from toolkit.static.problem import ConvergenceError, StaticProblem
 
 PATCH_MATERIALS = {
     "iso-0.3": LinearElastic(0.003, 0.3),
@@ -72,7 +72,7 @@ def test_patch_test_distorted_wedges(name):
     |G| ~ 10%, in equilibrium without body force) prescribed on the boundary is reproduced
     at the interior nodes to 1e-10 of max |u|, with no force there: isotropic at nu = 0.3,
     0.47 and 0.4999 with the mean-dilatation split (exact on distorted wedges because the
-    averaged gradients still give the exact uniform dilatation), seed 001's transversely
+    averaged gradients still give the exact uniform dilatation), the lip-sliding paper's transversely
     isotropic lip muscle, and Neo-Hookean (a homogeneous finite deformation)."""
     mesh = wedge_box()
     assert mesh.scaled_jacobian().min() < 0.7  # really distorted (ideal cut-cube wedge: 0.82)

@@ -315,7 +315,7 @@ def test_unknown_suffix(tmp_path):
 @pytest.mark.parametrize("mode", ["sagittal", "full"])
 def test_sample_plans_are_uniform_in_the_ranges(phantom, mode):
     """sample_plans draws both segments in every plan, with the pivot's translation and the
-    rotation angle inside seed 001's ranges (Le Fort 0-6.3 mm / 0-9.8 deg, distal
+    rotation angle inside the lip-sliding paper's ranges (Le Fort 0-6.3 mm / 0-9.8 deg, distal
     2.1-11.5 mm / 0.5-13.3 deg) and spread over them: 300 draws reach within 10% of both
     ends of each range. Sagittal plans translate in the y-z plane and rotate about x;
     full plans have a lateral component too. No plan warns (all within range), and every

@@ -1,4 +1,4 @@
-"""PointNet++ surrogate network (seed 000) in plain torch: the neighbourhood operations
+"""PointNet++ surrogate network (the PointNet++ paper) in plain torch: the neighbourhood operations
 against brute-force references, the per-mesh hierarchy, and the network's behaviour
 (shapes, permutation equivariance, exact hard boundary values, learning, save/load)."""
 

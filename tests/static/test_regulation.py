@@ -1,4 +1,4 @@
-"""Mesh regulation between increments (seed 001): untangling inverted elements by moving
+"""Mesh regulation between increments (the lip-sliding paper): untangling inverted elements by moving
 only the nodes no boundary condition holds, keeping boundary nodes on their surface."""
 
 import numpy as np

@@ -38,7 +38,7 @@ def _ok(result, phantom):
 @pytest.mark.slow
 def test_plans_that_failed_at_paper_resolution_now_complete(paper):
     """On main before this work, at paper resolution: the packaged plan without sliding
-    inverted 26 elements (seed 001's method 1 could not be compared), and the sampled
+    inverted 26 elements (the lip-sliding paper's method 1 could not be compared), and the sampled
     sagittal plan 3 of seed 0 (distal 12 degrees) inverted elements at the posterior lower
     corner where the ramus met the fixed edge. Both complete with every element positive."""
     _ok(simulate(paper, default_plan(paper), 3, "linear", "none"), paper)

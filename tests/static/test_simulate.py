@@ -1,4 +1,4 @@
-"""Seed 001's incremental orthognathic simulation on the coarse phantom: boundary
+"""The lip-sliding paper's incremental orthognathic simulation on the coarse phantom: boundary
 conditions met exactly, lips that never interpenetrate, physiological extremes, the
 small-strain agreement of Neo-Hookean and linear models, and convergence in the number
 of increments. Units mm."""
@@ -11,7 +11,7 @@ import pytest
 from toolkit.common.materials import LinearElastic
 from toolkit.common.phantom import face_hex
 from toolkit.common.surface_distance import closest_points
-from toolkit.static.assembly import MaterialAssignment
+from toolkit.static.stiffness import MaterialAssignment
 from toolkit.static.boundary import BoundaryConditions, NodeType
 from toolkit.static.plan import (
     PlanRangeWarning,
@@ -34,7 +34,7 @@ def plan(phantom):
 
 @pytest.fixture(scope="module")
 def linear3(phantom, plan):
-    """Default plan, 3 increments, seed 001's linear materials, mucosa and lip sliding."""
+    """Default plan, 3 increments, the lip-sliding paper's linear materials, mucosa and lip sliding."""
     return simulate(phantom, plan, 3, "linear", "mucosa+lip")
 
 
@@ -103,7 +103,7 @@ def test_lip_contact_prevents_interpenetration(phantom):
 
 def _extreme_plan(phantom, factor, force=False):
     """Le Fort I as in the default plan (4 mm advance, 2 mm impaction, 3 degrees) and the
-    distal mandible at seed 001's limits: 11.5 mm advance and 13.3 degrees about the
+    distal mandible at the lip-sliding paper's limits: 11.5 mm advance and 13.3 degrees about the
     transverse axis; both times ``factor``."""
     lefort = RigidMotion.from_rotation_vector([3.0 * factor, 0, 0], [0, 4.0 * factor, -2.0 * factor],
                                               phantom.segments["lefort"].pivot)
@@ -113,7 +113,7 @@ def _extreme_plan(phantom, factor, force=False):
 
 
 def test_physiological_extreme_converges(phantom):
-    """The distal mandible at the edge of seed 001's range (11.5 mm, 13.3 degrees) with a
+    """The distal mandible at the edge of the lip-sliding paper's range (11.5 mm, 13.3 degrees) with a
     Le Fort I inside its range is a plan the simulation must handle: it converges, the
     post-operative mesh has positive Jacobians, attached nodes reach their targets
     (1e-9 mm) and the lips do not interpenetrate (1e-6 mm)."""

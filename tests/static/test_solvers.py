@@ -7,9 +7,9 @@ import scipy.sparse as sp
 
 from toolkit.common.materials import LinearElastic
 from toolkit.common.phantom import block, face_hex
-from toolkit.static.assembly import MaterialAssignment
+from toolkit.static.stiffness import MaterialAssignment
 from toolkit.static.constraints import Constraints
-from toolkit.static.fem import StaticProblem
+from toolkit.static.problem import StaticProblem
 from toolkit.common.fem.solvers import (
     AUTO_DIRECT_MAX_ENTRIES,
     REUSED_DIRECT_MAX_ENTRIES,

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from toolkit.common.compat import IncompatibleError
+from toolkit.common.config_diff import IncompatibleError
 from toolkit.static.dataset import DatasetConfig, StaticDatabase, generate
 from toolkit.static.features import FeatureSpec
 from toolkit.static.surrogate import Surrogate, SurrogateConfig, evaluate_surrogate, train_surrogate
@@ -108,7 +108,7 @@ def test_a_model_refuses_what_it_was_not_built_for(db100, hard_model, tmp_path):
     with pytest.raises(IncompatibleError, match="nodes"):
         evaluate_surrogate(hard_model, paper)
     with pytest.raises(IncompatibleError, match="toolkit.impact"):
-        _load_as(hard_model, tmp_path, "toolkit.impact.lstm")
+        _load_as(hard_model, tmp_path, "toolkit.impact.surrogate")
     with pytest.raises(ValueError, match="Poisson"):
         train_surrogate(db100, tmp_path / "m", SurrogateConfig(FeatureSpec("explicit", material_channels=True)))
     with pytest.raises(ValueError, match="lr_schedule = 'step'"):

@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.compat import jsonable, require_same
+from toolkit.common.config_diff import jsonable, require_same
 
 __all__ = ["Job", "Record", "RunReport", "DatabaseError", "Database", "run_jobs", "read_index", "read_failures",
            "InProcessExecutor"]

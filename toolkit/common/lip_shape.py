@@ -1,4 +1,4 @@
-"""Lip-shape analysis of seed 001 (Fig. 6): midline lip profiles, Procrustes
+"""Lip-shape analysis of the lip-sliding paper (Fig. 6): midline lip profiles, Procrustes
 displacement, best-fitting circles, and the clinical acceptability thresholds.
 """
 
@@ -24,9 +24,9 @@ __all__ = [
     "lip_shape_analysis",
 ]
 
-#: Lip-shape value (mm) below which a single-lip prediction is clinically acceptable (seed 001).
+#: Lip-shape value (mm) below which a single-lip prediction is clinically acceptable (the lip-sliding paper).
 SINGLE_LIP_THRESHOLD_MM = 0.55
-#: Lip-shape value (mm) below which both lips as a whole are clinically acceptable (seed 001).
+#: Lip-shape value (mm) below which both lips as a whole are clinically acceptable (the lip-sliding paper).
 BOTH_LIPS_THRESHOLD_MM = 0.7
 
 
@@ -67,7 +67,7 @@ def _as_profile(x, name: str, min_points: int = 3) -> np.ndarray:
 
 
 def convex_part(profile, z_range, window: int = 1) -> np.ndarray:
-    """Convex (anteriorly bulging) part of a lip profile, seed 001's "lip profile".
+    """Convex (anteriorly bulging) part of a lip profile, the lip-sliding paper's "lip profile".
 
     Within ``zmin <= z <= zmax`` the profile (sorted by z) is walked upwards. The turning
     direction at point i is the 2-D cross product ``s1_y s2_z - s1_z s2_y`` of the segments
@@ -251,7 +251,7 @@ def procrustes_displacement(pred, ref, n_samples: int = 50) -> float:
 
 @dataclass(frozen=True, eq=False)
 class LipShapeDifference:
-    """Lip-shape difference between a predicted and a reference profile (seed 001).
+    """Lip-shape difference between a predicted and a reference profile (the lip-sliding paper).
 
     Attributes
     ----------
@@ -301,7 +301,7 @@ class LipShapeAnalysis:
 def lip_shape_difference(
     pred_profile, ref_profile, n_samples: int = 50, threshold_mm: float = SINGLE_LIP_THRESHOLD_MM
 ) -> LipShapeDifference:
-    """Seed 001's lip-shape value for one lip.
+    """The lip-sliding paper's lip-shape value for one lip.
 
     The paper quantifies the difference "by the combination of 1) the required displacement to
     match two lip profiles [Procrustes] and 2) the difference in the size and center of the best
@@ -344,7 +344,7 @@ def lip_shape_difference(
 def lip_shape_analysis(
     pred_upper, ref_upper, pred_lower, ref_lower, n_samples: int = 50
 ) -> LipShapeAnalysis:
-    """Seed 001's lip-shape analysis: upper lip, lower lip, and both lips as a whole.
+    """The lip-sliding paper's lip-shape analysis: upper lip, lower lip, and both lips as a whole.
 
     Single lips use :func:`lip_shape_difference` with the 0.55 mm threshold. For both lips as a
     whole (0.7 mm threshold) each of the three terms is the mean of the upper- and lower-lip

@@ -1,7 +1,7 @@
 """Elastic material laws (units: MPa), each a small class from kinematics to stress and tangent.
 
-- :class:`LinearElastic`: isotropic Hooke law (seed 001: E = 0.003 MPa, nu = 0.47).
-- :class:`TransverselyIsotropic`: linear, stiffer along a fibre (seed 001's lip muscle:
+- :class:`LinearElastic`: isotropic Hooke law (the lip-sliding paper: E = 0.003 MPa, nu = 0.47).
+- :class:`TransverselyIsotropic`: linear, stiffer along a fibre (the lip-sliding paper's lip muscle:
   E along superior-inferior 0.009 MPa, transverse 0.003 MPa, nu 0.47).
 - :class:`NeoHookean`: compressible Neo-Hookean (FEBio's ``neo-Hookean``),
   ``W = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2``.
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from toolkit.common.seeds import LIP_MUSCLE_E_FIBRE, LIP_MUSCLE_E_TRANSVERSE, TISSUE_E, TISSUE_NU
+from toolkit.common.papers import LIP_MUSCLE_E_FIBRE, LIP_MUSCLE_E_TRANSVERSE, TISSUE_E, TISSUE_NU
 
 __all__ = ["LinearElastic", "TransverselyIsotropic", "NeoHookean", "IsotropicModuli", "lame", "VOIGT",
            "MaterialWarning", "von_mises", "isotropic_tangent", "ElasticUpdate"]
@@ -178,7 +178,7 @@ class TransverselyIsotropic:
 
     Attributes (MPa unless dimensionless)
     -------------------------------------
-    E_fibre : Young's modulus along the fibre (seed 001: 0.009)
+    E_fibre : Young's modulus along the fibre (the lip-sliding paper: 0.009)
     E_transverse : Young's modulus across it (0.003)
     nu : Poisson's ratio for both planes (0.47)
     G_fibre : shear modulus in planes containing the fibre; default the transverse

@@ -6,14 +6,14 @@ are int64.
 
 Contents
 --------
-Nodal errors (seeds 000, 002)
+Nodal errors (the PointNet++ and impact papers)
     :func:`nodal_errors`, :func:`mean_euclidean_error`, :func:`rmse`, :func:`nrmse`,
     :func:`pearson`, :func:`region_errors`.
-Paired comparison of error distributions (seed 000's explicit vs implicit ablation)
+Paired comparison of error distributions (the PointNet++ paper's explicit vs implicit ablation)
     :func:`wilcoxon_paired` -> :class:`PairedComparison`.
-Surface deviation along normals (seed 001), in :mod:`toolkit.common.surface_distance`
+Surface deviation along normals (the lip-sliding paper), in :mod:`toolkit.common.surface_distance`
     :func:`vertex_normals`, :func:`surface_deviation` -> :class:`SurfaceDeviation`.
-Lip-shape analysis (seed 001, Fig. 6), in :mod:`toolkit.common.lip_shape`
+Lip-shape analysis (the lip-sliding paper, Fig. 6), in :mod:`toolkit.common.lip_shape`
     :func:`midline_profile`, :func:`convex_part`, :func:`fit_circle` -> :class:`Circle`,
     :func:`procrustes_displacement`, :func:`lip_shape_difference`,
     :func:`lip_shape_analysis`, thresholds :data:`SINGLE_LIP_THRESHOLD_MM` and
@@ -93,7 +93,7 @@ def nodal_errors(pred, true) -> np.ndarray:
 
 
 def mean_euclidean_error(pred, true) -> float:
-    """Mean Euclidean nodal error, seed 000's metric ``e = (1/N) sum_n ||v_n - u_n||``.
+    """Mean Euclidean nodal error, the PointNet++ paper's metric ``e = (1/N) sum_n ||v_n - u_n||``.
 
     Parameters
     ----------
@@ -254,7 +254,7 @@ class PairedComparison:
 def wilcoxon_paired(
     a, b, alternative: str = "two-sided", names: tuple[str, str] = ("a", "b")
 ) -> PairedComparison:
-    """Wilcoxon signed-rank test of paired error distributions (seed 000's ablation).
+    """Wilcoxon signed-rank test of paired error distributions (the PointNet++ paper's ablation).
 
     Wraps :func:`scipy.stats.wilcoxon` (zero differences discarded, exact null distribution for
     small samples without ties, normal approximation otherwise).

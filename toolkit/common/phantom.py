@@ -35,7 +35,7 @@ that attached and sliding nodes lie exactly on them, with their pivots (the
 condyles for the proximal segments).
 
 **Face (tetrahedral, impact workflow).** The same geometry on its own grid
-(``~10,000`` elements at ``paper`` resolution, like seed 002's 9,871 C3D10), each
+(``~10,000`` elements at ``paper`` resolution, like the impact paper's 9,871 C3D10), each
 hexahedron split into 6 tetrahedra; ``tet4`` or ``tet10``. Node set ``fixed`` is
 the lower part of the face (``z`` below ``lower_fixed_fraction`` of the height
 above the menton).
@@ -54,7 +54,7 @@ import numpy as np
 
 from toolkit.common.mesh import Mesh
 from toolkit.common.topology import kuhn_tets, tet10_from_tet4
-from toolkit.common.seeds import BALL_RADIUS, ball_density
+from toolkit.common.papers import BALL_RADIUS, ball_density
 
 __all__ = [
     "FaceShape",
@@ -205,7 +205,7 @@ class _Geometry:
         self.z_vest_up = 10.0 * h / 90.0  # upper vestibule depth
         self.z_vest_low = -12.0 * h / 90.0
         # degloved anterior mandible: the tissue slides on the distal segment from here up
-        # (seed 001 extends its sliding region the same way); only the inferior part is attached
+        # (the lip-sliding paper extends its sliding region the same way); only the inferior part is attached
         self.z_mandible_attached = self.z_bot + _MANDIBLE_ATTACHED_FRACTION * -self.z_bot
         self.theta_osteo = np.deg2rad(50.0)  # sagittal split, molar region
         self.theta_maxilla = np.deg2rad(55.0)  # posterior end of the Le Fort I segment
@@ -418,7 +418,7 @@ def face_hex(resolution: str | tuple[int, int, int] = "coarse", shape: FaceShape
 
     Parameters
     ----------
-    resolution : ``coarse`` (~770 nodes), ``paper`` (~4,100 nodes, seed 000 has
+    resolution : ``coarse`` (~770 nodes), ``paper`` (~4,100 nodes, the PointNet++ paper has
         3,960), ``fine`` (~50,400 nodes, 6 element layers), or ``(n_u, n_v, n_w)``
         element counts.
     shape : FaceShape, default the nominal subject
@@ -560,7 +560,7 @@ def face_tet(
 
     Parameters
     ----------
-    resolution : ``coarse`` (~1,700 tets), ``paper`` (~10,000 tets like seed 002's
+    resolution : ``coarse`` (~1,700 tets), ``paper`` (~10,000 tets like the impact paper's
         9,871 C3D10), ``fine`` (~60,000 tets), or ``(n_u, n_v, n_w)`` hexahedra
         before the 6-tet split.
     order : 1 (``tet4``) or 2 (``tet10``, straight-sided, Abaqus C3D10 equivalent)
@@ -622,7 +622,7 @@ def ball(radius: float = BALL_RADIUS, resolution: str | int = "coarse", order: i
     Parameters
     ----------
     radius : mm
-    resolution : ``coarse`` (n=3, 1,296 tets), ``paper`` (n=8, 24,576 tets; seed 002
+    resolution : ``coarse`` (n=3, 1,296 tets), ``paper`` (n=8, 24,576 tets; the impact paper
         used 20,695 C3D10), ``fine`` (n=12), or the integer n
     order : 1 (``tet4``) or 2 (``tet10``; mid-edge nodes on the surface are
         projected onto the sphere)

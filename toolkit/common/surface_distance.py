@@ -1,6 +1,6 @@
 """Distance between two triangle surfaces along the reference surface's normals (mm).
 
-Used to compare a predicted face with a reference (seed 001's surface deviation
+Used to compare a predicted face with a reference (the lip-sliding paper's surface deviation
 maps): for each reference vertex, the absolute distance to the other surface
 measured along the reference vertex normal, summarised per region.
 """
@@ -92,7 +92,7 @@ def surface_deviation(
     k: int = 24,
     chunk_size: int = 8192,
 ) -> SurfaceDeviation:
-    """Surface deviation along the reference normals (seed 001's surface-deviation error).
+    """Surface deviation along the reference normals (the lip-sliding paper's surface-deviation error).
 
     For each reference vertex ``x`` with unit area-weighted normal ``n``, the line
     ``x + t n`` (both directions, ``t`` in R) is intersected with the other surface by the

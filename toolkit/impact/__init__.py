@@ -1,8 +1,8 @@
-"""Impact workflow: explicit finite-strain elastoplastic ball impact on the face (seed 002).
+"""Impact workflow: explicit finite-strain elastoplastic ball impact on the face (the impact paper).
 
-``simulate(default_scene())`` runs seed 002's scene; the pieces (scene, elements,
+``simulate(default_scene())`` runs the impact paper's scene; the pieces (scene, elements,
 plasticity, contact, integrator) are importable. The surrogate side: ``build_database``
-(one simulation per velocity, HDF5), ``train_surrogate`` (seed 002's LSTM, a stronger one,
+(one simulation per velocity, HDF5), ``train_surrogate`` (the impact paper's LSTM, a stronger one,
 an MLP baseline), ``evaluate_surrogate`` and ``predict_scene``. Imports nothing from
 :mod:`toolkit.static`.
 """
@@ -10,7 +10,7 @@ an MLP baseline), ``evaluate_surrogate`` and ``predict_scene``. Imports nothing 
 from toolkit.impact.dataset import ImpactDatabase, build_database, load_database
 from toolkit.impact.evaluation import evaluate_surrogate
 from toolkit.impact.explicit import InstabilityError
-from toolkit.impact.lstm import CONFIGS, ImpactSurrogate, SurrogateConfig, predict_scene, train_surrogate
+from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, SurrogateConfig, predict_scene, train_surrogate
 from toolkit.impact.scene import (
     BallSpec,
     ContactSpec,

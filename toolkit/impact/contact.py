@@ -1,6 +1,6 @@
-"""Penalty contact with Coulomb friction for the explicit impact solver (seed 002).
+"""Penalty contact with Coulomb friction for the explicit impact solver (the impact paper).
 
-Seed 002 specifies "hard" normal contact and a penalty tangential behaviour with Coulomb
+The impact paper specifies "hard" normal contact and a penalty tangential behaviour with Coulomb
 friction 0.2. Both are enforced here by penalty springs on the slave nodes (the face's skin
 nodes), evaluated once per explicit time step:
 
@@ -164,7 +164,7 @@ class CoulombFriction:
     Parameters
     ----------
     mu : float
-        Friction coefficient (>= 0), 0.2 in seed 002.
+        Friction coefficient (>= 0), 0.2 in the impact paper.
     stiffness_ratio : float
         ``k_t / k_n`` (> 0). With ``<= 1`` the stick spring respects the same time-step bound
         as the normal penalty (see :func:`penalty_stiffness`).
@@ -420,7 +420,7 @@ class RigidSphereContact(_PenaltyContact):
 
     Gap ``g = |x - c| - R``; a slave is active when ``g < 0`` and then receives the normal force
     ``-k g`` along the sphere's outward normal ``(x - c)/|x - c|`` plus the Coulomb friction of
-    :class:`CoulombFriction`. The ball translates without spinning (seed 002 drives it at a
+    :class:`CoulombFriction`. The ball translates without spinning (the impact paper drives it at a
     uniform velocity), so the relative velocity at the contact point is
     ``v_slave - centre_velocity`` and the relative displacement increment is its tangential
     part times ``dt``.
@@ -433,7 +433,7 @@ class RigidSphereContact(_PenaltyContact):
     Parameters
     ----------
     radius : float, mm
-        Sphere radius (110 mm in seed 002).
+        Sphere radius (110 mm in the impact paper).
     penalty : (n_slave,) float, N/mm, or a scalar
         Normal penalty per slave, typically :func:`penalty_stiffness` of the slaves' masses.
     friction : CoulombFriction or None

@@ -1,6 +1,6 @@
-"""The impact learning database (seed 002): one explicit simulation per imposed ball velocity.
+"""The impact learning database (the impact paper): one explicit simulation per imposed ball velocity.
 
-Seed 002 ran six velocities between 20 and 50 mm/s and learned per-node displacement and
+The impact paper ran six velocities between 20 and 50 mm/s and learned per-node displacement and
 von Mises time series. :func:`build_database` runs a scene (by default
 :func:`~toolkit.impact.scene.yielding_scene`, in which the face yields) at each velocity
 of ``velocities`` and of ``held_out`` (velocities between them whose simulations a
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common import seeds
+from toolkit.common import papers
 from toolkit.common.database import Database, Job, Record, RunReport, read_index, run_jobs
 from toolkit.impact.scene import Scene, yielding_scene
 
@@ -42,12 +42,12 @@ __all__ = ["DATABASE_KIND", "DATABASE_VERSION", "SEED_VELOCITIES", "default_held
 
 DATABASE_KIND = "toolkit.impact.database"
 DATABASE_VERSION = 1
-#: seed 002's six imposed velocities, mm/s (evenly spaced over 20-50)
-SEED_VELOCITIES = seeds.BALL_VELOCITIES
+#: the impact paper's six imposed velocities, mm/s (evenly spaced over 20-50)
+SEED_VELOCITIES = papers.BALL_VELOCITIES
 
 
 def default_held_out(velocities) -> list[float]:
-    """Midpoints of every other gap of the sorted ``velocities`` (mm/s): for seed 002's
+    """Midpoints of every other gap of the sorted ``velocities`` (mm/s): for the impact paper's
     20, 26, ..., 50 these are 23, 35 and 47, one near each end and one in the middle."""
     v = sorted(float(x) for x in velocities)
     return [0.5 * (v[i] + v[i + 1]) for i in range(0, len(v) - 1, 2)]
@@ -107,7 +107,7 @@ def build_database(out: str | os.PathLike, velocities=SEED_VELOCITIES, held_out=
     Parameters
     ----------
     out : the ``.h5`` database (created, or extended when it exists with the same scene)
-    velocities : training velocities, mm/s (default seed 002's six)
+    velocities : training velocities, mm/s (default the impact paper's six)
     held_out : velocities simulated for the held-out split, mm/s; default
         :func:`default_held_out` of ``velocities``; ``[]`` for none
     scene : base scene (its velocity is replaced); default :func:`yielding_scene`

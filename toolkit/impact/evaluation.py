@@ -1,10 +1,10 @@
 """Scoring an impact surrogate against the FE database, and its figures.
 
-Seed 002's metrics: RMSE and Pearson correlation between the FE and predicted
+The impact paper's metrics: RMSE and Pearson correlation between the FE and predicted
 displacement (mm) and von Mises stress (MPa) over every test item and frame; here also
 normalised by the test set's peak (NRMSE: displacement RMSE over the largest displacement
 magnitude, stress RMSE over the largest von Mises stress), the displacement magnitude's
-RMSE/Pearson (seed 002 predicts one output, likely the magnitude), the training time, the
+RMSE/Pearson (the impact paper predicts one output, likely the magnitude), the training time, the
 inference time per whole-face frame and the FE time per frame from the database.
 
 Figures (matplotlib, PNG): FE against predicted time series at chosen nodes, and
@@ -23,7 +23,7 @@ import numpy as np
 
 from toolkit.common import metrics
 from toolkit.impact.dataset import ImpactDatabase, load_database
-from toolkit.impact.lstm import ImpactSurrogate, item_features, item_targets, split_items
+from toolkit.impact.surrogate import ImpactSurrogate, item_features, item_targets, split_items
 
 __all__ = ["Evaluation", "evaluate_surrogate", "plot_time_series", "plot_fields", "write_evaluation"]
 
@@ -46,7 +46,7 @@ class Evaluation:
 
 
 def field_metrics(predicted: np.ndarray, truth: np.ndarray) -> dict:
-    """Seed 002's metrics (and NRMSE) of ``(..., 4)`` arrays of ux, uy, uz (mm) and von Mises (MPa)."""
+    """The impact paper's metrics (and NRMSE) of ``(..., 4)`` arrays of ux, uy, uz (mm) and von Mises (MPa)."""
     up, ut = predicted[..., :3], truth[..., :3]
     vp, vt = predicted[..., 3], truth[..., 3]
     mag_p, mag_t = np.linalg.norm(up, axis=-1), np.linalg.norm(ut, axis=-1)

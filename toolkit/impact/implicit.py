@@ -1,6 +1,6 @@
 """Quasi-static (implicit) impact: equilibrium at every load step, Newton's method, no inertia.
 
-Why: seed 002's ball moves at 20-50 mm/s, about 1 % of the tissue's shear-wave speed
+Why: the impact paper's ball moves at 20-50 mm/s, about 1 % of the tissue's shear-wave speed
 (~2,200 mm/s), so the face is in equilibrium with the ball at every instant and inertia is
 negligible (the explicit runs measure kinetic energy at ~2 % of the internal energy even with
 10x mass scaling). Explicit central differences must still resolve the stress waves (~20,000

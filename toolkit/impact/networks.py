@@ -1,9 +1,9 @@
 """The impact surrogates' networks: every one maps a batch of node time series of inputs
 ``(B, F, n_in)`` to outputs ``(B, F, n_out)`` (all scaled to [0, 1]).
 
-- :class:`PerOutputLSTM`: seed 002's model, one LSTM (``hidden`` units) with a 1-unit
+- :class:`PerOutputLSTM`: the impact paper's model, one LSTM (``hidden`` units) with a 1-unit
   dense output per output channel, trained side by side (their parameters are disjoint,
-  so this is ``n_out`` independent seed models);
+  so this is ``n_out`` independent paper models);
 - :class:`SequenceLSTM`: one (stacked) LSTM with a dense multi-output head;
 - :class:`PointwiseMLP`: the non-recurrent baseline, the same per-frame inputs through a
   multilayer perceptron applied at every frame independently (no memory).

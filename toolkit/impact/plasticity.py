@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from toolkit.common import seeds
+from toolkit.common import papers
 from toolkit.common.materials import IsotropicModuli, _check, von_mises
 from toolkit.common.fem.jit import njit, use_jit
 from toolkit.common.fem.tangent import algorithmic_tangent
@@ -153,10 +153,10 @@ class HardeningTable:
         return HardeningTable(self.yield_stress * factor, self.plastic_strain)
 
 
-#: seed 002's face yield table (:data:`toolkit.common.seeds.FACE_YIELD`, MPa)
-FACE_TABLE = HardeningTable.from_pairs(seeds.FACE_YIELD)
-#: seed 002's ball yield table (:data:`toolkit.common.seeds.BALL_YIELD`, MPa)
-BALL_TABLE = HardeningTable.from_pairs(seeds.BALL_YIELD)
+#: the impact paper's face yield table (:data:`toolkit.common.papers.FACE_YIELD`, MPa)
+FACE_TABLE = HardeningTable.from_pairs(papers.FACE_YIELD)
+#: the impact paper's ball yield table (:data:`toolkit.common.papers.BALL_YIELD`, MPa)
+BALL_TABLE = HardeningTable.from_pairs(papers.BALL_YIELD)
 
 
 @dataclass(frozen=True)
@@ -766,9 +766,9 @@ class J2Plasticity(IsotropicModuli):
                             dissipation=dissipation, plastic=plastic)
 
 
-#: seed 002's face: E = 0.015 MPa, nu = 0.49, 1000 kg/m^3, yield table :data:`FACE_TABLE`
+#: the impact paper's face: E = 0.015 MPa, nu = 0.49, 1000 kg/m^3, yield table :data:`FACE_TABLE`
 #: (first yield at a uniaxial Hencky strain of 1: effectively hyperelastic)
-SEED002_FACE = J2Plasticity(E=seeds.FACE_E, nu=seeds.FACE_NU, density=seeds.FACE_DENSITY, table=FACE_TABLE)
-#: seed 002's ball: E = 0.38 MPa, nu = 0.39, density of a solid 110 mm sphere of 0.43 kg,
+SEED002_FACE = J2Plasticity(E=papers.FACE_E, nu=papers.FACE_NU, density=papers.FACE_DENSITY, table=FACE_TABLE)
+#: the impact paper's ball: E = 0.38 MPa, nu = 0.39, density of a solid 110 mm sphere of 0.43 kg,
 #: yield table :data:`BALL_TABLE`
-SEED002_BALL = J2Plasticity(E=seeds.BALL_E, nu=seeds.BALL_NU, density=seeds.ball_density(), table=BALL_TABLE)
+SEED002_BALL = J2Plasticity(E=papers.BALL_E, nu=papers.BALL_NU, density=papers.ball_density(), table=BALL_TABLE)

@@ -1,10 +1,10 @@
-"""A declarative description of an impact scene (seed 002), loadable from TOML.
+"""A declarative description of an impact scene (the impact paper), loadable from TOML.
 
 A :class:`Scene` says *what* is simulated; :func:`toolkit.impact.simulate.simulate`
 builds only what it asks for (no ball mesh for a rigid ball, no return mapping for an
 elastic material, no contact search while the bodies are apart).
 
-Defaults reproduce seed 002: face E = 0.015 MPa, nu = 0.49, density 1e-9 tonne/mm^3
+Defaults reproduce the impact paper: face E = 0.015 MPa, nu = 0.49, density 1e-9 tonne/mm^3
 with its yield table; rubber ball E = 0.38 MPa, nu = 0.39 with its table, radius
 110 mm and 0.43 kg; the lower face fixed; the ball driven horizontally into the face at
 30 mm/s for 1.8 s; Coulomb friction 0.2 with penalty tangential and "hard" (penalty)
@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common import seeds
-from toolkit.common.seeds import BALL_YIELD, FACE_YIELD
+from toolkit.common import papers
+from toolkit.common.papers import BALL_YIELD, FACE_YIELD
 
 __all__ = ["MaterialSpec", "FaceSpec", "BallSpec", "ContactSpec", "Fidelity", "Scene", "default_scene",
            "yielding_scene", "FACE_YIELD", "BALL_YIELD", "SUPPORTS", "YIELDING_DURATION", "INTEGRATORS"]
@@ -51,7 +51,7 @@ class MaterialSpec:
 #: time integration of :class:`Fidelity`: explicit dynamics or quasi-static equilibrium
 INTEGRATORS = ("explicit", "implicit")
 
-#: how the face is held: ``band`` (seed 002: only the lower band) or ``skull`` (also the bone-side surface)
+#: how the face is held: ``band`` (the impact paper: only the lower band) or ``skull`` (also the bone-side surface)
 SUPPORTS = ("band", "skull")
 
 #: duration (s) of :func:`yielding_scene`: the fastest seed ball (50 mm/s) travels 18 mm, short of the
@@ -63,10 +63,10 @@ YIELDING_DURATION = 0.36
 class FaceSpec:
     """The face: ``resolution`` (``coarse``/``paper``) or ``mesh`` (a tet file with node set
     ``fixed_set``), its material, the fraction of the height fixed at the bottom (phantoms
-    only; 0.05 = the lowest 5 mm of the 100 mm phantom, so that the ball's path over seed 002's
+    only; 0.05 = the lowest 5 mm of the 100 mm phantom, so that the ball's path over the impact paper's
     velocities clears it, see :class:`BallSpec`), and how the face is held (``support``):
 
-    - ``"band"`` (seed 002): only node set ``fixed_set`` (the lower band) is fixed. The face is
+    - ``"band"`` (the impact paper): only node set ``fixed_set`` (the lower band) is fixed. The face is
       then a free flap: the ball turns it about the band almost rigidly, and the tissue never
       yields (its first yield, 0.015 MPa = E, needs a Hencky equivalent strain of ~1; the flap
       reaches ~0.4 at the band, 0.0058 MPa at 30 mm/s on the paper face).
@@ -78,7 +78,7 @@ class FaceSpec:
 
     resolution: str = "paper"
     mesh: str | None = None
-    material: MaterialSpec = MaterialSpec(seeds.FACE_E, seeds.FACE_NU, seeds.FACE_DENSITY, FACE_YIELD)
+    material: MaterialSpec = MaterialSpec(papers.FACE_E, papers.FACE_NU, papers.FACE_DENSITY, FACE_YIELD)
     fixed_set: str = "fixed"
     lower_fixed_fraction: float = 0.05
     support: str = "band"
@@ -98,7 +98,7 @@ class BallSpec:
     rigid : True for an analytic rigid sphere
     resolution : ball mesh resolution when deformable (``coarse``/``paper``/``fine``)
     material : MaterialSpec of the rubber
-    velocity : mm/s (seed 002: 20-50)
+    velocity : mm/s (the impact paper: 20-50)
     direction : (3,) unit vector of the motion (into the face: -y)
     target : (3,) mm point of the face the ball's centre line passes through, or None for the
         most anterior skin point (the nose tip of the phantom)
@@ -106,7 +106,7 @@ class BallSpec:
         110 mm ball is twice as tall as the phantom, so aimed at the nose it sweeps the fixed
         chin band after ~58 mm of travel and crushes tissue against it (elements invert at
         ~53 mm with the band at 10%); 30 mm higher its path never meets the fixed nodes, so
-        seed 002's fastest ball (50 mm/s x 1.8 s = 90 mm) can run, and it first touches the
+        the impact paper's fastest ball (50 mm/s x 1.8 s = 90 mm) can run, and it first touches the
         upper nose. :func:`toolkit.impact.simulate.build_model` warns
         (:class:`~toolkit.impact.simulate.SceneGeometryWarning`) when a path reaches fixed nodes.
     gap : mm between the ball and the face at t = 0
@@ -114,11 +114,11 @@ class BallSpec:
         the centre (away from the face) are driven; the front deforms freely
     """
 
-    radius: float = seeds.BALL_RADIUS
+    radius: float = papers.BALL_RADIUS
     rigid: bool = False
     resolution: str = "coarse"
-    material: MaterialSpec = MaterialSpec(seeds.BALL_E, seeds.BALL_NU, seeds.ball_density(), BALL_YIELD)
-    velocity: float = seeds.BALL_VELOCITY
+    material: MaterialSpec = MaterialSpec(papers.BALL_E, papers.BALL_NU, papers.ball_density(), BALL_YIELD)
+    velocity: float = papers.BALL_VELOCITY
     direction: tuple = (0.0, -1.0, 0.0)
     target: tuple | None = None
     target_offset: tuple = (0.0, 0.0, 30.0)
@@ -142,7 +142,7 @@ class BallSpec:
             raise ValueError(f"ball velocity {self.velocity} mm/s must be positive")
         if self.velocity > 1e4 or self.velocity < 1.0:
             raise ValueError(f"ball velocity {self.velocity} mm/s looks like it is not in mm/s "
-                             f"(seed 002: 20-50 mm/s = 0.02-0.05 m/s)")
+                             f"(the impact paper: 20-50 mm/s = 0.02-0.05 m/s)")
 
 
 @dataclass(frozen=True)
@@ -150,7 +150,7 @@ class ContactSpec:
     """Ball-skin contact: Coulomb ``friction``; penalty chosen so the stable step stays above
     ``dt_fraction`` of the structural one."""
 
-    friction: float = seeds.FRICTION
+    friction: float = papers.FRICTION
     dt_fraction: float = 0.9
 
 
@@ -198,7 +198,7 @@ class Scene:
     ball: BallSpec = field(default_factory=BallSpec)
     contact: ContactSpec = ContactSpec()
     fidelity: Fidelity = Fidelity()
-    duration: float = seeds.IMPACT_DURATION
+    duration: float = papers.IMPACT_DURATION
     n_frames: int = 18
 
     def __post_init__(self):
@@ -294,21 +294,21 @@ def _toml_value(v) -> str:
     return repr(float(v)) if isinstance(v, float) else repr(v)
 
 
-def default_scene(velocity: float = seeds.BALL_VELOCITY) -> Scene:
-    """Seed 002's scene: paper-resolution tet10 face (lower part fixed), deformable rubber ball
+def default_scene(velocity: float = papers.BALL_VELOCITY) -> Scene:
+    """The impact paper's scene: paper-resolution tet10 face (lower part fixed), deformable rubber ball
     driven at ``velocity`` mm/s (default 30) for 1.8 s."""
     return Scene().with_ball(velocity=velocity)
 
 
 def yielding_scene(velocity: float = 50.0) -> Scene:
-    """Seed 002's scene with the face held by the skull (``FaceSpec.support = "skull"``), for
+    """The impact paper's scene with the face held by the skull (``FaceSpec.support = "skull"``), for
     :data:`YIELDING_DURATION` = 0.36 s with a frame every 10 ms; the learning database's default.
 
     Why: held only at its lower band the face turns away from the ball as a flap and stays
     elastic; held by the skull it is squeezed between the ball and the maxilla and yields.
-    Where the ball hits is seed 002's default aim (30 mm above the nose tip: nose, upper lip and
+    Where the ball hits is the impact paper's default aim (30 mm above the nose tip: nose, upper lip and
     the infraorbital region first). The soft tissue in front of the bone is only ~21 mm thick
-    along the ball's path, so a skull-held face cannot follow seed 002's 1.8 s (36-90 mm of
+    along the ball's path, so a skull-held face cannot follow the impact paper's 1.8 s (36-90 mm of
     travel); 0.36 s keeps the fastest seed ball (50 mm/s, 18 mm) clear of the skull. The tissue
     yields after ~12-13 mm of travel, so over 0.36 s the balls from ~35 mm/s up yield and the
     slower ones stay elastic: the database holds both regimes.

@@ -1,14 +1,14 @@
-"""Static workflow: orthognathic surgery simulated by incremental FEM (seed 001).
+"""Static workflow: orthognathic surgery simulated by incremental FEM (the lip-sliding paper).
 
 ``simulate(phantom, plan)`` runs the increments with mucosa and lip sliding; the pieces
 (plan, boundary types, assembly, constraints, solvers, Newton/contact) are importable
 for finer control. Imports nothing from :mod:`toolkit.impact`.
 """
 
-from toolkit.static.assembly import MaterialAssignment
+from toolkit.static.stiffness import MaterialAssignment
 from toolkit.static.boundary import BoundaryConditions, BoundaryError, NodeType, knn_labels
 from toolkit.static.constraints import Constraints
-from toolkit.static.fem import ConvergenceError, StaticProblem, solve_with_lip_contact
+from toolkit.static.problem import ConvergenceError, StaticProblem, solve_with_lip_contact
 from toolkit.static.plan import (
     PHYSIOLOGICAL_RANGES,
     SEGMENTS,

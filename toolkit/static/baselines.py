@@ -2,7 +2,7 @@
 
 - :class:`InfluenceMatrix`: linear superposition. On the pre-operative mesh, the
   stiffness is condensed on the nodes a bone drives (attached and mucosa, all moving
-  with their bone: seed 001's method without sliding) and the fixed nodes:
+  with their bone: the lip-sliding paper's method without sliding) and the fixed nodes:
   ``u_free = H u_bone`` with ``H = -K_ff^-1 K_fb`` computed once (one factorization, one
   solve per driven dof). Exact for a linear material without sliding or lip contact on
   the mesh it was built for, in one increment; it ignores sliding, lip contact and the
@@ -57,11 +57,11 @@ class InfluenceMatrix:
         ----------
         mesh : the pre-operative mesh
         driven, fixed : node indices (disjoint)
-        materials : ``linear`` (seed 001: the lip muscle transversely isotropic) or a
+        materials : ``linear`` (the lip-sliding paper: the lip muscle transversely isotropic) or a
             MaterialAssignment of linear materials
         """
         from toolkit.common.fem.solvers import superlu
-        from toolkit.static.fem import StaticProblem
+        from toolkit.static.problem import StaticProblem
         from toolkit.static.simulate import material_assignment
 
         t0 = time.perf_counter()

@@ -1,4 +1,4 @@
-"""Boundary types of the face nodes (seeds 000 and 001) and which bony segment drives them.
+"""Boundary types of the face nodes (the PointNet++ and lip-sliding papers) and which bony segment drives them.
 
 Types: ``free=0, moving=1, fixed=2, mucosa_sliding=3, lip_sliding=4``. Moving nodes are
 attached to a bony segment and follow its rigid motion; mucosa-sliding nodes slide on
@@ -6,7 +6,7 @@ the surface of their segment; lip-sliding nodes are the two faces of the mouth s
 
 Types come from the mesh's node sets (:meth:`BoundaryConditions.from_mesh`), or are
 transferred by a k-nearest-neighbour vote from labelled points — e.g. a full-resolution
-mesh's types onto a down-sampled one, as seed 000 did (:func:`knn_labels`).
+mesh's types onto a down-sampled one, as the PointNet++ paper did (:func:`knn_labels`).
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ class BoundaryError(ValueError):
 
 def knn_labels(points: np.ndarray, labelled_points: np.ndarray, labels: np.ndarray, k: int = 5,
                max_distance: float = np.inf, default: int = 0) -> np.ndarray:
-    """Majority vote of the ``k`` nearest labelled points (seed 000's k-NN assignment).
+    """Majority vote of the ``k`` nearest labelled points (the PointNet++ paper's k-NN assignment).
 
     Parameters
     ----------
@@ -178,7 +178,7 @@ class BoundaryConditions:
         return np.flatnonzero((self.types == kind) & (self.segment == k))
 
     def one_hot(self) -> np.ndarray:
-        """Seed 000's explicit boundary encoding ``(n, 3)``: free, moving, fixed (sliding count as free)."""
+        """The PointNet++ paper's explicit boundary encoding ``(n, 3)``: free, moving, fixed (sliding count as free)."""
         out = np.zeros((self.n_nodes, 3))
         out[np.arange(self.n_nodes), 0] = 1.0
         for col, kind in ((1, NodeType.MOVING), (2, NodeType.FIXED)):
@@ -188,8 +188,8 @@ class BoundaryConditions:
         return out
 
     def with_sliding(self, sliding: str) -> "BoundaryConditions":
-        """Copy for a sliding model: ``"mucosa+lip"`` (seed 001), ``"mucosa"`` (lips free)
-        or ``"none"`` (mucosa nodes attached to their segment, lips free: seed 001's method 1)."""
+        """Copy for a sliding model: ``"mucosa+lip"`` (the lip-sliding paper), ``"mucosa"`` (lips free)
+        or ``"none"`` (mucosa nodes attached to their segment, lips free: the lip-sliding paper's method 1)."""
         if sliding not in ("none", "mucosa", "mucosa+lip"):
             raise ValueError(f"sliding must be 'none', 'mucosa' or 'mucosa+lip', got {sliding!r}")
         types = self.types.copy()
@@ -314,7 +314,7 @@ class BoundaryConditions:
             on the segment whose ``sliding_set`` holds it, or (without such sets) on the
             segment surface nearest to it
         lip_threshold : mm; without ``upper_lip_face``/``lower_lip_face`` sets, lip nodes are
-            paired by proximity below this distance (seed 001's collision threshold), the
+            paired by proximity below this distance (the lip-sliding paper's collision threshold), the
             node whose elements lie higher being the upper lip
         """
         n = mesh.n_points

@@ -1,6 +1,6 @@
 """Linear displacement constraints, eliminated by a change of variables ``u = T v + u0``.
 
-Three kinds, enough for seed 001's boundary conditions:
+Three kinds, enough for the lip-sliding paper's boundary conditions:
 
 - **prescribed** nodes (fixed, moving with a bony segment, projected mucosa):
   all three components given;

@@ -1,9 +1,9 @@
-"""The static surrogate's learning database (seed 000): FE simulations of sampled plans.
+"""The static surrogate's learning database (the PointNet++ paper): FE simulations of sampled plans.
 
 Each *simulation* runs one plan of :func:`~toolkit.static.plan.sample_plans` on one
 *subject* (a face phantom: subject 0 is the default :class:`~toolkit.common.phantom.FaceShape`,
 subject k > 0 is ``FaceShape.sample(k)``), and each of its increments is one learning
-*sample*, as in seed 000:
+*sample*, as in the PointNet++ paper:
 
 - the starting mesh ``x (n, 3)`` mm: the face at the start of the increment;
 - the boundary types ``(n,)`` (``free=0, moving=1, fixed=2, mucosa_sliding=3, lip_sliding=4``);
@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common.database import Database, Job, Record, RunReport, read_index, run_jobs
-from toolkit.common.seeds import TISSUE_NU
+from toolkit.common.papers import TISSUE_NU
 from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES
 
 __all__ = ["DatasetConfig", "generate", "StaticDatabase", "read_samples", "subject_phantom", "plan_features",
@@ -65,13 +65,13 @@ class DatasetConfig:
     subjects : number of phantom subjects (0 = default shape, k = ``FaceShape.sample(k)``)
     plans : plans per subject
     mode : ``sagittal`` or ``full`` (:func:`~toolkit.static.plan.sample_plans`)
-    increments : increments per simulation (seed 001: 3); each is a sample
+    increments : increments per simulation (the lip-sliding paper: 3); each is a sample
     material : ``linear`` or ``neo-hookean``
     sliding : ``mucosa+lip``, ``mucosa`` or ``none``
     seed : plan sampling seed (subject k draws from ``[seed, k]``)
     max_jaw_closing_mm : the sampler's bound (None: none)
     poisson_range : (lo, hi) — each simulation draws Poisson's ratio uniformly in it (the
-        same for the whole face and the lip muscle; seed 001's 0.47 when None), for models
+        same for the whole face and the lip muscle; the lip-sliding paper's 0.47 when None), for models
         with material channels. A displacement-driven linear problem does not depend on E.
     """
 
@@ -155,9 +155,9 @@ def _jobs(config: DatasetConfig) -> list[Job]:
 
 
 def material_for(material: str, poisson: float | None, mesh):
-    """Seed 001's material assignment, with Poisson's ratio ``poisson`` if given."""
+    """The lip-sliding paper's material assignment, with Poisson's ratio ``poisson`` if given."""
     from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
-    from toolkit.static.assembly import MaterialAssignment
+    from toolkit.static.stiffness import MaterialAssignment
     from toolkit.static.simulate import material_assignment
 
     if poisson is None:

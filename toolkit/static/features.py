@@ -1,6 +1,6 @@
-"""Per-node input channels of the static surrogate (seed 000 and the switches beyond it).
+"""Per-node input channels of the static surrogate (the PointNet++ paper and the switches beyond it).
 
-Seed 000 feeds PointNet++, per node: the coordinates of the starting mesh (mm), the
+The PointNet++ paper feeds PointNet++, per node: the coordinates of the starting mesh (mm), the
 boundary type as a one-hot ``free = [1, 0, 0]``, ``moving = [0, 1, 0]``, ``fixed = [0, 0, 1]``
 (*explicit*; sliding nodes count as free) or nothing (*implicit*), and the prescribed
 displacement ``s`` (mm; zero at nodes that are not moving). Two switches add channels:
@@ -28,7 +28,7 @@ import numpy as np
 
 __all__ = ["FeatureSpec", "encode", "channel_names", "VARIANTS"]
 
-#: explicit boundary types (seed 000), implicit (none), hard (explicit + exact boundary values)
+#: explicit boundary types (the PointNet++ paper), implicit (none), hard (explicit + exact boundary values)
 VARIANTS = ("explicit", "implicit", "hard")
 
 

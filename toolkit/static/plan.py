@@ -6,7 +6,7 @@ segments not given stay put). A motion rotates about its pivot, then translates:
 ``x' = R (x - pivot) + pivot + t``, everything in mm, axes as in
 :mod:`toolkit.common.phantom` (``x`` patient's left, ``y`` anterior, ``z`` superior).
 
-Seed 001 (section 2.3.2.2) applies the planned movements in increments: the
+The lip-sliding paper (section 2.3.2.2) applies the planned movements in increments: the
 intermediate bone positions interpolate the rotation by quaternion slerp from the
 identity (short arc) and the translation linearly; :meth:`SurgicalPlan.increments`
 gives the cumulative plans at fractions ``1/n, 2/n, ..., 1`` (3 by default).
@@ -17,7 +17,7 @@ about the condyle that best maps the proximal bone onto where the distal motion
 takes it (least squares, proper rotations only), so the condyles stay in their fossae.
 
 **Validation** runs at construction. Movements beyond the physiological ranges of
-seed 001 (:data:`PHYSIOLOGICAL_RANGES`) warn with :class:`PlanRangeWarning`; beyond
+the lip-sliding paper (:data:`PHYSIOLOGICAL_RANGES`) warn with :class:`PlanRangeWarning`; beyond
 twice the range they raise ``ValueError`` unless the plan is built with
 ``force=True`` (then they warn). NaN never gets in: :class:`RigidMotion` refuses it.
 
@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from toolkit.common import seeds
+from toolkit.common import papers
 from toolkit.common.io import atomic_path
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -90,20 +90,20 @@ class MotionRange:
             object.__setattr__(self, name, (lo, hi))
 
 
-#: segment -> MotionRange of seed 001 (section 2.3.2.2, measured on its patients): Le Fort I
+#: segment -> MotionRange of the lip-sliding paper (section 2.3.2.2, measured on its patients): Le Fort I
 #: 0-6.3 mm and 0-9.8 degrees, distal mandible 2.1-11.5 mm and 0.5-13.3 degrees.
 #: Validation (:meth:`SurgicalPlan.validate`) checks the upper bounds; :func:`sample_plans`
 #: draws uniformly between the bounds. The proximal segments have no stated range: they
 #: rotate about their condyle to follow the distal one, which at the edge of the distal
 #: range takes up to ~20 degrees (400 sampled plans), so their bound is twice the distal angle.
 PHYSIOLOGICAL_RANGES: Mapping[str, MotionRange] = MappingProxyType(
-    {"lefort": MotionRange(seeds.LEFORT_TRANSLATION_MM, seeds.LEFORT_ROTATION_DEG),
-     "distal": MotionRange(seeds.DISTAL_TRANSLATION_MM, seeds.DISTAL_ROTATION_DEG),
-     **{name: MotionRange((0.0, seeds.DISTAL_TRANSLATION_MM[1]), (0.0, 2.0 * seeds.DISTAL_ROTATION_DEG[1]))
+    {"lefort": MotionRange(papers.LEFORT_TRANSLATION_MM, papers.LEFORT_ROTATION_DEG),
+     "distal": MotionRange(papers.DISTAL_TRANSLATION_MM, papers.DISTAL_ROTATION_DEG),
+     **{name: MotionRange((0.0, papers.DISTAL_TRANSLATION_MM[1]), (0.0, 2.0 * papers.DISTAL_ROTATION_DEG[1]))
         for name in ("proximal_left", "proximal_right")}}
 )
 #: directions of sampled movements: ``sagittal`` translations in the y-z plane and rotations
-#: about the lateral x axis (seed 001's advancements, setbacks, impactions and pitch);
+#: about the lateral x axis (the lip-sliding paper's advancements, setbacks, impactions and pitch);
 #: ``full`` translation directions and rotation axes uniform on the sphere (yaw and roll too)
 SAMPLING_MODES = ("sagittal", "full")
 PLAN_FORMATS = (".toml", ".json")
@@ -112,7 +112,7 @@ _MOTION_KEYS = ("translation_mm", "pivot_mm") + _ROTATION_KEYS
 
 
 class PlanRangeWarning(UserWarning):
-    """A bony movement lies outside the physiological range of seed 001."""
+    """A bony movement lies outside the physiological range of the lip-sliding paper."""
 
 
 def _vector(value, n: int, name: str) -> np.ndarray:
@@ -441,7 +441,7 @@ class SurgicalPlan:
                     continue
                 msg = (
                     f"segment {name!r}: {what} {value:.3g} {unit} is beyond the physiological "
-                    f"range 0-{limit} {unit} (seed 001)"
+                    f"range 0-{limit} {unit} (the lip-sliding paper)"
                 )
                 if value > 2 * limit:
                     if not force:
@@ -521,7 +521,7 @@ class SurgicalPlan:
 
     def increments(self, n: int = 3) -> list[SurgicalPlan]:
         """The cumulative plans (pre-op -> k-th position) at fractions k/n, k = 1..n;
-        the last is this plan. Seed 001 uses n = 3."""
+        the last is this plan. The lip-sliding paper uses n = 3."""
         if int(n) != n or n < 1:
             raise ValueError(f"n = {n!r} increments; expected an integer >= 1")
         n = int(n)
@@ -660,7 +660,7 @@ def jaw_closing(plan: SurgicalPlan, arch: np.ndarray) -> float:
 def sample_plans(n: int, seed: int | np.random.Generator, mode: str = "sagittal",
                  ranges: Mapping[str, MotionRange] = PHYSIOLOGICAL_RANGES, *,
                  phantom: FacePhantom, max_jaw_closing_mm: float | None = MAX_JAW_CLOSING_MM) -> list[SurgicalPlan]:
-    """Random bimaxillary plans within ``ranges`` (seed 001's physiological ranges by default).
+    """Random bimaxillary plans within ``ranges`` (the lip-sliding paper's physiological ranges by default).
 
     Both the Le Fort I and the distal mandibular segment move in every plan: the
     translation magnitude of the pivot (mm) and the rotation angle (degrees) are uniform

@@ -1,4 +1,4 @@
-"""PointNet++ for nodal displacement on a face mesh (seed 000), in plain PyTorch.
+"""PointNet++ for nodal displacement on a face mesh (the PointNet++ paper), in plain PyTorch.
 
 Three layers, each usable on its own:
 
@@ -278,12 +278,12 @@ class PointNet2Config:
     Attributes
     ----------
     in_channels : int — features per node: e.g. 6 for coordinates + prescribed displacement
-        (seed 000's "implicit"), 9 with the free/moving/fixed one-hot ("explicit"), 11 with
+        (the PointNet++ paper's "implicit"), 9 with the free/moving/fixed one-hot ("explicit"), 11 with
         mucosa and lip sliding channels, plus one per material parameter
     out_channels : int — outputs per node (3: displacement)
     centers : per level, the number of sampled centres: an ``int`` is a count, a ``float`` in
         ``(0, 1]`` a fraction of the previous level (rounded up). The default quarters each
-        level: 4,100 nodes -> 1,025 / 257 / 65 / 17 centres (seed 000's PointNet++ used
+        level: 4,100 nodes -> 1,025 / 257 / 65 / 17 centres (the PointNet++ paper's PointNet++ used
         1,024 / 256 / 64 / 16); 771 nodes -> 193 / 49 / 13 / 4.
     radii : per level, ball radius in normalised units (the mesh scaled into ``[-1, 1]^3`` by
         its largest half-extent; 1 unit ~58 mm on the phantom face). Group offsets are divided
@@ -578,7 +578,7 @@ class BoundaryTargets:
 
     @classmethod
     def from_types(cls, types, prescribed: Tensor) -> "BoundaryTargets":
-        """Seed 000's boundary types: fixed nodes -> 0, moving nodes -> their prescribed ``s``.
+        """The PointNet++ paper's boundary types: fixed nodes -> 0, moving nodes -> their prescribed ``s``.
 
         types : (n,) int — :class:`~toolkit.static.boundary.NodeType` codes (free 0, moving 1,
             fixed 2, mucosa 3, lip 4); sliding and free nodes stay free
@@ -687,7 +687,7 @@ class FeaturePropagation(nn.Module):
 
 
 class PointNet2(nn.Module):
-    """PointNet++ regression of a vector per node (seed 000): L set-abstraction modules,
+    """PointNet++ regression of a vector per node (the PointNet++ paper): L set-abstraction modules,
     L feature-propagation modules with skip connections, a unit-PointNet head.
 
     Parameters

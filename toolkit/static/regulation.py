@@ -1,6 +1,6 @@
-"""Mesh regulation between increments (seed 001, section 2.3.2.1).
+"""Mesh regulation between increments (the lip-sliding paper, section 2.3.2.1).
 
-Seed 001 regulates the face mesh at the start of every increment so that distortion,
+The lip-sliding paper regulates the face mesh at the start of every increment so that distortion,
 which accumulates where differently moving regions meet, does not invert elements. Each
 linear increment starts stress-free on the current geometry, so the nodes that no
 boundary condition holds may be moved without any stress to transfer.

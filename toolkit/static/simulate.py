@@ -1,4 +1,4 @@
-"""The incremental orthognathic simulation of seed 001 (section 2.3.2).
+"""The incremental orthognathic simulation of the lip-sliding paper (section 2.3.2).
 
 The bony movements of a :class:`~toolkit.static.plan.SurgicalPlan` are applied in
 ``increments`` steps (slerp for rotations, linear for translations). Each increment:
@@ -13,11 +13,11 @@ The bony movements of a :class:`~toolkit.static.plan.SurgicalPlan` are applied i
    (the surface extended), not onto the edge line, which would gather every such node on
    one line and crush the elements between them.
 
-Linear materials follow seed 001: each increment is a small-strain solve on the
+Linear materials follow the lip-sliding paper: each increment is a small-strain solve on the
 geometry left by the previous one (updated geometry, stress-free start). Neo-Hookean
 is solved total-Lagrangian from the pre-operative face, the increments acting as load
 steps. Every increment's cumulative displacement is kept: each is one learning sample
-(seed 000).
+(the PointNet++ paper).
 
 These safeguards keep the physiological plan space simulable (``benchmarks/static_robustness.py``):
 
@@ -26,7 +26,7 @@ These safeguards keep the physiological plan space simulable (``benchmarks/stati
   (osteotomy lines, the occlusal level between the jaws, segment next to fixed skull)
   is bound to neither side, as the stripped periosteum is; otherwise the boundary
   displacement jumps across a single element, which inverts it as the mesh is refined;
-- **mesh regulation** (seed 001, linear materials): when a step leaves elements below
+- **mesh regulation** (the lip-sliding paper, linear materials): when a step leaves elements below
   ``regulation_below`` quality, the free nodes around them that are not on the skin are
   moved to improve them (:func:`~toolkit.static.regulation.regulate`); each linear
   increment restarts stress-free, so nothing else changes. The skin, every constrained
@@ -69,10 +69,10 @@ from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import FacePhantom
 from toolkit.common.surface_distance import barycentric, beyond_rim_onto_plane, closest_points
 from toolkit.common.topology import rim_edges
-from toolkit.static.assembly import MaterialAssignment
+from toolkit.static.stiffness import MaterialAssignment
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
 from toolkit.static.constraints import Constraints
-from toolkit.static.fem import ConvergenceError, StaticProblem, solve_with_lip_contact
+from toolkit.static.problem import ConvergenceError, StaticProblem, solve_with_lip_contact
 from toolkit.static.plan import SurgicalPlan
 from toolkit.static.regulation import element_quality, regulate
 from toolkit.common.fem.solvers import SolverError
@@ -114,7 +114,7 @@ class SimulationOptions:
     Attributes
     ----------
     solver : linear solver (``auto``, ``superlu``, ``amg``, ``cholmod``)
-    lip_threshold : mm, seed 001's collision-detection distance for lip pairs
+    lip_threshold : mm, the lip-sliding paper's collision-detection distance for lip pairs
     min_scaled_jacobian : a step whose deformed mesh has an element at or below this
         (minimum corner scaled Jacobian) is cut, and the run fails if cutting cannot help
     release_width : mm, width of the bands of tissue bound to neither side along the borders
@@ -278,7 +278,7 @@ class SimulationResult:
 
 
 def material_assignment(material: str | MaterialAssignment, mesh: Mesh) -> MaterialAssignment:
-    """Seed 001's materials: ``linear`` (isotropic E 0.003 MPa, nu 0.47, transversely
+    """The lip-sliding paper's materials: ``linear`` (isotropic E 0.003 MPa, nu 0.47, transversely
     isotropic lip muscle 0.009/0.003 MPa along its fibres) or ``neo-hookean`` (E 0.003 MPa,
     nu 0.47 everywhere)."""
     if isinstance(material, MaterialAssignment):
@@ -552,15 +552,15 @@ def simulate(
     segments: Mapping | None = None,
     options: SimulationOptions | None = None,
 ) -> SimulationResult:
-    """Run seed 001's incremental simulation.
+    """Run the lip-sliding paper's incremental simulation.
 
     Parameters
     ----------
     face : FacePhantom, or a Mesh with the node sets of the phantoms (then pass ``segments``)
     plan : SurgicalPlan (segments ``lefort``, ``distal``, ``proximal_left``, ``proximal_right``)
-    increments : number of increments (seed 001: 3)
+    increments : number of increments (the lip-sliding paper: 3)
     material : ``linear``, ``neo-hookean`` or a MaterialAssignment
-    sliding : ``mucosa+lip`` (seed 001), ``mucosa`` or ``none``
+    sliding : ``mucosa+lip`` (the lip-sliding paper), ``mucosa`` or ``none``
     segments : name -> BoneSegment (bone surfaces and attachment sets); default the phantom's
     options : SimulationOptions
 

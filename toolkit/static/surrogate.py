@@ -1,4 +1,4 @@
-"""The static surrogate (seed 000): PointNet++ trained on the FE database, its evaluation and
+"""The static surrogate (the PointNet++ paper): PointNet++ trained on the FE database, its evaluation and
 its prediction of a surgical plan.
 
 :func:`train_surrogate` reads a :class:`~toolkit.static.dataset.StaticDatabase`, encodes
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.seeds import TISSUE_NU
+from toolkit.common.papers import TISSUE_NU
 from toolkit.common.training import (
     LR_SCHEDULES,
     MinMaxScaler,
@@ -51,7 +51,7 @@ __all__ = ["SurrogateConfig", "Surrogate", "train_surrogate", "evaluate_surrogat
            "linear_prior", "MODEL_KIND", "NETWORK_PRESETS"]
 
 MODEL_KIND = "toolkit.static.pointnet2"
-#: network sizes: ``paper`` (seed 000's widths), ``small`` (a quarter of the widths; the
+#: network sizes: ``paper`` (the PointNet++ paper's widths), ``small`` (a quarter of the widths; the
 #: speed goal), ``tiny`` (tests on the coarse face)
 NETWORK_PRESETS = {
     "paper": {},
@@ -75,10 +75,10 @@ class SurrogateConfig:
     split : ``plans`` (70/10/20 by simulation) or ``subjects`` (``test_subjects`` held out,
         the others split 80/20 by simulation into training and validation)
     test_subjects : subjects never seen in training (split ``subjects``)
-    epochs, batch_size, lr, patience, seed, device, max_seconds : training (seed 000: Adam
+    epochs, batch_size, lr, patience, seed, device, max_seconds : training (the PointNet++ paper: Adam
         lr 1e-5, batch 8, 100 epochs; the default lr 1e-3 with early stopping reaches its error in
         fewer epochs here)
-    lr_schedule : ``constant`` (seed 000) or ``cosine`` (decays to 1 % of ``lr`` over the
+    lr_schedule : ``constant`` (the PointNet++ paper) or ``cosine`` (decays to 1 % of ``lr`` over the
         epochs, or over ``max_seconds`` when set; :class:`~toolkit.common.training.TrainConfig`)
     """
 

@@ -14,7 +14,7 @@ tet10     the 4-point degree-2 rule                        no
 ========  ==============================================  ==================
 
 Mean dilatation (B-bar): the volumetric part of the energy uses the volume-averaged
-gradients ``grad_c`` (see :mod:`toolkit.static.assembly`).
+gradients ``grad_c`` (see :mod:`toolkit.static.stiffness`).
 
 On a block: :func:`deformation_gradient` ``F = I + sum_a u_a (x) dN_a/dX`` at the
 quadrature points, :func:`element_forces` ``f_a = sum_q w_q P_q dN_a/dX`` per element and
@@ -113,7 +113,7 @@ class Kinematics:
 
     @property
     def conns(self) -> tuple[np.ndarray, ...]:
-        """Connectivity of every block (what :class:`~toolkit.static.assembly.SparsePattern` takes)."""
+        """Connectivity of every block (what :class:`~toolkit.static.stiffness.SparsePattern` takes)."""
         return tuple(b.conn for b in self.blocks)
 
     def inverted_elements(self) -> np.ndarray:

@@ -12,7 +12,7 @@
 Importing this package imports torch lazily (only the functions that need it do).
 """
 
-from toolkit.common.compat import IncompatibleError
+from toolkit.common.config_diff import IncompatibleError
 from toolkit.common.training.bundle import BUNDLE_FORMAT, ModelBundle
 from toolkit.common.training.device import resolve_device
 from toolkit.common.training.loop import LR_SCHEDULES, TrainConfig, TrainResult, evaluate_loss, train

@@ -15,7 +15,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from toolkit.common.compat import IncompatibleError, jsonable, require_same
+from toolkit.common.config_diff import IncompatibleError, jsonable, require_same
 from toolkit.common.training.scaling import MinMaxScaler
 
 __all__ = ["ModelBundle", "BUNDLE_FORMAT", "IncompatibleError"]
@@ -29,7 +29,7 @@ class ModelBundle:
 
     Attributes
     ----------
-    kind : what reads it (e.g. ``"toolkit.impact.lstm"``)
+    kind : what reads it (e.g. ``"toolkit.impact.surrogate"``)
     config : JSON-able architecture and training settings
     data : JSON-able signature of the training data (checked by :meth:`check_data`)
     scalers : name -> MinMaxScaler (inputs, outputs)

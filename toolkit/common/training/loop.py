@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from toolkit.common.compat import jsonable, require_same
+from toolkit.common.config_diff import jsonable, require_same
 from toolkit.common.training.device import resolve_device
 from toolkit.common.training.seeding import check_seed, generators
 
@@ -41,7 +41,7 @@ class TrainConfig:
     Attributes
     ----------
     epochs : maximum passes over the training set
-    batch_size : items per Adam step (seed 002: 10,000)
+    batch_size : items per Adam step (the impact paper: 10,000)
     lr : Adam learning rate; weight_decay : Adam's L2 factor
     patience : stop after this many epochs without a validation improvement (None: never)
     min_delta : relative improvement of the validation loss that counts (0.01 = 1 %)

@@ -1,4 +1,4 @@
-"""Min-max scaling of features to [0, 1] (seed 000 scales its inputs so), saved with a model.
+"""Min-max scaling of features to [0, 1] (the PointNet++ paper scales its inputs so), saved with a model.
 
 A :class:`MinMaxScaler` holds one ``(lo, hi)`` pair per feature (the last axis); a
 constant feature (``hi == lo``) maps to 0 and back to its value. It round-trips

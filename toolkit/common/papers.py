@@ -1,13 +1,13 @@
-"""Every number taken from the seed papers, in one place (mm, s, tonne, MPa).
+"""Every number taken from the source papers, in one place (mm, s, tonne, MPa).
 
 The modules that use them (materials, plan ranges, impact scene and plasticity) import them
 from here, so a reader checks a value against its paper once.
 
-Seed 001 (orthognathic soft-tissue FEM, section 2.3): homogeneous linear soft tissue and a
+The lip-sliding paper (orthognathic soft-tissue FEM, section 2.3): homogeneous linear soft tissue and a
 transversely isotropic lip muscle; the physiological ranges of the Le Fort I and distal
 mandible movements measured on its patients (section 2.3.2.2).
 
-Seed 002 (ball impact on the face): the face and rubber-ball materials with their yield
+The impact paper (ball impact on the face): the face and rubber-ball materials with their yield
 tables, a size-5 football, Coulomb friction, the ball velocities and the simulated time.
 """
 
@@ -22,7 +22,7 @@ __all__ = [
     "BALL_YIELD", "FRICTION", "BALL_VELOCITY", "BALL_VELOCITIES", "IMPACT_DURATION", "ball_density",
 ]
 
-# ------------------------------------------------------------------ seed 001
+# ------------------------------------------------------------------ the lip-sliding paper
 #: MPa, Young's modulus of the soft tissue (3 kPa)
 TISSUE_E = 0.003
 #: Poisson's ratio of every soft tissue (nearly incompressible)
@@ -37,7 +37,7 @@ LEFORT_ROTATION_DEG = (0.0, 9.8)
 DISTAL_TRANSLATION_MM = (2.1, 11.5)
 DISTAL_ROTATION_DEG = (0.5, 13.3)
 
-# ------------------------------------------------------------------ seed 002
+# ------------------------------------------------------------------ the impact paper
 #: face: MPa, Poisson's ratio, tonne/mm^3 (1000 kg/m^3)
 FACE_E = 0.015
 FACE_NU = 0.49
@@ -54,7 +54,7 @@ BALL_RADIUS = 110.0
 BALL_YIELD = ((0.034, 0.0), (0.035, 0.03), (0.036, 0.032), (0.037, 0.05), (0.038, 0.06), (0.039, 0.07))
 #: Coulomb friction between ball and skin
 FRICTION = 0.2
-#: mm/s, the default ball velocity, and the seed's six velocities (evenly spaced over 20-50 mm/s)
+#: mm/s, the default ball velocity, and the impact paper's six velocities (evenly spaced over 20-50 mm/s)
 BALL_VELOCITY = 30.0
 BALL_VELOCITIES = (20.0, 26.0, 32.0, 38.0, 44.0, 50.0)
 #: s, simulated time of an impact

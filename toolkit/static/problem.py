@@ -8,7 +8,7 @@ solves it under :class:`~toolkit.static.constraints.Constraints`:
   search on the total energy (which also refuses steps that invert an element),
   and automatic load sub-stepping when Newton does not converge.
 
-:func:`solve_with_lip_contact` adds seed 001's lip sliding: master-slave pairs across
+:func:`solve_with_lip_contact` adds the lip-sliding paper's lip sliding: master-slave pairs across
 the mouth slit may not interpenetrate craniocaudally but slide freely otherwise,
 found by an active-set iteration (release pairs in tension, add pairs that
 penetrate).
@@ -26,7 +26,7 @@ from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.fem.newton import ArmijoOnMerit, InadmissibleState, LoadSteps, NewtonFailed, Trial, newton
 from toolkit.common.fem.solvers import LinearSolver, SolveInfo, estimate_factor_entries, rigid_body_modes
 from toolkit.common.mesh import Mesh
-from toolkit.static.assembly import (
+from toolkit.static.stiffness import (
     MaterialAssignment,
     kinematics,
     linear_stiffness,

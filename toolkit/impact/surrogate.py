@@ -1,7 +1,7 @@
-"""The LSTM surrogate of the impact simulation (seed 002) and its baselines.
+"""The LSTM surrogate of the impact simulation (the impact paper) and its baselines.
 
 An *item* is one node's time series at one imposed velocity. Its inputs at frame ``k``
-(:data:`FEATURES`) are, for seed 002's set (``seed``), the node's initial position
+(:data:`FEATURES`) are, for the impact paper's set (``paper``), the node's initial position
 ``x0, y0, z0`` (mm), the ball's velocity (mm/s), the time ``t_k`` (s) and whether the scene
 holds the node (0/1); the ``ball`` set adds what the scene defines about the ball at that
 time: its travel ``v t_k`` (mm) and the node's signed distance to the ball's nominal
@@ -12,9 +12,9 @@ saved with the model.
 
 Configurations (:data:`CONFIGS`):
 
-- ``seed``: seed 002's model, LSTM with 5 hidden units and 1 output, one per output
+- ``paper``: the impact paper's model, LSTM with 5 hidden units and 1 output, one per output
   channel (so 4 models: ux, uy, uz, von Mises), MAE loss, Adam, batches of 10,000 items,
-  seed 002's inputs;
+  the impact paper's inputs;
 - ``strong``: one multi-output LSTM with the ``ball`` inputs and an MSE loss, chosen by
   measurement (``benchmarks/impact_surrogate.py --sweep``; README), its learning rate decayed
   on a cosine over the training budget (paper database, random split: displacement RMSE
@@ -22,7 +22,7 @@ Configurations (:data:`CONFIGS`):
 - ``baseline``: a multilayer perceptron applied to each frame independently (no
   recurrence), with the same inputs and loss as ``strong``.
 
-Splits (:func:`split_items`): ``random``, seed 002's item split (76 % of the training
+Splits (:func:`split_items`): ``random``, the impact paper's item split (76 % of the training
 velocities' items for training, the rest for testing); ``velocity``, every item of the
 training velocities for training and the held-out velocities' simulations, never seen, for
 testing. Validation (early stopping) takes 10 % of the training items.
@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.compat import require_same
+from toolkit.common.config_diff import require_same
 from toolkit.common.training import (
     MinMaxScaler,
     ModelBundle,
@@ -59,16 +59,16 @@ __all__ = ["SurrogateConfig", "CONFIGS", "FEATURES", "INPUTS", "OUTPUTS", "MODEL
 
 log = logging.getLogger(__name__)
 
-MODEL_KIND = "toolkit.impact.lstm"
+MODEL_KIND = "toolkit.impact.surrogate"
 #: the input feature sets (names with units)
 FEATURES = {
-    "seed": ("x0_mm", "y0_mm", "z0_mm", "velocity_mm_s", "time_s", "fixed"),
+    "paper": ("x0_mm", "y0_mm", "z0_mm", "velocity_mm_s", "time_s", "fixed"),
     "ball": ("x0_mm", "y0_mm", "z0_mm", "velocity_mm_s", "time_s", "fixed", "travel_mm", "ball_gap_mm"),
 }
-INPUTS = FEATURES["seed"]
+INPUTS = FEATURES["paper"]
 OUTPUTS = ("ux_mm", "uy_mm", "uz_mm", "von_mises_mpa")
 SPLITS = ("random", "velocity")
-#: seed 002: 450,000 of 592,260 items for training
+#: the impact paper: 450,000 of 592,260 items for training
 RANDOM_TRAIN_FRACTION = 0.76
 VALIDATION_FRACTION = 0.1
 #: the networks of :mod:`toolkit.impact.networks` (named here so that importing this module does not import torch)
@@ -85,7 +85,7 @@ class SurrogateConfig:
 
     Attributes
     ----------
-    name : label (``seed``, ``strong``, ``baseline`` or your own)
+    name : label (``paper``, ``strong``, ``baseline`` or your own)
     network : ``per_output_lstm``, ``lstm`` or ``mlp`` (:mod:`toolkit.impact.networks`)
     hidden, layers : units per layer, stacked layers
     features : input set, a key of :data:`FEATURES`
@@ -93,9 +93,9 @@ class SurrogateConfig:
     per_travel : learn the outputs divided by the ball's travel ``v t`` (mm) and multiply back:
         the fields start from zero with the travel by construction, and in this quasi-static
         scene (the ball moves at ~1 % of the shear-wave speed) they grow roughly with it
-    loss : ``mae`` (seed 002) or ``mse``
+    loss : ``mae`` (the impact paper) or ``mse``
     lr : Adam learning rate; batch_size : items (node series) per step
-    lr_schedule : ``constant`` (seed 002) or ``cosine`` (decays to 1 % of ``lr`` over the
+    lr_schedule : ``constant`` (the impact paper) or ``cosine`` (decays to 1 % of ``lr`` over the
         training budget, see :class:`~toolkit.common.training.TrainConfig`)
     epochs, patience : at most this many epochs; stop after ``patience`` without improvement
     max_seconds : training time limit, s
@@ -105,7 +105,7 @@ class SurrogateConfig:
     network: str
     hidden: int
     layers: int = 1
-    features: str = "seed"
+    features: str = "paper"
     fourier: int = 0
     per_travel: bool = False
     loss: str = "mae"
@@ -117,6 +117,9 @@ class SurrogateConfig:
     max_seconds: float = 900.0
 
     def __post_init__(self):
+        for key in ("name", "features"):  # "seed": the spelling in models saved by toolkit 0.1
+            if getattr(self, key) == "seed":
+                object.__setattr__(self, key, "paper")
         if self.network not in NETWORK_NAMES:
             raise ValueError(f"network {self.network!r} is not one of {list(NETWORK_NAMES)}")
         if self.loss not in ("mae", "mse"):
@@ -146,7 +149,7 @@ class SurrogateConfig:
 
 #: the three configurations of the benchmark (``strong``'s sizes: see README, chosen by measurement)
 CONFIGS = {
-    "seed": SurrogateConfig("seed", "per_output_lstm", hidden=5, layers=1, features="seed", loss="mae", lr=1e-3,
+    "paper": SurrogateConfig("paper", "per_output_lstm", hidden=5, layers=1, features="paper", loss="mae", lr=1e-3,
                             batch_size=10_000),
     "strong": SurrogateConfig("strong", "lstm", hidden=32, layers=1, features="ball", fourier=6, per_travel=True,
                               loss="mse", lr=3e-3, batch_size=256, lr_schedule="cosine"),
@@ -155,7 +158,18 @@ CONFIGS = {
 }
 
 
-def item_features(inputs, velocities, features: str = "seed") -> np.ndarray:
+def resolve_config(config: SurrogateConfig | str) -> SurrogateConfig:
+    """A :data:`CONFIGS` name (``seed`` is the deprecated spelling of ``paper``) or a SurrogateConfig."""
+    if config == "seed":
+        warnings.warn("the configuration name 'seed' is deprecated: use 'paper'", DeprecationWarning, stacklevel=3)
+        config = "paper"
+    cfg = CONFIGS.get(config, config) if isinstance(config, str) else config
+    if not isinstance(cfg, SurrogateConfig):
+        raise ValueError(f"config {config!r} is not one of {sorted(CONFIGS)} or a SurrogateConfig")
+    return cfg
+
+
+def item_features(inputs, velocities, features: str = "paper") -> np.ndarray:
     """Inputs of every item, ``(S * N, F, k)`` float32 in ``FEATURES[features]`` order (sim-major).
 
     inputs : :class:`~toolkit.impact.dataset.SceneInputs` (points (N, 3) mm, fixed (N,), times (F,) s,
@@ -191,7 +205,7 @@ def split_items(db: ImpactDatabase, split: str, seed: int) -> dict[str, np.ndarr
     """Item indices (into :func:`item_features` of all simulations) for ``train``, ``val``, ``test``.
 
     ``random``: the items of the training velocities, 76 % train+val / 24 % test (whole node
-    series; seed 002's proportion). ``velocity``: all items of the training velocities for
+    series; the impact paper's proportion). ``velocity``: all items of the training velocities for
     train+val, every item of the held-out velocities for test. Validation is 10 % of train+val.
     """
     if split not in SPLITS:
@@ -222,7 +236,7 @@ def _loss(name: str):
     return torch.nn.functional.l1_loss if name == "mae" else torch.nn.functional.mse_loss
 
 
-def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateConfig | str = "seed",
+def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateConfig | str = "paper",
                     split: str = "random", *, out: str | os.PathLike | None = None, seed: int = 0,
                     device: str = "cpu", resume: bool = False, progress: bool = True) -> "ImpactSurrogate":
     """Train a surrogate on an impact database.
@@ -246,9 +260,7 @@ def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateCon
     from toolkit.impact.networks import build_network
 
     db = load_database(db) if not isinstance(db, ImpactDatabase) else db
-    cfg = CONFIGS[config] if isinstance(config, str) and config in CONFIGS else config
-    if not isinstance(cfg, SurrogateConfig):
-        raise ValueError(f"config {config!r} is not one of {sorted(CONFIGS)} or a SurrogateConfig")
+    cfg = resolve_config(config)
     idx = split_items(db, split, seed)
     x_all = item_features(db.inputs, db.velocities, cfg.features)
     y_all = item_targets(db)
@@ -312,9 +324,7 @@ class ImpactSurrogate:
 
         bundle = ModelBundle.load(directory, kind=MODEL_KIND)
         if config is not None:
-            expected = CONFIGS[config] if isinstance(config, str) and config in CONFIGS else config
-            if not isinstance(expected, SurrogateConfig):
-                raise ValueError(f"config {config!r} is not one of {sorted(CONFIGS)} or a SurrogateConfig")
+            expected = resolve_config(config)
             # through the dataclass, so a model saved before a setting existed reads as its default
             require_same(SurrogateConfig(**bundle.config).identity(), expected.identity(), f"this {MODEL_KIND} model")
         cfg = SurrogateConfig(**bundle.config)

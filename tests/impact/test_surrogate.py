@@ -13,11 +13,11 @@ torch = pytest.importorskip("torch")
 
 from toolkit.cli import main  # noqa: E402
 from toolkit.common import io  # noqa: E402
-from toolkit.common.compat import IncompatibleError  # noqa: E402
+from toolkit.common.config_diff import IncompatibleError  # noqa: E402
 from toolkit.impact import Scene  # noqa: E402
 from toolkit.impact.dataset import build_database, load_database  # noqa: E402
 from toolkit.impact.evaluation import evaluate_surrogate, field_metrics  # noqa: E402
-from toolkit.impact.lstm import CONFIGS, ImpactSurrogate, split_items, train_surrogate  # noqa: E402
+from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, split_items, train_surrogate  # noqa: E402
 
 from .conftest import tiny_scene  # noqa: E402
 
@@ -60,7 +60,7 @@ def test_strong_lstm_learns_the_tiny_database_within_a_minute(tiny_db, strong_ra
     with a displacement RMSE below 0.35 of the test displacement's standard deviation (the RMSE of
     the best constant predictor; most nodes barely move, so this spread is small: ~0.4 mm against a
     ~18 mm peak) and a von Mises RMSE below 0.2 of the stress's; Pearson correlations >= 0.95
-    (displacement; seed 002 reports 0.98) and >= 0.98 (von Mises; seed 002: 0.94). Measured when
+    (displacement; the impact paper reports 0.98) and >= 0.98 (von Mises; the impact paper: 0.94). Measured when
     written: 0.26 and 0.14 of the spreads, Pearson 0.966 and 0.990."""
     model = strong_random
     assert model.bundle.extra["epochs_run"] == 200  # the budget, not the 60 s cap, ended training
@@ -88,13 +88,13 @@ def test_held_out_velocity_is_predicted_within_bounds(tiny_db):
 
 
 def test_configurations_name_existing_networks():
-    from toolkit.impact.lstm import NETWORK_NAMES
+    from toolkit.impact.surrogate import NETWORK_NAMES
     from toolkit.impact.networks import NETWORKS
 
     assert set(NETWORK_NAMES) == set(NETWORKS)
     assert {c.network for c in CONFIGS.values()} <= set(NETWORKS)
     with pytest.raises(ValueError, match="network 'gru' is not one of"):
-        CONFIGS["seed"].with_(network="gru")
+        CONFIGS["paper"].with_(network="gru")
 
 
 def test_metrics_equal_numpy_and_scipy():
@@ -122,7 +122,7 @@ def test_every_configuration_trains_saves_and_reloads(tiny_db, tmp_path):
     """seed (4 LSTMs of 5 units, 1 output each), strong and baseline each train a few epochs, save
     model.pt + config.json, and reload to the same predictions; nodes the scene holds are
     predicted with exactly zero displacement."""
-    for name in ("seed", "strong", "baseline"):
+    for name in ("paper", "strong", "baseline"):
         model = train_surrogate(tiny_db, CONFIGS[name].with_(epochs=2), "random", out=tmp_path / name,
                                 progress=False)
         back = ImpactSurrogate.load(tmp_path / name, config=name)
@@ -132,7 +132,7 @@ def test_every_configuration_trains_saves_and_reloads(tiny_db, tmp_path):
         np.testing.assert_array_equal(v1, v2)
         assert u1.shape == (tiny_db.times.size, tiny_db.n_nodes, 3)
         assert np.all(u1[:, tiny_db.fixed] == 0.0)
-    seed_net = ImpactSurrogate.load(tmp_path / "seed").network
+    seed_net = ImpactSurrogate.load(tmp_path / "paper").network
     assert len(seed_net.lstms) == 4 and all(lstm.hidden_size == 5 for lstm in seed_net.lstms)
     assert all(head.out_features == 1 for head in seed_net.heads)
 
@@ -143,7 +143,7 @@ def test_models_refuse_what_they_were_not_built_for(tiny_db, tmp_path):
     asking for CUDA on a machine without it fails clearly."""
     from dataclasses import replace
 
-    train_surrogate(tiny_db, CONFIGS["seed"].with_(epochs=1), "random", out=tmp_path / "m", progress=False)
+    train_surrogate(tiny_db, CONFIGS["paper"].with_(epochs=1), "random", out=tmp_path / "m", progress=False)
     with pytest.raises(IncompatibleError, match=r"hidden: stored 5, asked 32"):
         ImpactSurrogate.load(tmp_path / "m", config="strong")
     model = ImpactSurrogate.load(tmp_path / "m")
@@ -156,7 +156,7 @@ def test_models_refuse_what_they_were_not_built_for(tiny_db, tmp_path):
         ImpactSurrogate.load(tmp_path / "m")
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="sees no CUDA GPU"):
-            train_surrogate(tiny_db, CONFIGS["seed"].with_(epochs=1), device="cuda", progress=False)
+            train_surrogate(tiny_db, CONFIGS["paper"].with_(epochs=1), device="cuda", progress=False)
 
 
 def test_train_resume_evaluate_predict_commands(tiny_db_path, tmp_path, capsys):
