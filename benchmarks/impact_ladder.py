@@ -18,7 +18,10 @@ step size selects (the same quasi-static solver went to -x with 36 load steps an
 the reference against its own mirror image: the floor of an unmirrored comparison for a run
 that took the other branch.
 
-Rows are written atomically after each run; a rerun skips finished rows (resume).
+Rows go to ``benchmarks/results/impact_ladder.csv`` (or ``--out``) with its provenance sidecar
+(:mod:`_provenance`), written atomically after each run; a rerun skips finished rows (resume).
+The skin fields of each run (``.npz``) and the error-vs-time plot go to
+``benchmarks/work/<name of --out>/``.
 
     python benchmarks/impact_ladder.py --resolutions coarse --duration 1.8
     python benchmarks/impact_ladder.py --resolutions paper --orders 1 2 --balls rigid --mass-scaling 100
@@ -41,17 +44,17 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from _provenance import RESULTS, work_folder, write_result
 
-RESULTS = Path(__file__).parent / "results"
 FIDELITY = ["integrator", "order", "ball", "mass_scaling", "safety"]
-SEED_VELOCITY = 30.0  # mm/s, the impact paper's ball
-TOLERANCE = 3e-3  # the implicit Newton tolerance of rows written before the tolerance column
+PAPER_VELOCITY = 30.0  # mm/s, the impact paper's ball
+TOLERANCE = 3e-3  # the default Newton tolerance of the implicit runs (relative residual)
 
 
 def _key(r) -> str:
     implicit = "_implicit" if r.get("integrator", "explicit") == "implicit" else ""
-    v = float(r.get("velocity", SEED_VELOCITY))
-    speed = "" if v == SEED_VELOCITY else f"_v{v:g}"  # rows of the impact paper's 30 mm/s keep their names
+    v = float(r.get("velocity", PAPER_VELOCITY))
+    speed = "" if v == PAPER_VELOCITY else f"_v{v:g}"
     tol = float(r.get("tolerance", TOLERANCE))
     if implicit and tol != TOLERANCE:
         implicit += f"_tol{tol:g}"
@@ -60,7 +63,7 @@ def _key(r) -> str:
 
 
 def run_one(resolution, order, ball, mass_scaling, safety, duration, out, integrator="explicit",
-            velocity=SEED_VELOCITY, tolerance=TOLERANCE) -> dict:
+            velocity=PAPER_VELOCITY, tolerance=TOLERANCE) -> dict:
     from toolkit.impact import InstabilityError, default_scene, simulate
     from toolkit.impact.implicit import ConvergenceError
 
@@ -81,7 +84,8 @@ def run_one(resolution, order, ball, mass_scaling, safety, duration, out, integr
         skin = skin[skin < n_corner]
         np.savez_compressed(out, times=r.times, skin_displacement=r.displacement[:, skin],
                             von_mises=r.von_mises[:, skin])
-        row.update(status="ok", error="", steps=s["steps"], dt_s=s["dt_s"],
+        row.update(status="ok", error="", face_nodes=r.face.points.shape[0], face_elements=r.face.volume_cells.shape[0],
+                   steps=s["steps"], dt_s=s["dt_s"],
                    max_displacement_mm=s["max_displacement_mm"], max_von_mises_mpa=s["max_von_mises_mpa"],
                    energy_error=s["energy_error"], max_energy_error=s["max_energy_error"],
                    added_mass_fraction=s["added_mass_fraction"], max_penetration_mm=s["max_penetration_mm"],
@@ -92,7 +96,7 @@ def run_one(resolution, order, ball, mass_scaling, safety, duration, out, integr
     return row
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _mirror(resolution: str) -> np.ndarray | None:
     """Index of each sampled skin node's mirror image across x = 0 (the skin order of
     :func:`run_one`; the lips of the mouth slit, which share positions, kept apart), or None
@@ -132,7 +136,7 @@ def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
         df[c] = "" if c == "reference" else np.nan
     order = [(2, "deformable", 1.0), (2, "deformable", 10.0), (2, "rigid", 1.0), (1, "deformable", 1.0),
              (2, "rigid", 10.0), (2, "deformable", 100.0), (2, "rigid", 100.0)]
-    for (res, dur, _), g in df.groupby(["resolution", "duration", "velocity"]):
+    for (res, _, _), g in df.groupby(["resolution", "duration", "velocity"]):
         ok = g[g.status == "ok"]
         explicit = ok[ok.integrator == "explicit"]
         ref = None
@@ -169,7 +173,7 @@ def main(argv=None) -> pd.DataFrame:
     p.add_argument("--integrators", nargs="+", default=["explicit"], choices=["explicit", "implicit"],
                    help="implicit: quasi-static Newton (mass scaling and safety do not apply; run once)")
     p.add_argument("--duration", type=float, default=1.8, help="simulated time, s (the impact paper: 1.8)")
-    p.add_argument("--velocities", nargs="+", type=float, default=[SEED_VELOCITY],
+    p.add_argument("--velocities", nargs="+", type=float, default=[PAPER_VELOCITY],
                    help="ball speeds, mm/s (the impact paper: 30; its range 20-50); each speed has its own reference")
     p.add_argument("--tolerances", nargs="+", type=float, default=[TOLERANCE],
                    help="Newton tolerances of the implicit runs (relative residual; Fidelity.tolerance)")
@@ -177,17 +181,11 @@ def main(argv=None) -> pd.DataFrame:
     args = p.parse_args(argv)
     from toolkit.common.runtime import set_threads
 
-    set_threads(1)  # one thread is fastest on 2 cores (SPEC); worker processes inherit it
-    folder = args.out.with_suffix("")
+    set_threads(1)  # one thread is fastest on the 2-core AMD EPYC; worker processes inherit it
+    folder = work_folder(args.out)
     folder.mkdir(parents=True, exist_ok=True)
-    rows = pd.read_csv(args.out).to_dict("records") if args.out.exists() else []
-    for r in rows:  # rows written before the integrator and velocity columns: explicit, 30 mm/s
-        if not isinstance(r.get("integrator"), str):
-            r["integrator"] = "explicit"
-        if not np.isfinite(float(r.get("velocity", np.nan))):
-            r["velocity"] = SEED_VELOCITY
-        if not np.isfinite(float(r.get("tolerance", np.nan))):
-            r["tolerance"] = TOLERANCE
+    resumed = args.out.exists()
+    rows = pd.read_csv(args.out).to_dict("records") if resumed else []
     have = {_key(r) for r in rows}
     combos = [dict(resolution=r, order=o, ball=b, mass_scaling=m, safety=s, duration=args.duration, integrator=i,
                    velocity=v, tolerance=tol)
@@ -204,16 +202,12 @@ def main(argv=None) -> pd.DataFrame:
     todo = [c for c in combos if _key(c) not in have]
     from tqdm import tqdm
 
-    from toolkit.common.io import atomic_path
-
     with ProcessPoolExecutor(max_workers=1, max_tasks_per_child=1) as pool:
         for c in tqdm(todo, desc="impact ladder"):
             rows.append(pool.submit(run_one, **c, out=str(folder / f"{_key(c)}.npz")).result())
-            with atomic_path(args.out) as tmp:
-                pd.DataFrame(rows).to_csv(tmp, index=False)
+            write_result(args.out, pd.DataFrame(rows), sidecar=False)
     df = compare(pd.DataFrame(rows), folder)
-    with atomic_path(args.out) as tmp:
-        df.to_csv(tmp, index=False)
+    write_result(args.out, df, resumed=resumed)
     cols = ["resolution", "velocity", "integrator", "tolerance", "order", "ball", "mass_scaling", "safety", "status",
             "steps",
             "wall_time_s",
@@ -233,7 +227,7 @@ def main(argv=None) -> pd.DataFrame:
                   for r in ok.itertuples()]
         plot_tradeoff(ok.wall_time_s.to_numpy(), ok.rmse_displacement_mm.to_numpy(), labels,
                       ylabel="displacement RMSE to the reference (mm)", title="impact ladder",
-                      path=args.out.with_suffix(".png"))
+                      path=folder / "tradeoff.png")
     print(f"wrote {args.out}")
     return df
 

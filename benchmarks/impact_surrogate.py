@@ -6,17 +6,19 @@ Stages (each resumable; rerun the same command to continue):
 1. ``database``: the skull-held yielding scene (``toolkit.impact.yielding_scene``) on the
    paper face at the impact paper's six velocities plus the held-out 23, 35 and 47 mm/s, at the
    chosen fidelity (default: tet10 face, deformable ball, no mass scaling, the impact paper's own
-   model) -> ``results/impact_paper.h5``; the per-velocity yield table
+   model) -> ``work/impact_paper.h5``; the per-velocity yield table
    -> ``results/impact_surrogate_yield.csv``.
 2. ``sweep`` (optional, ``--sweep``): candidate LSTM sizes on the random split with a
    shorter time budget -> ``results/impact_surrogate_sweep.csv`` (how ``strong`` was chosen).
-3. ``models``: seed / strong / baseline on the random (76 % items) and held-out-velocity
-   splits, each trained (CPU, one thread) and evaluated -> ``results/impact_models/``,
-   ``results/impact_surrogate.csv``, ``results/impact_surrogate.png``.
+3. ``models``: paper / strong / baseline on the random (76 % items) and held-out-velocity
+   splits, each trained (CPU, one thread) and evaluated -> ``work/impact_models/``,
+   ``results/impact_surrogate.csv``, ``work/impact_surrogate.png``.
 
-Timed stages should not overlap other timed work: run under ``flock /tmp/bench.lock``.
+Every table in ``benchmarks/results/`` has its provenance sidecar (the sizes in its ``extra``);
+databases, models and plots go to ``benchmarks/work/``. Timed stages should not overlap other
+timed work: run under ``flock /tmp/heavy.lock``.
 
-    flock /tmp/bench.lock python benchmarks/impact_surrogate.py
+    flock /tmp/heavy.lock python benchmarks/impact_surrogate.py
     python benchmarks/impact_surrogate.py --resolution coarse --order 1 --ball rigid --mass-scaling 100  # quick
 """
 
@@ -31,13 +33,12 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-
-RESULTS = Path(__file__).parent / "results"
+from _provenance import RESULTS, WORK, write_result
 
 #: the impact paper's reported figures (Abaqus FE, Keras LSTM hidden 5 / output 1, ~3 h training)
-SEED_002 = {"displacement_rmse_mm": 3.13, "displacement_pearson": 0.98, "von_mises_rmse_mpa": 0.001,
+PAPER = {"displacement_rmse_mm": 3.13, "displacement_pearson": 0.98, "von_mises_rmse_mpa": 0.001,
             "von_mises_pearson": 0.94, "train_seconds": 3 * 3600.0}
-#: the issue's goals
+#: the targets the table is read against
 GOALS = {"displacement_rmse_mm": ("<", 1.0), "displacement_pearson": (">=", 0.995),
          "von_mises_pearson": (">=", 0.97), "train_seconds": ("<", 900.0)}
 
@@ -67,10 +68,11 @@ def _scene(args):
 
 def stage_database(args, db_path: Path) -> pd.DataFrame:
     from toolkit.common.database import read_failures, read_index
-    from toolkit.impact.dataset import SEED_VELOCITIES, build_database
+    from toolkit.common.papers import BALL_VELOCITIES
+    from toolkit.impact.dataset import build_database
 
     t0 = time.perf_counter()
-    report = build_database(db_path, SEED_VELOCITIES, None, _scene(args), workers=args.workers)
+    report = build_database(db_path, BALL_VELOCITIES, None, _scene(args), workers=args.workers)
     print(f"database: {len(report.done)} simulated now, {len(report.skipped)} before, {len(report.failed)} failed "
           f"({time.perf_counter() - t0:.0f} s) -> {db_path}")
     fails = read_failures(db_path)
@@ -81,7 +83,7 @@ def stage_database(args, db_path: Path) -> pd.DataFrame:
             "plastic_volume_fraction", "energy_error", "max_energy_error", "steps", "wall_time_s",
             "fe_ms_per_frame"]
     table = table[cols]
-    table.to_csv(RESULTS / f"impact_surrogate_yield{args.suffix}.csv", index=False)
+    write_result(RESULTS / f"impact_surrogate_yield{args.suffix}.csv", table, extra=_sizes(args))
     print(table.to_string(index=False, float_format="%.4g"))
     return table
 
@@ -111,19 +113,21 @@ def stage_sweep(args, db) -> pd.DataFrame:
     from toolkit.impact.surrogate import CONFIGS
 
     path = RESULTS / f"impact_surrogate_sweep{args.suffix}.csv"
-    rows = pd.read_csv(path).to_dict(orient="records") if path.exists() else []
+    resumed = path.exists()
+    rows = pd.read_csv(path).to_dict(orient="records") if resumed else []
     for name, change in SWEEP.items():
         if any(r["name"] == name for r in rows):
             continue
         cfg = CONFIGS["strong"].with_(name=name, max_seconds=args.sweep_seconds, **change)
-        m = _train_eval(db, cfg, "random", RESULTS / f"impact_models{args.suffix}" / "sweep" / name, args.seed)
+        m = _train_eval(db, cfg, "random", WORK / f"impact_models{args.suffix}" / "sweep" / name, args.seed)
         knobs = {k: v for k, v in asdict(cfg).items() if k in ("network", "hidden", "layers", "features", "fourier",
                                                                  "per_travel", "loss", "lr", "batch_size")}
         rows.append({"name": name, **knobs, **{k: m[k] for k in (
             "displacement_rmse_mm", "displacement_pearson", "von_mises_rmse_mpa", "von_mises_pearson",
             "train_seconds", "epochs_run", "best_epoch", "inference_ms")}})
-        pd.DataFrame(rows).to_csv(path, index=False)
+        write_result(path, pd.DataFrame(rows), sidecar=False)
     table = pd.DataFrame(rows)
+    write_result(path, table, extra=_sizes(args), resumed=resumed)
     print(table.to_string(index=False, float_format="%.4g"))
     return table
 
@@ -138,17 +142,18 @@ def stage_models(args, db) -> pd.DataFrame:
             minutes = args.strong_minutes if name == "strong" and args.strong_minutes else args.max_minutes
             if minutes:
                 cfg = cfg.with_(max_seconds=60.0 * minutes)
-            out = RESULTS / f"impact_models{args.suffix}" / f"{name}_{split}"
+            out = WORK / f"impact_models{args.suffix}" / f"{name}_{split}"
             m = _train_eval(db, cfg, split, out, args.seed)
             rows.append({"config": name, "split": split, **{k: m[k] for k in (
                 "displacement_rmse_mm", "displacement_pearson", "displacement_nrmse", "displacement_magnitude_rmse_mm",
                 "displacement_magnitude_pearson", "von_mises_rmse_mpa", "von_mises_pearson", "von_mises_nrmse",
                 "peak_displacement_mm", "peak_von_mises_mpa", "train_seconds", "epochs_run", "best_epoch", "stopped",
                 "inference_ms", "fe_ms_per_frame", "speedup_vs_fe", "n_train_items", "n_test_items")}})
-            pd.DataFrame(rows).to_csv(RESULTS / f"impact_surrogate{args.suffix}.csv", index=False)
+            write_result(RESULTS / f"impact_surrogate{args.suffix}.csv", pd.DataFrame(rows), sidecar=False)
     table = pd.DataFrame(rows)
-    seed_row = {"config": "the impact paper (paper)", "split": "random", **SEED_002}
-    print(pd.concat([table, pd.DataFrame([seed_row])], ignore_index=True)[
+    write_result(RESULTS / f"impact_surrogate{args.suffix}.csv", table, extra=_sizes(args))
+    paper_row = {"config": "the impact paper", "split": "random", **PAPER}
+    print(pd.concat([table, pd.DataFrame([paper_row])], ignore_index=True)[
         ["config", "split", "displacement_rmse_mm", "displacement_pearson", "displacement_nrmse", "von_mises_rmse_mpa",
          "von_mises_pearson", "von_mises_nrmse", "train_seconds", "inference_ms", "fe_ms_per_frame"]].to_string(
         index=False, float_format="%.4g"))
@@ -156,7 +161,7 @@ def stage_models(args, db) -> pd.DataFrame:
         for _, r in table.iterrows():
             ok = r[key] < goal if op == "<" else r[key] >= goal
             print(f"goal {key} {op} {goal}: {r['config']}/{r['split']} = {r[key]:.4g} -> {'met' if ok else 'NOT met'}")
-    _plot(table, RESULTS / f"impact_surrogate{args.suffix}.png")
+    _plot(table, WORK / f"impact_surrogate{args.suffix}.png")
     return table
 
 
@@ -176,8 +181,8 @@ def _plot(table: pd.DataFrame, path: Path) -> None:
         for j, split in enumerate(("random", "velocity")):
             sub = table[table.split == split].set_index("config").reindex(configs)
             ax.bar(np.arange(len(configs)) + (j - 0.5) * width, sub[key], width, label=f"{split} split")
-        if key in SEED_002:
-            ax.axhline(SEED_002[key], color="k", ls="--", lw=1, label="the impact paper")
+        if key in PAPER:
+            ax.axhline(PAPER[key], color="k", ls="--", lw=1, label="the impact paper")
         if key in GOALS:
             ax.axhline(GOALS[key][1], color="C3", ls=":", lw=1, label="goal")
         if key == "inference_ms":
@@ -194,6 +199,13 @@ def _plot(table: pd.DataFrame, path: Path) -> None:
         fig.savefig(tmp, dpi=110, format="png")
 
 
+def _sizes(args) -> dict:
+    """The database and training sizes a result was measured at (its sidecar's ``extra``)."""
+    return {"resolution": args.resolution, "order": args.order, "ball": args.ball, "mass_scaling": args.mass_scaling,
+            "frames": args.frames, "max_minutes": args.max_minutes, "strong_minutes": args.strong_minutes,
+            "seed": args.seed}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--resolution", default="paper", choices=["coarse", "paper"])
@@ -201,10 +213,12 @@ def main(argv=None) -> int:
     parser.add_argument("--ball", default="deformable", choices=["deformable", "rigid"])
     parser.add_argument("--mass-scaling", type=float, default=1.0)
     parser.add_argument("--frames", type=int, default=None, help="output frames (default: the scene's 36)")
-    parser.add_argument("--workers", type=int, default=1, help="simulation processes (default 1: the machine is shared)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="simulation processes (default 1: the machine is shared)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-minutes", type=float, default=None, help="training time limit per model")
-    parser.add_argument("--strong-minutes", type=float, default=None, help="time limit for 'strong' (default: --max-minutes)")
+    parser.add_argument("--strong-minutes", type=float, default=None,
+                        help="time limit for 'strong' (default: --max-minutes)")
     parser.add_argument("--sweep", action="store_true", help="also run the strong-configuration sweep")
     parser.add_argument("--sweep-seconds", type=float, default=300.0)
     parser.add_argument("--suffix", default="", help="suffix of the result files (e.g. _coarse)")
@@ -219,8 +233,8 @@ def main(argv=None) -> int:
     from toolkit.impact.dataset import load_database
 
     set_threads(None)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    db_path = RESULTS / f"impact_{args.resolution}{args.suffix}.h5"
+    WORK.mkdir(parents=True, exist_ok=True)
+    db_path = WORK / f"impact_{args.resolution}{args.suffix}.h5"
     machine = {"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
                "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
     print(json.dumps(machine))

@@ -7,6 +7,8 @@ Kuhn tetrahedra) and of the L-section ``mixed_bar`` (hex8 + wedge6 + tet4). The 
 gives the max nodal error relative to max |u| at cell sizes h = 5, 2.5, 1.25 mm and the
 log-log slope: 2 is the O(h^2) of linear elements, ~0 is volumetric locking.
 
+Writes ``benchmarks/results/mixed_elements.csv`` (or ``--out``) with its provenance sidecar.
+
     python benchmarks/mixed_elements.py [--out benchmarks/results/mixed_elements.csv]
 """
 
@@ -18,16 +20,16 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from _provenance import RESULTS, write_result
 
-from toolkit.common.io import atomic_path
 from toolkit.common.materials import LinearElastic
 from toolkit.common.mesh import Mesh
 from toolkit.common.mixed_bar import mixed_bar
 from toolkit.common.phantom import block
 from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
-from toolkit.static.stiffness import MaterialAssignment
 from toolkit.static.constraints import Constraints
 from toolkit.static.problem import StaticProblem
+from toolkit.static.stiffness import MaterialAssignment
 
 CENTRE = np.array([-12.0, 5.0, 5.0])  # cavity centre, mm
 B = 20.0  # p a^3 / (4 mu), mm^3
@@ -68,19 +70,18 @@ def run(kind: str, nu: float, n: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "mixed_elements.csv")
+    parser.add_argument("--out", type=Path, default=RESULTS / "mixed_elements.csv")
     args = parser.parse_args()
     from toolkit.common.runtime import set_threads
 
-    set_threads(1)  # one thread is fastest on 2 cores (SPEC); worker processes inherit it
+    set_threads(1)  # one thread is fastest on the 2-core AMD EPYC; worker processes inherit it
     rows = [run(kind, nu, n) for kind in ("hex8", "wedge6", "tet4", "mixed") for nu in (0.3, 0.47, 0.4999)
             for n in (1, 2, 4)]
     df = pd.DataFrame(rows)
     slopes = df.groupby(["mesh", "nu"], sort=False).apply(
         lambda g: np.polyfit(np.log(g.h_mm), np.log(g.max_error_rel), 1)[0], include_groups=False)
     df["slope"] = [slopes[(m, nu)] for m, nu in zip(df["mesh"], df["nu"])]
-    with atomic_path(args.out) as tmp:
-        df.to_csv(tmp, index=False)
+    write_result(args.out, df)
     table = df.pivot_table(index=["mesh", "nu"], columns="h_mm", values="max_error_rel", sort=False)
     table["slope"] = slopes
     print(table.to_string(float_format=lambda v: f"{v:.2e}" if v < 0.5 else f"{v:.2f}"))

@@ -1,6 +1,6 @@
 """Benchmark: time and memory to build each phantom at each resolution.
 
-Writes ``benchmarks/results/phantoms.csv`` (or ``--out``) and prints a table:
+Writes ``benchmarks/results/phantoms.csv`` (or ``--out``) with its provenance sidecar and prints a table:
 node and element counts, minimum and 1st-percentile scaled Jacobian, build time
 (median of ``--repeat`` runs, s) and peak traced memory (MiB, tracemalloc).
 
@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from _provenance import RESULTS, write_result
 
-from toolkit.common.io import atomic_path
 from toolkit.common.phantom import ball, face_hex, face_tet
 
 CASES = [
@@ -58,15 +58,14 @@ def measure(build, repeat: int) -> dict:
 def main(argv=None) -> pd.DataFrame:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "phantoms.csv")
+    parser.add_argument("--out", type=Path, default=RESULTS / "phantoms.csv")
     args = parser.parse_args(argv)
     from toolkit.common.runtime import set_threads
 
-    set_threads(1)  # one thread is fastest on 2 cores (SPEC); worker processes inherit it
+    set_threads(1)  # one thread is fastest on the 2-core AMD EPYC; worker processes inherit it
     rows = [{"phantom": name, "resolution": res, **measure(build, args.repeat)} for name, res, build in CASES]
     df = pd.DataFrame(rows)
-    with atomic_path(args.out) as tmp:
-        df.to_csv(tmp, index=False)
+    write_result(args.out, df)
     with pd.option_context("display.width", 160, "display.float_format", "{:.3f}".format):
         print(df.to_string(index=False))
     print(f"wrote {args.out}")

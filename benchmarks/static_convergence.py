@@ -1,11 +1,13 @@
-"""Convergence of the static FE under mesh refinement (issue: static ground truth).
+"""Convergence of the static FE under mesh refinement, and its time per resolution.
 
 Runs the packaged default plan (3 increments, linear, mucosa + lip sliding) on the coarse,
 paper and fine phantoms, interpolates each result's skin displacement at common points
 (the skin nodes of the coarsest mesh off the mouth slit, whose two lip copies move apart,
-by closest point and barycentric interpolation on each mesh's skin triangles) and reports the differences between resolutions: mean,
-95th percentile and max of |u_a - u_b| (mm). Writes
-``benchmarks/results/static_convergence.csv`` and prints the table.
+by closest point and barycentric interpolation on each mesh's skin triangles) and reports the
+differences between resolutions: mean, 95th percentile and max of |u_a - u_b| (mm). Writes
+``benchmarks/results/static_convergence.csv`` (the pairs) and ``static_convergence_runs.csv``
+(per resolution: nodes, wall time of the simulation on one thread, mean skin displacement),
+each with its provenance sidecar, and prints the tables.
 
 Usage::
 
@@ -22,8 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-
-RESULTS = Path(__file__).resolve().parent / "results"
+from _provenance import RESULTS, write_result
 
 
 def skin_triangles(mesh):
@@ -48,14 +49,20 @@ def main(argv=None):
     from toolkit.static import default_plan, simulate
 
     set_threads(1)
-    runs = {}
+    runs, timings = {}, []
     for res in args.resolutions:
         phantom = face_hex(res)
         t0 = time.perf_counter()
         result = simulate(phantom, default_plan(phantom))
+        seconds = time.perf_counter() - t0
         s = result.summary()
         runs[res] = (phantom.mesh, result.displacement)
-        print(f"{res}: {phantom.mesh.n_points} nodes, {time.perf_counter() - t0:.1f} s, min SJ "
+        timings.append({"resolution": res, "nodes": phantom.mesh.n_points, "elements": phantom.mesh.n_cells,
+                        "increments": s["increments"], "seconds": seconds,
+                        "min_scaled_jacobian": s["min_scaled_jacobian"],
+                        "mean_skin_displacement_mm": s["mean_skin_displacement_mm"],
+                        "max_displacement_mm": s["max_displacement_mm"], "regulated_nodes": s["regulated_nodes"]})
+        print(f"{res}: {phantom.mesh.n_points} nodes, {seconds:.1f} s, min SJ "
               f"{s['min_scaled_jacobian']:.3f}, mean skin |u| {s['mean_skin_displacement_mm']:.3f} mm, "
               f"regulated nodes {s['regulated_nodes']}")
     coarsest = args.resolutions[0]
@@ -72,10 +79,12 @@ def main(argv=None):
         rows.append({"pair": f"{a}-{b}", "points": d.size, "mean_mm": d.mean(), "p95_mm": np.percentile(d, 95),
                      "max_mm": d.max(), "mean_skin_displacement_mm": np.linalg.norm(fields[b], axis=1).mean()})
     table = pd.DataFrame(rows)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    table.to_csv(args.out, index=False)
+    runs_path = args.out.with_name(f"{args.out.stem}_runs.csv")
+    write_result(args.out, table)
+    write_result(runs_path, pd.DataFrame(timings))
+    print(pd.DataFrame(timings).to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     print(table.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
-    print(json.dumps({"wrote": str(args.out)}))
+    print(json.dumps({"wrote": [str(args.out), str(runs_path)]}))
     return table
 
 

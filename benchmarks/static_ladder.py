@@ -7,10 +7,10 @@ highest-fidelity run of its resolution (Neo-Hookean, 10 increments, mucosa+lip; 
 that one is skipped or fails, the best finished run in that order) by the mean and max
 difference of the skin-node displacements (mm).
 
-Results go to ``benchmarks/results/static_ladder.csv`` (one row per run, written
-atomically after each run; a rerun skips rows already there, so an interrupted ladder
-resumes), the skin displacements to ``static_ladder/*.npz``, a table to stdout and the
-plot ``static_ladder.png`` (error vs wall time).
+Results go to ``benchmarks/results/static_ladder.csv`` with its provenance sidecar (one row
+per run, written atomically after each run; a rerun skips rows already there, so an
+interrupted ladder resumes), the skin displacements to ``benchmarks/work/static_ladder/*.npz``
+with the plot ``tradeoff.png`` (error vs wall time), and a table to stdout.
 
     python benchmarks/static_ladder.py                       # coarse + paper, all options
     python benchmarks/static_ladder.py --resolutions fine --materials linear --increments 1 3
@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from _provenance import RESULTS, work_folder, write_result
 
-RESULTS = Path(__file__).parent / "results"
 FIDELITY_ORDER = [("neo-hookean", 10), ("neo-hookean", 3), ("linear", 10), ("linear", 3)]
 
 
@@ -67,7 +67,7 @@ def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
     df = df.copy()
     for col in ("reference", "skin_mean_diff_mm", "skin_max_diff_mm"):
         df[col] = np.nan if col != "reference" else ""
-    for res, group in df.groupby("resolution"):
+    for _, group in df.groupby("resolution"):
         ref = None
         for mat, inc in FIDELITY_ORDER:
             hit = group[(group.material == mat) & (group.increments == inc) & (group.sliding == "mucosa+lip")
@@ -99,28 +99,25 @@ def main(argv=None) -> pd.DataFrame:
     args = parser.parse_args(argv)
     from toolkit.common.runtime import set_threads
 
-    set_threads(1)  # one thread is fastest on 2 cores (SPEC); worker processes inherit it
-    folder = args.out.with_suffix("")
+    set_threads(1)  # one thread is fastest on the 2-core AMD EPYC; worker processes inherit it
+    folder = work_folder(args.out)
     folder.mkdir(parents=True, exist_ok=True)
-    done = pd.read_csv(args.out) if args.out.exists() else pd.DataFrame()
+    resumed = args.out.exists()
+    done = pd.read_csv(args.out) if resumed else pd.DataFrame()
     rows = done.to_dict("records")
     have = {_key(r) for r in rows}
     todo = [c for c in itertools.product(args.resolutions, args.materials, args.increments, args.sliding)
             if _key(dict(zip(("resolution", "material", "increments", "sliding"), c))) not in have]
     from tqdm import tqdm
 
-    from toolkit.common.io import atomic_path
-
     # one fresh process per run: isolated peak memory, and 2 cores are used by one run at a time
     with ProcessPoolExecutor(max_workers=1, max_tasks_per_child=1) as pool:
         for combo in tqdm(todo, desc="static ladder"):
             key = _key(dict(zip(("resolution", "material", "increments", "sliding"), combo)))
             rows.append(pool.submit(run_one, *combo, args.plan_scale, str(folder / f"{key}.npz")).result())
-            with atomic_path(args.out) as tmp:
-                pd.DataFrame(rows).to_csv(tmp, index=False)
+            write_result(args.out, pd.DataFrame(rows), sidecar=False)
     df = compare(pd.DataFrame(rows), folder)
-    with atomic_path(args.out) as tmp:
-        df.to_csv(tmp, index=False)
+    write_result(args.out, df, extra={"plan_scale": args.plan_scale}, resumed=resumed)
     cols = ["resolution", "material", "increments", "sliding", "status", "wall_time_s", "peak_rss_mib",
             "skin_mean_diff_mm", "skin_max_diff_mm", "min_scaled_jacobian", "max_penetration_mm"]
     with pd.option_context("display.width", 200, "display.max_rows", 500, "display.float_format", "{:.3g}".format):
@@ -133,8 +130,8 @@ def main(argv=None) -> pd.DataFrame:
         plot_tradeoff(ok.wall_time_s.to_numpy(), np.maximum(ok.skin_mean_diff_mm.to_numpy(), 1e-6), labels,
                       ylabel="mean skin difference to the reference (mm)",
                       title="static ladder (reference: best run per resolution)",
-                      path=args.out.with_suffix(".png"))
-    print(f"wrote {args.out} and {args.out.with_suffix('.png')}")
+                      path=folder / "tradeoff.png")
+    print(f"wrote {args.out} and {folder / 'tradeoff.png'}")
     return df
 
 

@@ -1,4 +1,4 @@
-"""Robustness of the static FE over the physiological plan space (issue: static ground truth).
+"""Robustness of the static FE over the physiological plan space.
 
 For every combination of resolution x material x sliding model x sampler mode, runs
 ``--plans`` plans drawn by :func:`toolkit.static.plan.sample_plans` (the lip-sliding paper's ranges,
@@ -7,7 +7,8 @@ minimum corner scaled Jacobian of every increment's deformed mesh, increments cu
 release band used, the fixed nodes of the cut freed (``SimulationOptions.free_cut_radius``),
 the error message. Writes ``benchmarks/results/static_robustness_runs.csv`` (one row per run,
 appended as runs finish, so an interrupted sweep resumes where it stopped) and
-``static_robustness.csv`` (the summary table), and prints the table.
+``static_robustness.csv`` (the summary table), each with its provenance sidecar, and prints
+the table.
 
 Usage::
 
@@ -23,10 +24,9 @@ import traceback
 import warnings
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
+from _provenance import RESULTS, write_result
 
-RESULTS = Path(__file__).resolve().parent / "results"
 COLUMNS = ["resolution", "material", "sliding", "mode", "max_jaw_closing_mm", "plan", "jaw_closing_mm", "status",
            "seconds", "min_scaled_jacobian", "substeps", "linear_solves", "max_displacement_mm", "release_width_mm",
            "freed_cut_nodes", "message"]
@@ -68,15 +68,14 @@ def main(argv=None):
     ap.add_argument("--retry-failed", action="store_true",
                     help="run again the selected plans that failed (their old rows are dropped)")
     ap.add_argument("--rerun-retried", action="store_true",
-                    help="run again the selected plans that needed a wider release band (after a change to "
-                         "the retries; their old rows are dropped)")
+                    help="run again the selected plans that needed a wider release band (their old rows are "
+                         "dropped)")
     ap.add_argument("--runs", type=Path, default=RESULTS / "static_robustness_runs.csv")
     ap.add_argument("--out", type=Path, default=RESULTS / "static_robustness.csv")
     args = ap.parse_args(argv)
 
     from tqdm import tqdm
 
-    from toolkit.common.io import atomic_path
     from toolkit.common.phantom import face_hex
     from toolkit.common.runtime import set_threads
     from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH
@@ -84,15 +83,11 @@ def main(argv=None):
 
     set_threads(1)
     args.runs.parent.mkdir(parents=True, exist_ok=True)
+    resumed = args.runs.exists()
     done = pd.read_csv(args.runs, keep_default_na=False) if args.runs.exists() else pd.DataFrame(columns=COLUMNS)
     closing = None if args.max_jaw_closing < 0 else args.max_jaw_closing
     closing_key = -1.0 if closing is None else closing
-    rewrite = "release_width_mm" not in done.columns  # rows from before the wider-band retry: the default band
-    if rewrite:
-        done["release_width_mm"] = np.where(done.status == "ok", DEFAULT_RELEASE_WIDTH, np.nan)
-    if "freed_cut_nodes" not in done.columns:  # rows from before the cut could be freed: none was
-        done["freed_cut_nodes"] = np.where(done.status == "ok", 0, np.nan)
-        rewrite = True
+    rewrite = False
     if args.retry_failed or args.rerun_retried:
         selected = (done.resolution.isin(args.resolutions) & done.material.isin(args.materials)
                     & done.sliding.isin(args.slidings) & done["mode"].isin(args.modes)
@@ -104,8 +99,7 @@ def main(argv=None):
         rewrite |= bool(again.any())
         done = done[~again]
     if rewrite:
-        with atomic_path(args.runs) as tmp:
-            done[COLUMNS].to_csv(tmp, index=False)
+        write_result(args.runs, done[COLUMNS], sidecar=False)
     key = set(zip(done.resolution, done.material, done.sliding, done["mode"], done.max_jaw_closing_mm.astype(float),
                   done.plan.astype(int)))
     for resolution in args.resolutions:
@@ -137,7 +131,8 @@ def main(argv=None):
                     lambda w: int((pd.to_numeric(w, errors="coerce") > DEFAULT_RELEASE_WIDTH).sum())),
         freed_cut=("freed_cut_nodes", lambda f: int((pd.to_numeric(f, errors="coerce") > 0).sum()))).reset_index()
     table["completion"] = table.completed / table.plans
-    table.to_csv(args.out, index=False)
+    write_result(args.runs, runs.drop(columns="ok"), resumed=resumed)
+    write_result(args.out, table, resumed=resumed)
     with pd.option_context("display.width", 160, "display.max_rows", 200):
         print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     print(f"wrote {args.out} and {args.runs}")

@@ -11,9 +11,9 @@ per process). Each row also gives the factor size ``auto`` expects
 a second solve after tying 5 more pairs (the next lip-contact iteration) by CG preconditioned
 with the first factorization (``reuse_s``, ``reuse_iterations``). CHOLMOD needs
 ``scikit-sparse`` and the system SuiteSparse and is skipped when missing; SuperLU is
-skipped above ``--superlu-max-dofs`` (SPEC: > 3 min and > 5 GB at 150k dofs).
+skipped above ``--superlu-max-dofs`` (more than 3 min and 5 GB at 150k dofs on a 2-core AMD EPYC).
 
-Writes ``benchmarks/results/static_solvers.csv`` and prints a table.
+Writes ``benchmarks/results/static_solvers.csv`` with its provenance sidecar and prints a table.
 
     python benchmarks/static_solvers.py [--meshes paper fine bulk-tet4]
 """
@@ -29,9 +29,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import scipy.sparse as sp
-
-RESULTS = Path(__file__).parent / "results"
-
+from _provenance import RESULTS, write_result
 
 MESHES = ("coarse", "paper", "fine", "paper-tet4", "bulk-tet4")
 
@@ -123,8 +121,7 @@ def main(argv=None) -> pd.DataFrame:
     args = parser.parse_args(argv)
     from toolkit.common.runtime import set_threads
 
-    set_threads(1)  # one thread is fastest on 2 cores (SPEC); worker processes inherit it
-    from toolkit.common.io import atomic_path
+    set_threads(1)  # one thread is fastest on the 2-core AMD EPYC; worker processes inherit it
     from toolkit.common.phantom import face_hex
 
     rows = []
@@ -137,9 +134,9 @@ def main(argv=None) -> pd.DataFrame:
                                  "status": f"skipped (> {args.superlu_max_dofs} dofs)"})
                     continue
                 rows.append(pool.submit(run_one, name, method).result())
-                with atomic_path(args.out) as tmp:
-                    pd.DataFrame(rows).to_csv(tmp, index=False)
+                write_result(args.out, pd.DataFrame(rows), sidecar=False)
     df = pd.DataFrame(rows)
+    write_result(args.out, df)
     with pd.option_context("display.width", 200, "display.float_format", "{:.3g}".format):
         print(df.to_string(index=False))
     print(f"wrote {args.out}")

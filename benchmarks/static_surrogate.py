@@ -1,12 +1,12 @@
-"""Static surrogate benchmark (issue: static surrogate): PointNet++ variants beside the two
-baselines and the FE, on the same test samples of a paper-resolution database.
+"""Static surrogate benchmark: PointNet++ variants beside the baselines and the FE, on the same
+test samples of a paper-resolution (or coarse) database.
 
 Stages (each resumable; rerun the same command to continue):
 
 1. ``database``: ``--plans`` plans (``--mode``, the lip-sliding paper's ranges, 3 increments, linear,
-   mucosa + lip sliding) on the default face -> ``results/static_paper.h5``; and, for the
-   held-out-subject goal, ``--subject-plans`` plans on each of ``--subjects`` phantom shapes
-   -> ``results/static_paper_subjects.h5``.
+   mucosa + lip sliding) on the default face -> ``work/static_paper.h5``; and, for the
+   held-out-subject test, ``--subject-plans`` plans on each of ``--subjects`` phantom shapes
+   -> ``work/static_paper_subjects.h5``.
 2. ``models``: PointNet++ ``explicit``, ``implicit``, ``hard``, ``explicit+extra`` (mucosa/lip
    channels) and ``hard+prior`` (the residual over the linear influence-matrix solution) trained
    on the 70/10/20 split by plan, each within ``--max-minutes``; ``explicit+extra`` and
@@ -18,9 +18,11 @@ Stages (each resumable; rerun the same command to continue):
    explicit-vs-implicit ablation is a Wilcoxon signed-rank test on paired samples. A model
    directory trained with another configuration is retrained.
 
-Writes ``results/static_surrogate.csv``, ``results/static_surrogate.png`` (error vs time) and
-``results/static_models/<name>/`` (model, metrics.json, per_sample.csv, error_map.png), and
-prints the table. Timed stages should not overlap other timed work.
+Writes ``benchmarks/results/static_surrogate.csv`` with its provenance sidecar (whose
+``extra`` holds the sizes and the explicit-vs-implicit ablation), and to ``benchmarks/work/``
+the plot ``static_surrogate.png`` (error vs time) and ``static_models/<name>/`` (model,
+metrics.json, per_sample.csv, error_map.png); prints the table. Timed stages should not
+overlap other timed work (``flock /tmp/heavy.lock``).
 
     python benchmarks/static_surrogate.py --plans 100 --subjects 4 --subject-plans 25 --max-minutes 8
     python benchmarks/static_surrogate.py --resolution coarse --plans 30 --subjects 3 --subject-plans 10 \
@@ -38,10 +40,10 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from _provenance import RESULTS, WORK, write_result
 
-RESULTS = Path(__file__).resolve().parent / "results"
-#: the PointNet++ paper's reported test mean errors (mm) and the issue's goals
-SEED_000 = (0.159, 0.642)
+#: the PointNet++ paper's reported test mean errors (mm), and the targets the table is read against
+PAPER_ERRORS_MM = (0.159, 0.642)
 GOALS = {"one subject": 0.2, "unseen subject": 0.4, "inference_ms": 20.0}
 VARIANTS = {
     "explicit": dict(variant="explicit"),
@@ -50,10 +52,9 @@ VARIANTS = {
     "explicit+extra": dict(variant="explicit", extra_channels=True),
     "hard+prior": dict(variant="hard", linear_prior=True),
 }
-#: models trained on all subjects but the last (directory names kept from earlier runs)
+#: models trained on all subjects but the last
 SUBJECT_VARIANTS = {"explicit+extra": dict(variant="explicit", extra_channels=True),
                     "hard+prior": dict(variant="hard", linear_prior=True)}
-SUBJECT_DIRS = {"explicit+extra": "subjects", "hard+prior": "subjects_hard_prior"}
 
 
 def stage_database(args) -> dict:
@@ -65,7 +66,7 @@ def stage_database(args) -> dict:
                                                  seed=args.seed))):
         if name == "subjects" and args.subjects < 2:
             continue
-        path = RESULTS / f"static_{args.resolution}{'' if name == 'one' else '_subjects'}{args.suffix}.h5"
+        path = WORK / f"static_{args.resolution}{'' if name == 'one' else '_subjects'}{args.suffix}.h5"
         t0 = time.perf_counter()
         report = generate(path, cfg, workers=args.workers)
         samples = read_samples(path)
@@ -169,7 +170,7 @@ def stage_models(args, paths: dict) -> pd.DataFrame:
     from toolkit.static.features import FeatureSpec
     from toolkit.static.surrogate import SurrogateConfig
 
-    models = RESULTS / f"static_models{args.suffix}"
+    models = WORK / f"static_models{args.suffix}"
     common = dict(network=args.network, coarse_radii=args.resolution == "coarse", seed=args.seed,
                   max_seconds=60.0 * args.max_minutes, epochs=args.epochs, lr_schedule=args.lr_schedule)
     rows, per_sample = [], {}
@@ -200,7 +201,8 @@ def stage_models(args, paths: dict) -> pd.DataFrame:
             if name not in args.variants:
                 continue
             config = SurrogateConfig(features=FeatureSpec(**feats), split="subjects", test_subjects=held, **common)
-            result = _pointnet(paths["subjects"], "subjects", config, models / SUBJECT_DIRS[name], held[0])
+            out = models / f"{name.replace('+', '_')}_unseen_subject"
+            result = _pointnet(paths["subjects"], "subjects", config, out, held[0])
             rows.append({"method": f"PointNet++ {name}", "test": unseen, **result["metrics"]})
             print(rows[-1])
         sdb = StaticDatabase.open(paths["subjects"])
@@ -210,15 +212,17 @@ def stage_models(args, paths: dict) -> pd.DataFrame:
             print(rows[-1])
     table = pd.DataFrame(rows)
     table["speedup_vs_fe"] = table.fe_ms / table.inference_ms
+    extra = {"resolution": args.resolution, "mode": args.mode, "plans": args.plans, "subjects": args.subjects,
+             "subject_plans": args.subject_plans, "network": args.network, "max_minutes": args.max_minutes,
+             "epochs": args.epochs, "variants": args.variants}
     if "explicit" in per_sample and "implicit" in per_sample:
         a, b = per_sample["explicit"], per_sample["implicit"]
         test = wilcoxon_paired(a, b, names=("explicit", "implicit"))
-        ablation = {"explicit_mean_mm": float(a.mean()), "implicit_mean_mm": float(b.mean()),
-                    "wilcoxon_p": float(test.p_value), "n": int(a.size)}
-        print("explicit vs implicit (Wilcoxon signed-rank, paired test samples):", ablation)
-        (RESULTS / f"static_surrogate_ablation{args.suffix}.json").write_text(json.dumps(ablation, indent=2))
-    table.to_csv(RESULTS / f"static_surrogate{args.suffix}.csv", index=False)
-    _plot(table, RESULTS / f"static_surrogate{args.suffix}.png")
+        extra["ablation"] = {"explicit_mean_mm": float(a.mean()), "implicit_mean_mm": float(b.mean()),
+                             "wilcoxon_p": float(test.p_value), "n": int(a.size)}
+        print("explicit vs implicit (Wilcoxon signed-rank, paired test samples):", extra["ablation"])
+    write_result(RESULTS / f"static_surrogate{args.suffix}.csv", table, extra=extra)
+    _plot(table, WORK / f"static_surrogate{args.suffix}.png")
     cols = ["method", "test", "samples", "mean_error_mm", "median_error_mm", "p95_error_mm", "free_mean_error_mm",
             "train_seconds", "inference_ms", "fe_ms", "speedup_vs_fe"]
     print(table[cols].to_string(index=False, float_format="%.3g"))
@@ -240,7 +244,7 @@ def _plot(table: pd.DataFrame, path: Path) -> None:
     for i, r in table.iterrows():
         ax.scatter(r.inference_ms, r.mean_error_mm, s=40, color=f"C{i}", label=f"{r.method} ({r.test})")
     ax.axvline(float(table.fe_ms.median()), color="k", ls="--", lw=1, label="FE per increment")
-    ax.axhspan(*SEED_000, color="0.9", label="the PointNet++ paper (GPU, MRI faces)")
+    ax.axhspan(*PAPER_ERRORS_MM, color="0.9", label="the PointNet++ paper (GPU, MRI faces)")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("time per prediction (ms, this CPU, batch 1)")
@@ -275,12 +279,12 @@ def main(argv=None) -> int:
     from toolkit.common.runtime import set_threads
 
     set_threads(None)
-    RESULTS.mkdir(parents=True, exist_ok=True)
+    WORK.mkdir(parents=True, exist_ok=True)
     print(json.dumps({"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
                       "torch": torch.__version__, "torch_threads": torch.get_num_threads()}))
     paths = stage_database(args) if "database" in args.stages else {
-        "one": RESULTS / f"static_{args.resolution}{args.suffix}.h5",
-        **({"subjects": RESULTS / f"static_{args.resolution}_subjects{args.suffix}.h5"} if args.subjects > 1 else {})}
+        "one": WORK / f"static_{args.resolution}{args.suffix}.h5",
+        **({"subjects": WORK / f"static_{args.resolution}_subjects{args.suffix}.h5"} if args.subjects > 1 else {})}
     if "models" in args.stages:
         stage_models(args, paths)
     return 0
