@@ -10,14 +10,18 @@ Two workflows on one core of meshes, materials and metrics:
 
 Units everywhere: mm, s, tonne, N, MPa.
 
+Every error the toolkit raises on purpose derives from :class:`ToolkitError`
+(:mod:`toolkit.common.errors`).
+
 Importing the package changes nothing in the process (no environment variable, no thread
-limit). On the 2-core machines this project runs on, multithreaded BLAS and torch were
-measured several times slower (see SPEC.md), so the command line runs on one thread
-(``--threads``); in Python call :func:`toolkit.set_threads` (``set_threads(1)``, or
-``set_threads()`` for ``TOOLKIT_NUM_THREADS``, default 1) before heavy work.
+limit). Measured on a 2-core AMD EPYC, multithreaded BLAS and torch were several times
+slower than one thread, so the command line runs on one thread (``--threads``); in Python call
+:func:`toolkit.set_threads` (``set_threads(1)``, or ``set_threads()`` for
+``TOOLKIT_NUM_THREADS``, default 1) before heavy work.
 """
 
+from toolkit.common.errors import ConvergenceError, ToolkitError
 from toolkit.common.runtime import set_threads
 
 __version__ = "0.1.0"
-__all__ = ["set_threads", "__version__"]
+__all__ = ["set_threads", "ToolkitError", "ConvergenceError", "__version__"]

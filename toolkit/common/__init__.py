@@ -3,6 +3,7 @@
 Imports nothing from :mod:`toolkit.static` or :mod:`toolkit.impact`.
 """
 
+from toolkit.common.errors import ConvergenceError, ToolkitError
 from toolkit.common.io import TimeSeries, TimeSeriesWriter, read, read_time_series, write, write_time_series
 from toolkit.common.mesh import (
     CELL_TYPES,
@@ -17,6 +18,8 @@ from toolkit.common.phantom import BoneSegment, FacePhantom, FaceShape, ball, ba
 from toolkit.common.runtime import set_threads
 
 __all__ = [
+    "ToolkitError",
+    "ConvergenceError",
     "Mesh",
     "MeshError",
     "InvertedElementError",

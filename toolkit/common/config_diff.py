@@ -12,10 +12,12 @@ import json
 import math
 from collections.abc import Mapping
 
+from toolkit.common.errors import ToolkitError
+
 __all__ = ["IncompatibleError", "differences", "require_same", "jsonable"]
 
 
-class IncompatibleError(ValueError):
+class IncompatibleError(ToolkitError, ValueError):
     """A stored file (database, checkpoint, model) was built for another configuration.
 
     Attributes: ``differences`` (list of ``(key, stored, asked)``).

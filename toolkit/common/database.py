@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common.config_diff import jsonable, require_same
+from toolkit.common.errors import ToolkitError
 
 __all__ = ["Job", "Record", "RunReport", "DatabaseError", "Database", "run_jobs", "read_index", "read_failures",
            "InProcessExecutor"]
@@ -55,7 +56,7 @@ __all__ = ["Job", "Record", "RunReport", "DatabaseError", "Database", "run_jobs"
 log = logging.getLogger(__name__)
 
 
-class DatabaseError(ValueError):
+class DatabaseError(ToolkitError, ValueError):
     """A file is not a database of the expected kind, version or configuration, or is unreadable."""
 
 

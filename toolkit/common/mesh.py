@@ -37,6 +37,7 @@ from typing import Mapping, NamedTuple
 
 import numpy as np
 
+from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.reference import REFERENCE_ELEMENTS
 
 __all__ = [
@@ -87,7 +88,7 @@ class CellBlock(NamedTuple):
         return ids[(ids >= self.offset) & (ids < self.offset + self.cells.shape[0])] - self.offset
 
 
-class MeshError(ValueError):
+class MeshError(ToolkitError, ValueError):
     """A mesh is malformed: bad shapes, indices out of range, NaN coordinates."""
 
 

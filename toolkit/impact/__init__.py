@@ -10,6 +10,7 @@ an MLP baseline), ``evaluate_surrogate`` and ``predict_scene``. Imports nothing 
 from toolkit.impact.dataset import ImpactDatabase, build_database, load_database
 from toolkit.impact.evaluation import evaluate_surrogate
 from toolkit.impact.explicit import InstabilityError
+from toolkit.impact.implicit import ConvergenceError
 from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, SurrogateConfig, predict_scene, train_surrogate
 from toolkit.impact.scene import (
     BallSpec,
@@ -18,6 +19,7 @@ from toolkit.impact.scene import (
     Fidelity,
     MaterialSpec,
     Scene,
+    SceneError,
     default_scene,
     yielding_scene,
 )
@@ -25,6 +27,7 @@ from toolkit.impact.simulate import ImpactResult, SceneGeometryWarning, Unstable
 
 __all__ = [
     "Scene",
+    "SceneError",
     "FaceSpec",
     "BallSpec",
     "ContactSpec",
@@ -36,6 +39,7 @@ __all__ = [
     "build_model",
     "ImpactResult",
     "InstabilityError",
+    "ConvergenceError",
     "UnstableTimeStepError",
     "SceneGeometryWarning",
     "build_database",

@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.kinematics import BlockKinematics, deformation_gradient, internal_force
 from toolkit.common.materials import von_mises
 
@@ -41,7 +42,7 @@ class EnergyBalanceWarning(UserWarning):
     """The energy balance of a finished run is off by more than the tolerance."""
 
 
-class InstabilityError(RuntimeError):
+class InstabilityError(ToolkitError, RuntimeError):
     """The explicit run became unstable or inverted elements.
 
     Attributes: ``time`` (s), ``element`` (global element of the body, or None), ``body``, ``suggestion``.

@@ -66,6 +66,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
+from toolkit.common.errors import ConvergenceError
 from toolkit.common.fem.assembly import SparsePattern, add_local
 from toolkit.common.fem.kinematics import deformation_gradient
 from toolkit.common.fem.newton import (InadmissibleState, LoadSteps, NewtonFailed, ResidualDecrease, SecantOnDirection,
@@ -85,14 +86,6 @@ MAX_LINEAR_TOLERANCE = 0.1
 
 #: line searches of the Newton iterations (:mod:`toolkit.common.fem.newton`)
 LINE_SEARCHES = {"secant": SecantOnDirection, "residual": ResidualDecrease}
-
-
-class ConvergenceError(RuntimeError):
-    """A load step did not converge even at the smallest allowed step (``time`` s)."""
-
-    def __init__(self, message: str, time_s: float):
-        super().__init__(f"t = {time_s:.5g} s: {message}")
-        self.time = time_s
 
 
 @dataclass(frozen=True)
@@ -565,7 +558,7 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
                 if not steps.cut():
                     raise ConvergenceError(f"load step {step:.3g} s failed ({exc}) and the next would be below "
                                            f"min_step {options.min_step:g} s; try more load steps or a smaller "
-                                           "tolerance", t_new) from None
+                                           "tolerance", time=t_new) from None
                 continue
             if contact is not None:  # the friction state of the accepted iterate (a line search may have tried others)
                 contact_new, _ = contact.respond(model.points + u_new, model.points + u, t_new, step)

@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from toolkit.common import papers
+from toolkit.common.errors import ToolkitError
 from toolkit.common.materials import IsotropicModuli, _check, von_mises
 from toolkit.common.fem.jit import njit, use_jit
 from toolkit.common.fem.tangent import algorithmic_tangent
@@ -239,7 +240,7 @@ def _batch_copy(F_new, state: PlasticState) -> np.ndarray:
     return F_new
 
 
-class InvertedPointError(FloatingPointError):
+class InvertedPointError(ToolkitError, FloatingPointError):
     """A stress update met ``det F <= 0`` (or a non-positive-definite ``be``); ``point`` is the
     first bad integration point (index into the update's ``n`` points)."""
 

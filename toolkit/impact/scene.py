@@ -23,10 +23,17 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common import papers
+from toolkit.common.errors import ToolkitError
 from toolkit.common.papers import BALL_YIELD, FACE_YIELD
 
-__all__ = ["MaterialSpec", "FaceSpec", "BallSpec", "ContactSpec", "Fidelity", "Scene", "default_scene",
+__all__ = ["SceneError", "MaterialSpec", "FaceSpec", "BallSpec", "ContactSpec", "Fidelity", "Scene", "default_scene",
            "yielding_scene", "FACE_YIELD", "BALL_YIELD", "SUPPORTS", "YIELDING_DURATION", "INTEGRATORS"]
+
+
+class SceneError(ToolkitError, ValueError):
+    """An impact scene is invalid: a non-physical material, an unknown key, support or integrator,
+    a ball that does not move, an unreadable scene file."""
+
 
 @dataclass(frozen=True)
 class MaterialSpec:
@@ -40,9 +47,9 @@ class MaterialSpec:
 
     def __post_init__(self):
         if not (self.E > 0 and -1 < self.nu < 0.5 and self.density > 0):
-            raise ValueError(f"bad material E={self.E} MPa, nu={self.nu}, density={self.density} tonne/mm^3")
+            raise SceneError(f"bad material E={self.E} MPa, nu={self.nu}, density={self.density} tonne/mm^3")
         if self.density > 1e-6:
-            raise ValueError(f"density {self.density} looks like kg/m^3 or g/cm^3; expected tonne/mm^3 "
+            raise SceneError(f"density {self.density} looks like kg/m^3 or g/cm^3; expected tonne/mm^3 "
                              f"(1000 kg/m^3 = 1e-9)")
         if self.yield_table is not None:
             object.__setattr__(self, "yield_table", tuple(tuple(float(x) for x in row) for row in self.yield_table))
@@ -85,7 +92,7 @@ class FaceSpec:
 
     def __post_init__(self):
         if self.support not in SUPPORTS:
-            raise ValueError(f"face support {self.support!r} is not one of {sorted(SUPPORTS)}")
+            raise SceneError(f"face support {self.support!r} is not one of {sorted(SUPPORTS)}")
 
 
 @dataclass(frozen=True)
@@ -128,7 +135,7 @@ class BallSpec:
     def __post_init__(self):
         d = np.asarray(self.direction, dtype=float)
         if d.shape != (3,) or not np.isfinite(d).all() or np.linalg.norm(d) == 0:
-            raise ValueError(f"ball direction {self.direction} must be a non-zero 3-vector")
+            raise SceneError(f"ball direction {self.direction} must be a non-zero 3-vector")
         object.__setattr__(self, "direction", tuple((d / np.linalg.norm(d)).tolist()))
         for name in ("target", "target_offset"):
             v = getattr(self, name)
@@ -136,12 +143,12 @@ class BallSpec:
                 continue
             a = np.asarray(v, dtype=float)
             if a.shape != (3,) or not np.isfinite(a).all():
-                raise ValueError(f"ball {name} {v} must be a finite 3-vector (mm)")
+                raise SceneError(f"ball {name} {v} must be a finite 3-vector (mm)")
             object.__setattr__(self, name, tuple(a.tolist()))
         if not self.velocity > 0:
-            raise ValueError(f"ball velocity {self.velocity} mm/s must be positive")
+            raise SceneError(f"ball velocity {self.velocity} mm/s must be positive")
         if self.velocity > 1e4 or self.velocity < 1.0:
-            raise ValueError(f"ball velocity {self.velocity} mm/s looks like it is not in mm/s "
+            raise SceneError(f"ball velocity {self.velocity} mm/s looks like it is not in mm/s "
                              f"(the impact paper: 20-50 mm/s = 0.02-0.05 m/s)")
 
 
@@ -178,16 +185,16 @@ class Fidelity:
 
     def __post_init__(self):
         if self.order not in (1, 2):
-            raise ValueError(f"order must be 1 or 2, got {self.order}")
+            raise SceneError(f"order must be 1 or 2, got {self.order}")
         if self.integrator not in INTEGRATORS:
-            raise ValueError(f"integrator {self.integrator!r} is not one of {list(INTEGRATORS)}")
+            raise SceneError(f"integrator {self.integrator!r} is not one of {list(INTEGRATORS)}")
         if int(self.load_steps) < 1 or not 0 < self.tolerance < 1:
-            raise ValueError(f"implicit load_steps {self.load_steps} must be >= 1 and tolerance {self.tolerance} "
+            raise SceneError(f"implicit load_steps {self.load_steps} must be >= 1 and tolerance {self.tolerance} "
                              "in (0, 1)")
         if not self.mass_scaling >= 1.0:
-            raise ValueError(f"mass_scaling must be >= 1, got {self.mass_scaling}")
+            raise SceneError(f"mass_scaling must be >= 1, got {self.mass_scaling}")
         if not 0 < self.safety <= 1.0:
-            raise ValueError(f"safety must be in (0, 1], got {self.safety}")
+            raise SceneError(f"safety must be in (0, 1], got {self.safety}")
 
 
 @dataclass(frozen=True)
@@ -203,7 +210,7 @@ class Scene:
 
     def __post_init__(self):
         if not self.duration > 0 or int(self.n_frames) < 1:
-            raise ValueError(f"duration {self.duration} s must be > 0 and n_frames {self.n_frames} >= 1")
+            raise SceneError(f"duration {self.duration} s must be > 0 and n_frames {self.n_frames} >= 1")
 
     def with_fidelity(self, **kw) -> "Scene":
         return replace(self, fidelity=replace(self.fidelity, **kw))
@@ -222,7 +229,7 @@ class Scene:
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
-            raise ValueError(f"unknown scene keys {sorted(unknown)}; expected {sorted(known)}")
+            raise SceneError(f"unknown scene keys {sorted(unknown)}; expected {sorted(known)}")
         kw = dict(d)
 
         def mat(x):
@@ -252,11 +259,11 @@ class Scene:
         """A scene from TOML (tables ``[face]``, ``[face.material]``, ``[ball]``, ``[contact]``, ``[fidelity]``)."""
         path = Path(path)
         if path.suffix.lower() != ".toml":
-            raise ValueError(f"scenes are TOML files; got {str(path)!r}")
+            raise SceneError(f"scenes are TOML files; got {str(path)!r}")
         try:
             return cls.from_dict(tomllib.loads(path.read_text()))
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: {exc}") from exc
+            raise SceneError(f"{path}: {exc}") from exc
 
     def write(self, path: str | os.PathLike) -> Path:
         """Write as TOML (atomically)."""

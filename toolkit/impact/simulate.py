@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.kinematics import lumped_mass
 from toolkit.common.materials import lame
 from toolkit.common.mesh import Mesh
@@ -35,7 +36,7 @@ __all__ = ["simulate", "ImpactResult", "build_model", "UnstableTimeStepError", "
            "face_mesh", "fixed_nodes", "ball_start"]
 
 
-class UnstableTimeStepError(ValueError):
+class UnstableTimeStepError(ToolkitError, ValueError):
     """A requested time step exceeds the stable limit."""
 
 

@@ -7,11 +7,13 @@ for finer control. Imports nothing from :mod:`toolkit.impact`.
 
 from toolkit.static.stiffness import MaterialAssignment
 from toolkit.static.boundary import BoundaryConditions, BoundaryError, NodeType, knn_labels
+from toolkit.static.case import StaticCase, load_case
 from toolkit.static.constraints import Constraints
 from toolkit.static.problem import ConvergenceError, StaticProblem, solve_with_lip_contact
 from toolkit.static.plan import (
     PHYSIOLOGICAL_RANGES,
     SEGMENTS,
+    PlanError,
     PlanRangeWarning,
     RigidMotion,
     SurgicalPlan,
@@ -29,6 +31,8 @@ from toolkit.common.fem.solvers import SolverError
 
 __all__ = [
     "simulate",
+    "load_case",
+    "StaticCase",
     "SimulationOptions",
     "SimulationResult",
     "IncrementReport",
@@ -39,6 +43,7 @@ __all__ = [
     "default_plan",
     "SEGMENTS",
     "PHYSIOLOGICAL_RANGES",
+    "PlanError",
     "PlanRangeWarning",
     "BoundaryConditions",
     "BoundaryError",

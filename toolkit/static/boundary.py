@@ -18,6 +18,7 @@ from typing import Mapping
 import numpy as np
 from scipy.spatial import cKDTree
 
+from toolkit.common.errors import ToolkitError
 from toolkit.common.mesh import VOLUME_TYPES, Mesh
 from toolkit.common.surface_distance import closest_points
 
@@ -97,7 +98,7 @@ def tissue_distance(mesh: Mesh, sources: np.ndarray, limit: float = np.inf) -> n
     return dijkstra(graph, directed=False, indices=sources, min_only=True, limit=limit)
 
 
-class BoundaryError(ValueError):
+class BoundaryError(ToolkitError, ValueError):
     """Boundary conditions are inconsistent or leave the problem under-constrained."""
 
 

@@ -18,7 +18,7 @@ takes it (least squares, proper rotations only), so the condyles stay in their f
 
 **Validation** runs at construction. Movements beyond the physiological ranges of
 the lip-sliding paper (:data:`PHYSIOLOGICAL_RANGES`) warn with :class:`PlanRangeWarning`; beyond
-twice the range they raise ``ValueError`` unless the plan is built with
+twice the range they raise :class:`PlanError` (a ``ValueError``) unless the plan is built with
 ``force=True`` (then they warn). NaN never gets in: :class:`RigidMotion` refuses it.
 
 **Files** (``.toml`` or ``.json``): one table per segment with ``translation_mm``,
@@ -47,6 +47,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from toolkit.common import papers
+from toolkit.common.errors import ToolkitError
 from toolkit.common.io import atomic_path
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -60,6 +61,7 @@ __all__ = [
     "SAMPLING_MODES",
     "PLAN_FORMATS",
     "SEGMENTS",
+    "PlanError",
     "PlanRangeWarning",
     "RigidMotion",
     "SurgicalPlan",
@@ -74,6 +76,11 @@ __all__ = [
 SEGMENTS = ("lefort", "distal", "proximal_left", "proximal_right")
 
 
+class PlanError(ToolkitError, ValueError):
+    """A surgical plan, motion or motion range is invalid: an unknown segment or key, NaN, a
+    movement beyond twice the physiological range without ``force``, an unreadable plan file."""
+
+
 @dataclass(frozen=True)
 class MotionRange:
     """Range of one segment's movement: ``translation_mm`` (lo, hi) of the pivot's
@@ -86,7 +93,7 @@ class MotionRange:
         for name in ("translation_mm", "rotation_deg"):
             lo, hi = (float(v) for v in getattr(self, name))
             if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi):
-                raise ValueError(f"MotionRange.{name} = {(lo, hi)}; expected 0 <= lo <= hi, finite")
+                raise PlanError(f"MotionRange.{name} = {(lo, hi)}; expected 0 <= lo <= hi, finite")
             object.__setattr__(self, name, (lo, hi))
 
 
@@ -120,11 +127,11 @@ def _vector(value, n: int, name: str) -> np.ndarray:
     try:
         a = np.array(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} = {value!r} is not {n} numbers: {exc}") from exc
+        raise PlanError(f"{name} = {value!r} is not {n} numbers: {exc}") from exc
     if a.shape != (n,):
-        raise ValueError(f"{name} has shape {a.shape}, expected ({n},)")
+        raise PlanError(f"{name} has shape {a.shape}, expected ({n},)")
     if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} = {a.tolist()} holds NaN or inf; expected {n} finite numbers")
+        raise PlanError(f"{name} = {a.tolist()} holds NaN or inf; expected {n} finite numbers")
     a.flags.writeable = False
     return a
 
@@ -164,7 +171,7 @@ class RigidMotion:
         q = np.array(_vector(self.rotation, 4, "rotation quaternion (w, x, y, z)"))
         norm = float(np.linalg.norm(q))
         if norm == 0.0:
-            raise ValueError(f"rotation quaternion {q.tolist()} has zero norm; expected a unit quaternion (w, x, y, z)")
+            raise PlanError(f"rotation quaternion {q.tolist()} has zero norm; expected a unit quaternion (w, x, y, z)")
         q /= norm
         if q[0] < 0:
             q = -q
@@ -201,10 +208,10 @@ class RigidMotion:
 
         m = np.asarray(matrix, dtype=float)
         if m.shape != (3, 3) or not np.all(np.isfinite(m)):
-            raise ValueError(f"rotation matrix has shape {m.shape} (or holds NaN); expected a finite (3, 3) array")
+            raise PlanError(f"rotation matrix has shape {m.shape} (or holds NaN); expected a finite (3, 3) array")
         err, det = float(np.abs(m.T @ m - np.eye(3)).max()), float(np.linalg.det(m))
         if err > 1e-6 or det <= 0:
-            raise ValueError(
+            raise PlanError(
                 f"matrix is not a proper rotation (|M^T M - I| = {err:.3g}, det = {det:.6g}); "
                 "expected an orthogonal matrix with det = +1"
             )
@@ -261,7 +268,7 @@ class RigidMotion:
         axis and pivot); ``factor`` in [0, 1] is the quaternion slerp from the identity."""
         factor = float(factor)
         if not math.isfinite(factor):
-            raise ValueError(f"factor = {factor!r}; expected a finite number")
+            raise PlanError(f"factor = {factor!r}; expected a finite number")
         if factor == 1.0:
             return self
         w, v = self.rotation[0], self.rotation[1:]
@@ -276,7 +283,7 @@ class RigidMotion:
         """The motion ``fraction`` in [0, 1] of the way from the identity: rotation by
         quaternion slerp (short arc), translation linear, same pivot."""
         if not 0.0 <= fraction <= 1.0:
-            raise ValueError(f"fraction = {fraction!r}; expected a number in [0, 1]")
+            raise PlanError(f"fraction = {fraction!r}; expected a number in [0, 1]")
         return self.scaled(fraction)
 
     def inverted(self) -> RigidMotion:
@@ -313,10 +320,10 @@ class RigidMotion:
         else required unless the motion does not rotate."""
         unknown = sorted(set(d) - set(_MOTION_KEYS))
         if unknown:
-            raise ValueError(f"unknown keys {unknown}; expected some of {list(_MOTION_KEYS)}")
+            raise PlanError(f"unknown keys {unknown}; expected some of {list(_MOTION_KEYS)}")
         given = [k for k in _ROTATION_KEYS if k in d]
         if len(given) > 1 and set(given) != {"rotation_quaternion", "rotation_vector_deg"}:
-            raise ValueError(f"rotation given as {given}; give one of {list(_ROTATION_KEYS)}")
+            raise PlanError(f"rotation given as {given}; give one of {list(_ROTATION_KEYS)}")
         translation = _vector(d.get("translation_mm", (0.0, 0.0, 0.0)), 3, "translation_mm")
         if "rotation_quaternion" in d:
             motion = cls(_vector(d["rotation_quaternion"], 4, "rotation_quaternion"), translation)
@@ -324,7 +331,7 @@ class RigidMotion:
                 other = cls.from_rotation_vector(d["rotation_vector_deg"])
                 gap = other.inverted().after(motion).angle_deg
                 if gap > 1e-6:
-                    raise ValueError(
+                    raise PlanError(
                         f"rotation_quaternion {motion.rotation.tolist()} and rotation_vector_deg "
                         f"{list(d['rotation_vector_deg'])} differ by {gap:.3g} degrees; give only one"
                     )
@@ -338,7 +345,7 @@ class RigidMotion:
             pivot = _vector(d["pivot_mm"], 3, "pivot_mm")
         elif pivot is None:
             if motion.angle_deg > 0:
-                raise ValueError(
+                raise PlanError(
                     "pivot_mm is missing and the segment rotates; give pivot_mm = [x, y, z] (mm) "
                     "or read the plan with a phantom, whose segment pivots fill it in"
                 )
@@ -351,7 +358,7 @@ def _rotation_about(centre: np.ndarray, points: np.ndarray, targets: np.ndarray)
     a, b = points - centre, targets - centre
     s = np.linalg.svd(a, compute_uv=False)
     if s.size < 2 or s[1] <= 1e-9 * s[0]:
-        raise ValueError(
+        raise PlanError(
             f"the {points.shape[0]} reference points are collinear with the centre {centre.tolist()}; "
             "the rotation about it is undetermined — give points spanning a plane"
         )
@@ -365,7 +372,7 @@ def _following(distal: RigidMotion, condyle, points) -> RigidMotion:
     c = _vector(condyle, 3, "condyle (mm)")
     p = np.asarray(points, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] < 2 or not np.all(np.isfinite(p)):
-        raise ValueError(f"reference points have shape {p.shape} (or hold NaN); expected finite (n, 3), n >= 2")
+        raise PlanError(f"reference points have shape {p.shape} (or hold NaN); expected finite (n, 3), n >= 2")
     return RigidMotion.from_matrix(_rotation_about(c, p, distal.apply(p)), pivot=c)
 
 
@@ -380,7 +387,7 @@ def proximal_reference_points(phantom: FacePhantom, fraction: float = 0.25) -> t
     from scipy.spatial import cKDTree
 
     if not 0.0 < fraction <= 1.0:
-        raise ValueError(f"fraction = {fraction!r}; expected a number in (0, 1]")
+        raise PlanError(f"fraction = {fraction!r}; expected a number in (0, 1]")
     distal = cKDTree(phantom.segments["distal"].surface.points)
     out = []
     for name in ("proximal_left", "proximal_right"):
@@ -394,7 +401,7 @@ def proximal_reference_points(phantom: FacePhantom, fraction: float = 0.25) -> t
 def _check_names(names) -> None:
     unknown = sorted(set(names) - set(SEGMENTS))
     if unknown:
-        raise ValueError(f"unknown segments {unknown}; the known segments are {list(SEGMENTS)}")
+        raise PlanError(f"unknown segments {unknown}; the known segments are {list(SEGMENTS)}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -406,7 +413,7 @@ class SurgicalPlan:
     motions : mapping segment -> RigidMotion for every name in :data:`SEGMENTS`
         (segments not given are the identity); read-only
     force : bool — accept movements beyond twice the physiological range (with a
-        :class:`PlanRangeWarning` instead of a ``ValueError``)
+        :class:`PlanRangeWarning` instead of a :class:`PlanError`)
     """
 
     motions: Mapping[str, RigidMotion]
@@ -428,7 +435,7 @@ class SurgicalPlan:
         """Check every movement against :data:`PHYSIOLOGICAL_RANGES` (done at construction).
 
         Beyond the range: :class:`PlanRangeWarning`. Beyond twice the range:
-        ``ValueError``, or a warning when ``force`` (default: the plan's own) is true.
+        :class:`PlanError`, or a warning when ``force`` (default: the plan's own) is true.
         """
         self._validate(self.force if force is None else force, stacklevel=3)
 
@@ -445,7 +452,7 @@ class SurgicalPlan:
                 )
                 if value > 2 * limit:
                     if not force:
-                        raise ValueError(f"{msg} by more than twice; build the plan with force=True to accept it")
+                        raise PlanError(f"{msg} by more than twice; build the plan with force=True to accept it")
                     msg += ", more than twice; accepted because force=True"
                 warnings.warn(msg, PlanRangeWarning, stacklevel=stacklevel)
 
@@ -472,7 +479,7 @@ class SurgicalPlan:
                 try:
                     spec = RigidMotion.from_dict(spec, pivot=phantom.segments[name].pivot)
                 except ValueError as exc:
-                    raise ValueError(f"segment {name!r}: {exc}") from exc
+                    raise PlanError(f"segment {name!r}: {exc}") from exc
             if spec is not None:
                 motions[name] = spec
         d = motions.get("distal", RigidMotion.identity())
@@ -496,7 +503,7 @@ class SurgicalPlan:
         """
         c = np.asarray(condyles, dtype=float)
         if c.shape != (2, 3):
-            raise ValueError(f"condyles has shape {c.shape}, expected (2, 3): left then right, mm")
+            raise PlanError(f"condyles has shape {c.shape}, expected (2, 3): left then right, mm")
         d = self.motions["distal"]
         motions = dict(self.motions)
         motions["proximal_left"] = _following(d, c[0], points_left)
@@ -516,14 +523,14 @@ class SurgicalPlan:
     def interpolated(self, fraction: float) -> SurgicalPlan:
         """The plan ``fraction`` in [0, 1] of the way from pre-op (slerp + linear)."""
         if not 0.0 <= fraction <= 1.0:
-            raise ValueError(f"fraction = {fraction!r}; expected a number in [0, 1]")
+            raise PlanError(f"fraction = {fraction!r}; expected a number in [0, 1]")
         return self.scaled(fraction)
 
     def increments(self, n: int = 3) -> list[SurgicalPlan]:
         """The cumulative plans (pre-op -> k-th position) at fractions k/n, k = 1..n;
         the last is this plan. The lip-sliding paper uses n = 3."""
         if int(n) != n or n < 1:
-            raise ValueError(f"n = {n!r} increments; expected an integer >= 1")
+            raise PlanError(f"n = {n!r} increments; expected an integer >= 1")
         n = int(n)
         return [self.interpolated(k / n) for k in range(1, n + 1)]
 
@@ -538,12 +545,12 @@ class SurgicalPlan:
         pivots come from its segments and missing proximal segments follow the distal one."""
         force = d.get("force", False)
         if not isinstance(force, bool):
-            raise ValueError(f"force = {force!r}; expected true or false")
+            raise PlanError(f"force = {force!r}; expected true or false")
         segments = {k: v for k, v in d.items() if k != "force"}
         _check_names(segments)
         for name, spec in segments.items():
             if not isinstance(spec, Mapping):
-                raise ValueError(
+                raise PlanError(
                     f"segment {name!r} is a {type(spec).__name__}; expected a table of {list(_MOTION_KEYS)}"
                 )
         if phantom is not None:
@@ -553,7 +560,7 @@ class SurgicalPlan:
             try:
                 motions[name] = RigidMotion.from_dict(spec)
             except ValueError as exc:
-                raise ValueError(f"segment {name!r}: {exc}") from exc
+                raise PlanError(f"segment {name!r}: {exc}") from exc
         return cls(motions, force=force)
 
     @classmethod
@@ -566,7 +573,7 @@ class SurgicalPlan:
         try:
             return cls.from_dict(d, phantom)
         except ValueError as exc:
-            raise ValueError(f"{path}: {exc}") from exc
+            raise PlanError(f"{path}: {exc}") from exc
 
     def write(self, path) -> None:
         """Write ``.toml`` or ``.json`` (atomically: temporary file, then rename)."""
@@ -587,7 +594,7 @@ class SurgicalPlan:
 def _format(path: Path) -> str:
     suffix = path.suffix.lower()
     if suffix not in PLAN_FORMATS:
-        raise ValueError(f"unknown plan format {path.suffix!r} of {str(path)!r}; expected one of {list(PLAN_FORMATS)}")
+        raise PlanError(f"unknown plan format {path.suffix!r} of {str(path)!r}; expected one of {list(PLAN_FORMATS)}")
     return suffix
 
 
@@ -689,14 +696,14 @@ def sample_plans(n: int, seed: int | np.random.Generator, mode: str = "sagittal"
     with the same seed extends the list)
     """
     if int(n) != n or n < 0:
-        raise ValueError(f"n = {n!r} plans; expected an integer >= 0")
+        raise PlanError(f"n = {n!r} plans; expected an integer >= 0")
     if mode not in SAMPLING_MODES:
-        raise ValueError(f"unknown sampling mode {mode!r}; expected one of {SAMPLING_MODES}")
+        raise PlanError(f"unknown sampling mode {mode!r}; expected one of {SAMPLING_MODES}")
     missing = [k for k in ("lefort", "distal") if k not in ranges]
     if missing:
-        raise ValueError(f"ranges lacks {missing}; expected a MotionRange for 'lefort' and 'distal'")
+        raise PlanError(f"ranges lacks {missing}; expected a MotionRange for 'lefort' and 'distal'")
     if max_jaw_closing_mm is not None and not (np.isfinite(max_jaw_closing_mm) and max_jaw_closing_mm >= 0):
-        raise ValueError(f"max_jaw_closing_mm = {max_jaw_closing_mm!r}; expected a number >= 0 mm or None")
+        raise PlanError(f"max_jaw_closing_mm = {max_jaw_closing_mm!r}; expected a number >= 0 mm or None")
     arch = dental_arch(phantom) if max_jaw_closing_mm is not None else None
     # one independent stream per plan, spawned from the seed: plan i is the same whatever n is
     streams = np.random.default_rng(seed).spawn(int(n))
@@ -715,7 +722,7 @@ def sample_plans(n: int, seed: int | np.random.Generator, mode: str = "sagittal"
             if arch is None or jaw_closing(plan, arch) <= max_jaw_closing_mm:
                 break
         else:
-            raise ValueError(f"no plan in 1000 draws closes the jaws by at most {max_jaw_closing_mm} mm; "
+            raise PlanError(f"no plan in 1000 draws closes the jaws by at most {max_jaw_closing_mm} mm; "
                              f"the ranges force larger closings")
         plans.append(plan)
     return plans

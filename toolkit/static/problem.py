@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.sparse as sp
 
+from toolkit.common.errors import ConvergenceError
 from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.fem.newton import ArmijoOnMerit, InadmissibleState, LoadSteps, NewtonFailed, Trial, newton
 from toolkit.common.fem.solvers import LinearSolver, SolveInfo, estimate_factor_entries, rigid_body_modes
@@ -38,15 +39,6 @@ from toolkit.static.constraints import Constraints
 __all__ = ["StaticProblem", "Solution", "ConvergenceError", "solve_with_lip_contact", "ContactResult"]
 
 log = logging.getLogger(__name__)
-
-
-class ConvergenceError(RuntimeError):
-    """A nonlinear solve failed; carries where and a suggestion."""
-
-    def __init__(self, message: str, iteration: int | None = None, residual: float | None = None):
-        super().__init__(message)
-        self.iteration = iteration
-        self.residual = residual
 
 
 @dataclass(frozen=True, eq=False)

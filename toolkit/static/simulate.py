@@ -63,6 +63,7 @@ from typing import Mapping
 
 import numpy as np
 
+from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.mesh import Mesh
@@ -87,7 +88,7 @@ MATERIALS = ("linear", "neo-hookean")
 _MAX_CUT_FREEINGS = 3  # retries of one plan that free more of the cut (each a full run)
 
 
-class SimulationError(RuntimeError):
+class SimulationError(ToolkitError, RuntimeError):
     """An increment diverged or inverted elements even after cutting it.
 
     Attributes: ``increment`` (1-based), ``element`` (worst element or None), ``suggestion``,
