@@ -28,6 +28,7 @@ import threading
 import numpy as np
 import scipy.sparse as sp
 
+from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.jit import njit, use_jit
 
 __all__ = ["available", "PardisoFactor", "PardisoError", "symmetric_upper"]
@@ -46,7 +47,7 @@ _lib: ctypes.CDLL | None = None
 _searched = False
 
 
-class PardisoError(RuntimeError):
+class PardisoError(ToolkitError, RuntimeError):
     """PARDISO refused or failed a phase (the message names its error code)."""
 
 
