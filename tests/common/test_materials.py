@@ -228,3 +228,50 @@ def test_modulus_in_pascal_warns_and_incompressible_nu_raises(cls):
             cls(E=0.003, nu=nu)
     with pytest.raises(ValueError, match="Young"):
         cls(E=0.0, nu=0.3)
+
+
+# ------------------------------------------------------------------ the material contract
+def _laws():
+    """The four laws with their initial state for ``m`` points."""
+    from toolkit.impact.plasticity import FACE_TABLE, J2Plasticity
+
+    fibres = _random_unit(4)
+    return [
+        (LinearElastic(), LinearElastic().initial_state(4)),
+        (TransverselyIsotropic(), TransverselyIsotropic().initial_state(fibres)),
+        (NeoHookean(), NeoHookean().initial_state(4)),
+        (J2Plasticity(E=0.015, nu=0.49, density=1e-9, table=FACE_TABLE),
+         J2Plasticity(E=0.015, nu=0.49, density=1e-9, table=FACE_TABLE).initial_state(4)),
+    ]
+
+
+@pytest.mark.parametrize("index", range(4), ids=["LinearElastic", "TransverselyIsotropic", "NeoHookean",
+                                                 "J2Plasticity"])
+def test_every_law_satisfies_the_material_contract(index):
+    """The four laws are Materials: ``update(F, state)`` and ``tangent(F, state)`` take the
+    deformation gradients of m points and the state, and return the first Piola-Kirchhoff stress
+    (m, 3, 3) MPa with the new state, and dP/dF (m, 3, 3, 3, 3) MPa. The tangent's update is the
+    update, and the tangent is the update's derivative: central differences of P with a 1e-6 step
+    (truncation ~1e-12 of the curvature, round-off ~1e-10 of |P| / step) within 1e-6 of |dP/dF|."""
+    import inspect
+
+    from toolkit.common.fem.tangent import algorithmic_tangent
+    from toolkit.common.materials import LinearMaterial, Material, StressResult
+
+    law, state = _laws()[index]
+    assert isinstance(law, Material)
+    assert isinstance(law, LinearMaterial) == (index < 2)
+    for name in ("update", "tangent"):
+        params = list(inspect.signature(getattr(law, name)).parameters.values())
+        assert len(params) == 2 and all(p.kind is p.POSITIONAL_OR_KEYWORD for p in params), (name, params)
+    assert len(inspect.signature(law.initial_state).parameters) == 1
+
+    F = np.eye(3) + 0.05 * RNG.normal(size=(4, 3, 3))
+    result = law.update(F, state)
+    assert isinstance(result, StressResult)
+    assert result.first_piola.shape == (4, 3, 3)
+    again, A = law.tangent(F, state)
+    assert A.shape == (4, 3, 3, 3, 3)
+    np.testing.assert_array_equal(again.first_piola, result.first_piola)
+    _, A_fd = algorithmic_tangent(law, F, state, step=1e-6, central=True)
+    assert np.abs(A - A_fd).max() <= 1e-6 * np.abs(A).max()

@@ -6,12 +6,14 @@
 - :class:`NeoHookean`: compressible Neo-Hookean (FEBio's ``neo-Hookean``),
   ``W = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2``.
 
-Every law here and :class:`~toolkit.impact.plasticity.J2Plasticity` share one contract:
-``update(F (m, 3, 3), state) -> result`` with ``result.first_piola (m, 3, 3)`` MPa and
-``result.state`` (the state to carry to the next step), and ``tangent(F, state) -> (result,
-dP/dF (m, 3, 3, 3, 3) MPa)``. The elastic laws have no history: their state is ``None``,
-except the transversely isotropic one, whose state is the unit fibre ``(m, 3)`` of each point
-(carried unchanged). The linear laws are geometrically linear: ``P = C : sym(F - I)``.
+Every law here and :class:`~toolkit.impact.plasticity.J2Plasticity` satisfy one contract,
+:class:`Material`: ``update(F (m, 3, 3), state) -> result`` with ``result.first_piola
+(m, 3, 3)`` MPa and ``result.state`` (the state to carry to the next step), and
+``tangent(F, state) -> (result, dP/dF (m, 3, 3, 3, 3) MPa)``. The elastic laws have no history:
+their state is ``None``, except the transversely isotropic one, whose state is the unit fibre
+``(m, 3)`` of each point (carried unchanged). The linear laws are geometrically linear:
+``P = C : sym(F - I)``; they also satisfy :class:`LinearMaterial`, the contract of the static
+path's Voigt assembly (:class:`~toolkit.static.stiffness.MaterialAssignment`).
 
 Voigt order is ``[xx, yy, zz, yz, xz, xy]`` with engineering shear strains. Each law
 also exposes its *volumetric* Lame part ``lam`` so element formulations can integrate
@@ -22,13 +24,14 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from toolkit.common.papers import LIP_MUSCLE_E_FIBRE, LIP_MUSCLE_E_TRANSVERSE, TISSUE_E, TISSUE_NU
 
-__all__ = ["LinearElastic", "TransverselyIsotropic", "NeoHookean", "IsotropicModuli", "lame", "VOIGT",
-           "MaterialWarning", "von_mises", "isotropic_tangent", "ElasticUpdate"]
+__all__ = ["Material", "LinearMaterial", "StressResult", "LinearElastic", "TransverselyIsotropic", "NeoHookean",
+           "IsotropicModuli", "lame", "VOIGT", "MaterialWarning", "von_mises", "isotropic_tangent", "ElasticUpdate"]
 
 #: Voigt index pairs
 VOIGT = np.array([[0, 0], [1, 1], [2, 2], [1, 2], [0, 2], [0, 1]])
@@ -39,6 +42,80 @@ _SOFT_RANGE_MPA = (1e-5, 100.0)
 
 class MaterialWarning(UserWarning):
     """A material parameter looks like it is in the wrong unit."""
+
+
+@runtime_checkable
+class StressResult(Protocol):
+    """What a :class:`Material` update returns (:class:`ElasticUpdate`,
+    :class:`~toolkit.impact.plasticity.StressUpdate`).
+
+    Attributes
+    ----------
+    first_piola : (m, 3, 3) float, first Piola-Kirchhoff stress ``P``, MPa (``P_iJ``: force
+        component ``i`` per unit reference area normal to ``J``)
+    state : the state after the update, to pass to the next step's update once the step is
+        accepted (``None`` for a law without history)
+    """
+
+    first_piola: np.ndarray
+    state: object
+
+
+@runtime_checkable
+class Material(Protocol):
+    """The contract of a material law, as the explicit and quasi-static impact solvers, the
+    finite-difference tangent (:func:`~toolkit.common.fem.tangent.algorithmic_tangent`) and
+    the tests call it. :class:`LinearElastic`, :class:`TransverselyIsotropic`,
+    :class:`NeoHookean` and :class:`~toolkit.impact.plasticity.J2Plasticity` satisfy it. (The
+    static Neo-Hookean path calls :meth:`NeoHookean.first_piola` with its shear/volumetric split
+    and :meth:`NeoHookean.energy` directly, for selective reduced integration and line searches.)
+
+    ``F`` is the deformation gradient at ``m`` points, ``(m, 3, 3)`` float, dimensionless.
+    ``state`` is the material state at the start of the step (the last accepted one); an
+    update never changes it in place, so a rejected Newton iterate or load step costs nothing
+    to undo.
+    """
+
+    def initial_state(self, points, /) -> object:
+        """The state of fresh (undeformed, virgin) points: for ``points = m`` (int) points,
+        except :class:`TransverselyIsotropic`, which takes their unit fibres ``(m, 3)``."""
+        ...
+
+    def update(self, F: np.ndarray, state, /) -> StressResult:
+        """Stresses at ``F (m, 3, 3)``: ``result.first_piola (m, 3, 3)`` MPa and the new state."""
+        ...
+
+    def tangent(self, F: np.ndarray, state, /) -> tuple[StressResult, np.ndarray]:
+        """The update at ``F (m, 3, 3)`` and the tangent ``dP/dF (m, 3, 3, 3, 3)`` MPa,
+        ``A[p, i, J, k, L] = dP_iJ / dF_kL`` at point ``p`` (consistent with the update,
+        return mapping included)."""
+        ...
+
+
+@runtime_checkable
+class LinearMaterial(Protocol):
+    """The contract of a small-strain linear law on the static path, whose Voigt stiffness
+    :class:`~toolkit.static.stiffness.MaterialAssignment` assembles once per mesh.
+    :class:`LinearElastic` and :class:`TransverselyIsotropic` satisfy it (and :class:`Material`).
+
+    Attributes
+    ----------
+    linear : bool, true: the stiffness does not depend on the deformation
+    needs_fibre : bool, true: :meth:`stiffness` takes the cell field ``fibre_direction``
+    """
+
+    linear: bool
+    needs_fibre: bool
+
+    def stiffness(self, fibre: np.ndarray | None = None, /) -> np.ndarray:
+        """Voigt stiffness MPa, order ``[xx, yy, zz, yz, xz, xy]`` with engineering shear
+        strains: ``(6, 6)`` without fibres, ``(n, 6, 6)`` for unit fibres ``(n, 3)``."""
+        ...
+
+    def volumetric_lambda(self) -> float:
+        """MPa, the ``lam (tr eps)^2 / 2`` part of the energy that mean-dilatation (selective
+        reduced) integration takes out of the stiffness."""
+        ...
 
 
 def lame(E: float, nu: float) -> tuple[float, float]:
