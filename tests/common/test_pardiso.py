@@ -232,7 +232,7 @@ def test_factors_made_ahead_without_a_local_term_are_refactorized():
     for refactorize in (True, False):
         solver = LinearSolver("pardiso", reuse_rtol=1e-10, timed_budget=False, factorize_ahead=2)
         if not refactorize:
-            solver._retire = lambda factor: factor.close()  # no spare: every factor fresh
+            solver._maker.retire = lambda factor: factor.close()  # no spare: every factor fresh
         counts[refactorize] = []
         for S in systems:
             x, info = solver.solve(S, b, symmetric=False)

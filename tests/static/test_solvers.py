@@ -5,11 +5,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from toolkit.common.materials import LinearElastic
-from toolkit.common.phantom import block, face_hex
-from toolkit.static.stiffness import MaterialAssignment
-from toolkit.static.constraints import Constraints
-from toolkit.static.problem import StaticProblem
+from toolkit.common.fem.factory import FactorMaker
 from toolkit.common.fem.solvers import (
     AUTO_DIRECT_MAX_ENTRIES,
     REUSED_DIRECT_MAX_ENTRIES,
@@ -17,6 +13,11 @@ from toolkit.common.fem.solvers import (
     choose_method,
     estimate_factor_entries,
 )
+from toolkit.common.materials import LinearElastic
+from toolkit.common.phantom import block, face_hex
+from toolkit.static.constraints import Constraints
+from toolkit.static.problem import StaticProblem
+from toolkit.static.stiffness import MaterialAssignment
 
 
 def _entries(mesh):
@@ -55,7 +56,7 @@ def test_reuse_across_solves_equals_fresh_solves(method):
     SuperLU, 1e-7 for AMG-CG at its 1e-9 residual)."""
     mesh = block([np.linspace(0, 20, 9), np.linspace(0, 10, 5), np.linspace(0, 10, 5)])
     problem = StaticProblem(mesh, MaterialAssignment(LinearElastic(0.003, 0.47)), method)
-    problem.linear_solver.timed_budget = False  # a fixed budget of 40 CG iterations: reproducible
+    problem.linear_solver = LinearSolver(method, timed_budget=False)  # a fixed budget of CG iterations: reproducible
     x = mesh.points
     bottom, top = np.flatnonzero(x[:, 2] == 0), np.flatnonzero(x[:, 2] == 10)
     mid = np.flatnonzero((x[:, 2] == 5) & (x[:, 0] > 0) & (x[:, 0] < 20))
@@ -189,7 +190,7 @@ def test_factorizing_ahead_uses_a_background_factor_chosen_by_the_count_of_solve
             x, info = solver.solve(S, b)
             assert np.linalg.norm(S @ x - b) <= 1e-9 * np.linalg.norm(b)
             counts.append(info.iterations)
-        runs.append((counts, solver, solver._A))
+        runs.append((counts, solver, solver._stored.A))
         solver.close()
     (first, ahead, used), (second, _, _), (stale, plain, _) = runs
     assert first == second
@@ -198,7 +199,7 @@ def test_factorizing_ahead_uses_a_background_factor_chosen_by_the_count_of_solve
     assert plain.factorizations == 1 and plain.background_factorizations == 0
     assert sum(first[3:]) < sum(stale[3:])
     # closed: the worker has ended, the factors made on it are freed, a new solve starts afresh
-    assert ahead._worker is None and ahead._A is None
+    assert not ahead._ahead.running and ahead._stored is None
     x, info = ahead.solve(systems[0], b)
     assert not info.reused and np.linalg.norm(systems[0] @ x - b) <= 1e-9 * np.linalg.norm(b)
     with pytest.raises(ValueError, match="factorize_ahead -1"):
@@ -214,16 +215,16 @@ def test_factors_made_ahead_are_freed_on_the_thread_that_made_them(monkeypatch):
 
     made = []  # (thread that made the factor, thread that freed it)
 
-    original = LinearSolver._new_factor
+    original = FactorMaker.make
 
     def tracked(self, A, symmetric, near_nullspace, local=None):
         result = original(self, A, symmetric, near_nullspace, local)
         record = [threading.current_thread().name, None]
         made.append(record)
-        weakref.finalize(result[0], lambda r=record: r.__setitem__(1, threading.current_thread().name))
+        weakref.finalize(result.factor, lambda r=record: r.__setitem__(1, threading.current_thread().name))
         return result
 
-    monkeypatch.setattr(LinearSolver, "_new_factor", tracked)
+    monkeypatch.setattr(FactorMaker, "make", tracked)
     A0 = _grid_laplacian_3d(6)
     D = sp.diags(np.linspace(0.0, 2.0, A0.shape[0]))
     b = np.ones(A0.shape[0])

@@ -2,9 +2,14 @@
 cell type (shape functions, quadrature, faces, edges, file-format names), the fixed-pattern
 sparse assembly (:mod:`~toolkit.common.fem.assembly`), material tangents by differentiating
 a material's update (:mod:`~toolkit.common.fem.tangent`), the sparse solvers
-(:mod:`~toolkit.common.fem.solvers`, with MKL PARDISO in :mod:`~toolkit.common.fem.pardiso` and
-the Woodbury correction of a reused factor in :mod:`~toolkit.common.fem.woodbury`) and Newton's
-method with its line searches and load-step cutting (:mod:`~toolkit.common.fem.newton`).
+(:class:`~toolkit.common.fem.solvers.LinearSolver`, composed of the factor backends in
+:mod:`~toolkit.common.fem.factors` with MKL PARDISO in :mod:`~toolkit.common.fem.pardiso`, the
+orderings in :mod:`~toolkit.common.fem.ordering`, the factor maker in
+:mod:`~toolkit.common.fem.factory`, the reuse policy in :mod:`~toolkit.common.fem.reuse`, the
+factorize-ahead worker in :mod:`~toolkit.common.fem.ahead`, the Krylov iterations in
+:mod:`~toolkit.common.fem.krylov` and the Woodbury correction of a reused factor in
+:mod:`~toolkit.common.fem.woodbury`) and Newton's method with its line searches and load-step
+cutting (:mod:`~toolkit.common.fem.newton`).
 
 Imports nothing from :mod:`toolkit.static` or :mod:`toolkit.impact`.
 """

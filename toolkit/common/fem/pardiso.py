@@ -4,11 +4,10 @@ MKL comes from the ``mkl`` wheel (the ``pardiso`` extra: ``pip install
 "facial-biomech-toolkit[pardiso]"``); without it :func:`available` is False and ``auto``
 keeps SuperLU. Measured on the paper impact face's tangent with the deformable ball (54k
 dofs, unsymmetric with slipping friction, the METIS nested-dissection ordering of
-:func:`~toolkit.common.fem.solvers.fill_reducing_order`, 39.5 M factor entries), one core of
-this 2-core AMD EPYC machine: float32 factorization 1.1 s (0.25 s of it the symbolic analysis),
-back-solve 0.021 s; SuperLU on the same ordering: 1.7 s and 0.030 s. In float64: 1.9 s and
-0.030 s. (On another 2-core machine of this workplace, an earlier session measured 0.54 s and 0.014 s against
-SuperLU's 2.4 s and 0.029 s.) PARDISO's own METIS ordering gives the same fill here (39.9 M).
+:func:`~toolkit.common.fem.ordering.fill_reducing_order`, 39.5 M factor entries), one core of a
+2-core AMD EPYC: float32 factorization 1.1 s (0.25 s of it the symbolic analysis), back-solve
+0.021 s; SuperLU on the same ordering: 1.7 s and 0.030 s. In float64: 1.9 s and 0.030 s.
+PARDISO's own METIS ordering gives the same fill here (39.9 M).
 
 The library runs on MKL's sequential threading layer (chosen at the first factorization, only
 for MKL, which nothing else here loads: numpy and scipy use OpenBLAS), so it starts no OpenMP
@@ -97,13 +96,14 @@ class PardisoFactor:
     Diagonal pivoting (tiny pivots perturbed to ``1e-13 |A|``, then two steps of iterative
     refinement), as SuperLU's symmetric mode: meant for SPD matrices and ones with a dominant
     SPD part (a friction tangent). A singular matrix is not refused but leaves a large
-    residual, which :class:`~toolkit.common.fem.solvers.LinearSolver` checks.
+    residual, which :class:`~toolkit.common.fem.solvers.LinearSolver` checks. Satisfies
+    :class:`~toolkit.common.fem.factors.Refactorizable`.
 
     Parameters
     ----------
     A : (m, m) sparse matrix
     ordering : (m,) the fill-reducing permutation (new position ``k`` holds unknown
-        ``ordering[k]``, as :func:`~toolkit.common.fem.solvers.fill_reducing_order` returns);
+        ``ordering[k]``, as :func:`~toolkit.common.fem.ordering.fill_reducing_order` returns);
         None lets PARDISO run METIS itself (the same fill on the paper impact face)
     single : factorize in float32: an approximate inverse for a Krylov preconditioner
         (relative residual ~1e-3 on the paper impact face), half the time of float64
@@ -225,6 +225,8 @@ class PardisoFactor:
         x = np.zeros_like(rhs)
         self._call(33, rhs, x)
         return x.astype(np.float64).reshape(b.shape)
+
+    solve = __call__
 
     def close(self) -> None:
         """Free PARDISO's memory (also done when the factor is garbage collected)."""
