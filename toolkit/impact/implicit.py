@@ -22,11 +22,10 @@ Each load step ``t -> t + h``:
    GMRES (:class:`~toolkit.common.fem.solvers.LinearSolver` with ``symmetric=False``),
    preconditioned by the factorization of a tangent a few iterations old whose contact part is
    brought up to date exactly (the contact tangent is the solver's ``local`` term:
-   :mod:`toolkit.common.fem.woodbury`). Why the
-   consistent tangent: the symmetric secant ``k_t |t| / |t_trial| (I - n n^T)`` it replaced let
-   Newton converge only linearly once the skin slid under the ball (coarse face, deformable
-   ball, 1.8 s: 199 iterations in 38 steps, against 71 in 36 without friction; with the
-   consistent tangent 67 in 37). The iteration is the shared
+   :mod:`toolkit.common.fem.woodbury`). The consistent tangent keeps Newton fast
+   once the skin slides under the ball (coarse face, deformable ball, 1.8 s: 67
+   iterations in 37 steps; the symmetric secant ``k_t |t| / |t_trial| (I - n n^T)`` takes 199 in
+   38). The iteration is the shared
    :func:`toolkit.common.fem.newton.newton` with the
    :class:`~toolkit.common.fem.newton.SecantOnDirection` line search (the step along the
    correction where ``r . dx`` vanishes, which stops a correction where a contact engages).
@@ -90,98 +89,53 @@ LINE_SEARCHES = {"secant": SecantOnDirection, "residual": ResidualDecrease}
 
 @dataclass(frozen=True)
 class ImplicitOptions:
-    """Load stepping and Newton controls of :func:`run_quasistatic`.
+    """Load stepping and Newton controls of :func:`run_quasistatic`. Figures: the paper face
+    with the deformable ball, 1.8 s at 30 mm/s, one core of a 2-core AMD EPYC.
 
     Attributes
     ----------
-    steps : load steps over the duration at the start (the largest step is ``duration / steps``)
-    tolerance : relative residual (to the reactions plus the contact force) of a converged step
-    displacement_tolerance : mm, a Newton correction moving no dof by more than this also ends
-        the iterations (with the corrected state)
-    max_iterations : Newton iterations before a step is cut
-    easy_iterations : a step converged within this many lets the next grow by ``growth``
-    growth : step growth factor after an easy step (> 1)
-    min_step : s, the smallest step before :class:`ConvergenceError`
-    solver : linear solver (:data:`toolkit.common.fem.solvers.METHODS`); ``auto`` factorizes
-        up to :data:`~toolkit.common.fem.solvers.REUSED_DIRECT_MAX_ENTRIES` (the paper face
-        with the deformable ball included), as one factorization serves many iterations, with
-        MKL PARDISO where the ``pardiso`` extra is installed, else SuperLU
-    linear_tolerance : relative residual of the iterative linear solves (CG, or GMRES while
-        friction slips, preconditioned by the last factorization; or AMG): an inexact Newton,
-        whose outer iterations still converge to ``tolerance``. GMRES minimizes the residual
-        norm, which the stiff contact and ball dofs dominate, so a loose tolerance leaves the soft
-        modes unsolved: coarse face, deformable ball, 1.8 s: 129 Newton iterations at 1e-2, 67 at
-        1e-3, 69 at 1e-4 and at 1e-6. (With CG and the symmetric friction secant used before,
-        1e-2 against 1e-8 gave the same skin displacements within 0.003 mm RMSE on the paper
-        face, in 922 s against 1,410 s.)
-    linear_target : share of the Newton target (``tolerance`` times the force scale) left to
-        a correction's linear solve, which then stops at the relative residual
-        ``max(linear_tolerance, min(0.1, linear_target * tolerance * scale / |r|))``: a
-        correction made close to convergence is not solved a thousand times tighter than its
-        step needs (a forcing term in the manner of Eisenstat and Walker's, tied to the
-        Newton target). 0: always ``linear_tolerance``. Paper face, deformable ball, 1.8 s:
-        481 GMRES iterations against 620 at 0.1, for 81 Newton iterations against 79 (0.3:
-        463 and 83)
-    line_search : ``"secant"`` (:class:`~toolkit.common.fem.newton.SecantOnDirection`, the
-        zero of ``r . dx`` along the correction) or ``"residual"``
-        (:class:`~toolkit.common.fem.newton.ResidualDecrease`, fixed fractions judged by the
-        residual norm). Measured on the paper face at first touch: the residual search cycles
-        (three skin nodes in and out of the ball, 25 iterations and no convergence); the secant
-        converges in 12. On the coarse face (1.8 s) both are as close to the explicit reference
-        (skin RMSE 0.496 against 0.495 mm with the deformable ball, 0.677 against 0.679 mm with
-        the rigid one); the secant cut no step (deformable ball: 130 s, 181 iterations against
-        181 s, 184 iterations, 6 cuts; both with linear_tolerance 1e-8)
-    single_precision_factor : factorize in float32 and use the factor only as the Krylov
-        solver's preconditioner (:class:`~toolkit.common.fem.solvers.LinearSolver`'s
-        ``single_precision``; SuperLU and PARDISO): paper face, deformable ball, 1.8 s: 233 s against
-        325 s, the same 148 Newton iterations (both beside another run)
-    factorize_ahead : factorize the tangent in a background thread (on the second core) and
-        precondition with it from this many Newton iterations later on
-        (:class:`~toolkit.common.fem.solvers.LinearSolver`'s ``factorize_ahead``; 0: only when a
-        reuse fails). The tangent changes over the whole face from one load step to the next
-        (median diagonal entry 9 % between the 10th and 30th solves of the paper run), so a
-        factor kept until a reuse fails grows stale. Paper face, deformable ball, 1.8 s,
-        nested-dissection ordering, one run at a time: 0: 166 s, 143 Newton iterations, 24 GMRES
-        iterations per solve (8 factorizations); 2: 152 s, 131, 12.5 per solve, but 57 s waiting
-        for factorizations (64 of ~2.4 s each beside the solves); 3: 124-133 s over two runs, 145,
-        16.4 per solve, 9 s waiting (47). With ``stick_on_reversal`` (84 Newton iterations): 2: 83 s,
-        18 s waiting; 3: 84-87 s over three runs, 2 s waiting. With PARDISO on this machine
-        (factorization 1.1 s): 1: 98 s, 48 s waiting (78 factorizations); 2: 58 s, 4 s waiting
-        (39), 15 GMRES iterations per solve; 3: 68 s, 0.3 s waiting (24). SuperLU on this
-        machine: 2: 93 s; 3: 94 s. With the contact correction and PARDISO refactorizing: 2:
-        48-54 s, 8 GMRES iterations per solve; 3: 53-58 s; 4: 57 s. With ``linear_target`` and
-        the rest: 2: 40-44 s the run alone, 6.5 GMRES iterations per solve, 3.5 s waiting (the
-        worker limits); 3: 56 s, 777 GMRES iterations against 490. The factor in use depends on
-        the count of solves (and iteration counts, ``factorize_ahead_above``) only, not on
-        timing, so a run is reproducible.
+    steps : load steps over the duration at the start (the largest step is ``duration / steps``);
+        default 36
+    tolerance : relative residual (to the reactions plus the contact force) of a converged step;
+        default 3e-3
+    displacement_tolerance : mm; a Newton correction moving no dof by more than this also ends the
+        iterations (with the corrected state); default 1e-4
+    max_iterations : Newton iterations before a step is cut; default 25
+    easy_iterations : a step converged within this many lets the next grow by ``growth``; default 4
+    growth : step growth factor after an easy step (> 1); default 1.5
+    min_step : s, the smallest step before :class:`ConvergenceError`; default 1e-5
+    solver : linear solver (:data:`toolkit.common.fem.solvers.METHODS`); ``auto`` factorizes up to
+        :data:`~toolkit.common.fem.solvers.REUSED_DIRECT_MAX_ENTRIES` (the paper face included),
+        with MKL PARDISO where the ``pardiso`` extra is installed, else SuperLU
+    linear_tolerance : relative residual of the Krylov solves (an inexact Newton); default 1e-3:
+        GMRES leaves the soft modes unsolved at 1e-2 (coarse face: 129 Newton iterations at 1e-2,
+        67 at 1e-3, 69 at 1e-6)
+    linear_target : share of the Newton target left to a correction's linear solve, which stops at
+        ``max(linear_tolerance, min(0.1, linear_target * tolerance * scale / |r|))`` (an
+        Eisenstat-Walker forcing term); 0: always ``linear_tolerance``; default 0.1: 481 GMRES
+        iterations against 620 at 0
+    line_search : ``"secant"`` (:class:`~toolkit.common.fem.newton.SecantOnDirection`, the zero of
+        ``r . dx`` along the correction; default) or ``"residual"``
+        (:class:`~toolkit.common.fem.newton.ResidualDecrease`), which cycles at the paper face's
+        first touch
+    single_precision_factor : float32 factors, used as the Krylov solver's preconditioner
+        (``LinearSolver``'s ``single_precision``); default True: half the factorization time, the
+        same Newton iterations
+    factorize_ahead : factorize the tangent on a worker thread and precondition with it this many
+        Newton iterations later (``LinearSolver``'s ``factorize_ahead``; 0: only when a reuse
+        fails); default 2: the tangent changes over the whole face from one load step to the next
     factorize_ahead_above : no factorization ahead after a solve that needed at most this many
-        Krylov iterations (:class:`~toolkit.common.fem.solvers.LinearSolver`'s
-        ``factorize_ahead_above``): its factor is still nearly exact. Paper face, deformable
-        ball, 1.8 s: 2: 35 background factorizations against 38, 75 Newton iterations against
-        79, 74-81 s of CPU against 84-87 s in two interleaved pairs of runs
-    stick_on_reversal : a slave whose slip direction reversed since the previous Newton
-        correction of the step is linearized on the Coulomb law's stick piece
-        (:meth:`StepContact.linearize`), which ends the two-cycle of a nearly stuck skin node
-        thrown back and forth across its ~1 um stick band. Paper face, deformable ball, 1.8 s:
-        84 Newton iterations against 145, 84-87 s against 124-127 s, the same skin displacements
-        (0.143 mm RMSE to the explicit reference either way); coarse face: 70 against 75
-        (deformable ball), 73 against 115 (rigid). Giving such a slave the stick tangent alone
-        (its returned force kept) made it worse: 107 against 75 on the coarse face, 217
-        against 145 on the paper face, as the model then predicts that it hardly moves.
-    symmetric_factor : factorize the symmetric part of each tangent by PARDISO's LDL^T, the skew
-        part of slipping friction (which lives on the contact dofs) taken exactly by the Woodbury
-        correction (:class:`~toolkit.common.fem.solvers.LinearSolver`'s ``symmetric_factor``):
-        refactorization 0.39 s against 0.77-0.88 s for LU on the paper tangent, so the worker no
-        longer limits. Paper face, deformable ball, 1.8 s, two interleaved pairs of runs on this
-        machine: 29.3-29.8 s against 34.6-35.9 s for LU (477 GMRES iterations against 560, 84
-        Newton iterations against 87, 0.1 s waiting for factors against 3.1-3.2 s)
-    correction_threshold : the contact correction leaves dofs whose change is below this
-        fraction of the largest to GMRES (:class:`~toolkit.common.fem.woodbury.LocalCorrection`'s
-        ``threshold``). With the symmetric factor the skew part of the friction tangent falls
-        partly below 0.05 of the largest change: paper run (as above) 0.05: 643 GMRES iterations,
-        31.6-33.7 s; 0.02: 511, 32.8 s; 0.01: 477, 29.3-29.8 s (2,227 Woodbury columns); 0: 476,
-        30.9 s (2,301 columns). With LU factors 0.01 gained less (516 iterations against 560,
-        34.9-35.0 s)
+        Krylov iterations (its factor is still nearly exact); default 2
+    stick_on_reversal : a slave whose slip direction reversed since the previous correction is
+        linearized on the Coulomb law's stick piece (:meth:`StepContact.linearize`); default True:
+        84 Newton iterations against 145
+    symmetric_factor : factorize the symmetric part of each tangent by PARDISO's LDL^T, friction's
+        skew part taken by the Woodbury correction (``LinearSolver``'s ``symmetric_factor``);
+        default True: refactorization 0.39 s against 0.77-0.88 s for LU
+    correction_threshold : the contact correction leaves dofs whose change is below this fraction
+        of the largest to GMRES (:class:`~toolkit.common.fem.woodbury.LocalCorrection`'s
+        ``threshold``); default 0.01: fewer GMRES iterations than 0.05 with the symmetric factor
+        (477 against 643)
     """
 
     steps: int = 36

@@ -115,7 +115,7 @@ class StaticProblem:
         return self.linear_solver.solve(A, b, near_nullspace=modes, x0=x0)
 
     def solve(self, constraints: Constraints, u_start: np.ndarray | None = None) -> Solution:
-        """Equilibrium under ``constraints``; ``u_start (n, 3)`` seeds Newton."""
+        """Equilibrium under ``constraints``; ``u_start (n, 3)`` starts Newton."""
         T, u0 = constraints.reduction()
         if self.linear:
             K = self.stiffness
@@ -232,8 +232,8 @@ def solve_with_lip_contact(problem: StaticProblem, constraints: Constraints, upp
                            max_iter: int = 20, tol: float = 1e-6, u_start=None) -> ContactResult:
     """Solve with master-slave lip pairs (upper = slave, lower = master) in an active set.
 
-    Pairs start active when their craniocaudal gap is within ``threshold`` mm (seed
-    001's collision detection); a pair is released when its tie pulls (tension) and
+    Pairs start active when their craniocaudal gap is within ``threshold`` mm (the
+    lip-sliding paper's collision detection); a pair is released when its tie pulls (tension) and
     (re)activated when its lips would interpenetrate by more than ``tol`` mm.
     """
     x = problem.mesh.points

@@ -1,16 +1,14 @@
 """An exact correction of a reused factorization for the part of a matrix that lives on few
 dofs and changes a lot (Sherman-Morrison-Woodbury): penalty contact in a Newton tangent.
 
-Why. The quasi-static impact path preconditions each Newton system with the factorization of
-a tangent a few iterations old (:class:`~toolkit.common.fem.solvers.LinearSolver` reuses it,
-and factorizes newer ones on a second thread). Penalty contact puts 5-9 N/mm on a few dozen
+The quasi-static impact path preconditions each Newton system with the factorization of a
+tangent a few iterations old (:class:`~toolkit.common.fem.solvers.LinearSolver` reuses it, and
+factorizes newer ones on a second thread). Penalty contact puts 5-9 N/mm on a few dozen
 dofs (paper face: 15 at first touch, 150 at the end, of 54k), a hundred times the tissue's
 stiffness there, and those entries change at every iteration (contact set, stick and slip).
 Measured on the paper face's Newton systems 30-45 with factors 2 and 3 systems old: 516 GMRES
 iterations to the linear tolerance with the factor as it is, 233 with a factor whose contact
 part is the current one, and 233 with this correction, which needs no new factorization.
-Over the whole paper run (deformable ball, 30 mm/s, factorizing 2 solves ahead): 686 GMRES
-iterations against 1,223, for 996 columns of ``W``.
 
 With ``F`` the factor of ``A_F = K_F + C_F`` and the system ``A = K + C``, the preconditioner
 is the exact inverse of ``A_F + E_R D E_R^T``: ``D`` is ``C - C_F`` on the dofs ``R`` where it
