@@ -42,7 +42,7 @@ def test_every_user_reads_the_seed_values_from_one_place():
     assert scene.FACE_YIELD is papers.FACE_YIELD and scene.BALL_YIELD is papers.BALL_YIELD
     assert plasticity.FACE_TABLE == plasticity.HardeningTable.from_pairs(SPEC_FACE_YIELD)
     assert plasticity.BALL_TABLE == plasticity.HardeningTable.from_pairs(SPEC_BALL_YIELD)
-    assert plasticity.SEED002_BALL.density == papers.ball_density() == ball_density()
+    assert plasticity.PAPER_BALL.density == papers.ball_density() == ball_density()
     face, ball = scene.FaceSpec().material, scene.BallSpec().material
     assert (face.E, face.nu, face.density, face.yield_table) == (0.015, 0.49, 1e-9, papers.FACE_YIELD)
     assert (ball.E, ball.nu, ball.yield_table) == (0.38, 0.39, papers.BALL_YIELD)

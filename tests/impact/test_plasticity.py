@@ -14,8 +14,8 @@ from toolkit.common.materials import lame
 from toolkit.impact.plasticity import (
     BALL_TABLE,
     FACE_TABLE,
-    SEED002_BALL,
-    SEED002_FACE,
+    PAPER_BALL,
+    PAPER_FACE,
     HardeningTable,
     J2Plasticity,
     von_mises,
@@ -273,17 +273,29 @@ def test_hardening_table_interpolation_and_seed_values():
     np.testing.assert_array_equal(FACE_TABLE.yield_stress, [0.015, 0.020, 0.025, 0.028, 0.030, 0.031])
     np.testing.assert_array_equal(BALL_TABLE.yield_stress, [0.034, 0.035, 0.036, 0.037, 0.038, 0.039])
     np.testing.assert_array_equal(BALL_TABLE.plastic_strain, [0, 0.03, 0.032, 0.05, 0.06, 0.07])
-    assert (SEED002_FACE.E, SEED002_FACE.nu, SEED002_FACE.density) == (0.015, 0.49, 1e-9)
-    assert (SEED002_BALL.E, SEED002_BALL.nu) == (0.38, 0.39)
-    assert SEED002_BALL.density * 4 / 3 * np.pi * 110.0**3 == pytest.approx(0.43e-3, rel=1e-12)
+    assert (PAPER_FACE.E, PAPER_FACE.nu, PAPER_FACE.density) == (0.015, 0.49, 1e-9)
+    assert (PAPER_BALL.E, PAPER_BALL.nu) == (0.38, 0.39)
+    assert PAPER_BALL.density * 4 / 3 * np.pi * 110.0**3 == pytest.approx(0.43e-3, rel=1e-12)
     lam, mu = lame(0.015, 0.49)
-    assert SEED002_FACE.elastic_wave_speed() == pytest.approx(np.sqrt((lam + 2 * mu) / 1e-9), rel=1e-12)
-    r, _ = _uniaxial_step(SEED002_FACE, np.array([2.0]), SEED002_FACE.initial_state(1), np.ones(1))
+    assert PAPER_FACE.elastic_wave_speed() == pytest.approx(np.sqrt((lam + 2 * mu) / 1e-9), rel=1e-12)
+    r, _ = _uniaxial_step(PAPER_FACE, np.array([2.0]), PAPER_FACE.initial_state(1), np.ones(1))
     assert not r.plastic[0] and von_mises(r.kirchhoff)[0] == pytest.approx(0.015 * np.log(2.0), rel=1e-9)
     y_strain = 0.034 / 0.38
-    r, _ = _uniaxial_step(SEED002_BALL, np.exp([0.99 * y_strain, 1.01 * y_strain]),
-                          SEED002_BALL.initial_state(2), np.ones(2))
+    r, _ = _uniaxial_step(PAPER_BALL, np.exp([0.99 * y_strain, 1.01 * y_strain]),
+                          PAPER_BALL.initial_state(2), np.ones(2))
     np.testing.assert_array_equal(r.plastic, [False, True])
+
+
+def test_seed002_names_are_deprecated_spellings_of_the_paper_materials():
+    """SEED002_FACE and SEED002_BALL still read, with a DeprecationWarning naming the new name."""
+    from toolkit.impact import plasticity
+
+    with pytest.warns(DeprecationWarning, match="PAPER_FACE"):
+        assert plasticity.SEED002_FACE is PAPER_FACE
+    with pytest.warns(DeprecationWarning, match="PAPER_BALL"):
+        assert plasticity.SEED002_BALL is PAPER_BALL
+    with pytest.raises(AttributeError, match="SEED003"):
+        _ = plasticity.SEED003
 
 
 @pytest.mark.parametrize(

@@ -6,8 +6,8 @@ nodes), evaluated once per explicit time step:
 
 * :func:`penalty_stiffness` picks the normal penalty per slave from its lumped mass and the time
   step, so that the springs do not spoil the explicit stability limit; "hard" contact is then
-  approximated by a penetration of ``f_n / k`` (a small fraction of a millimetre for the seed-002
-  loads).
+  approximated by a penetration of ``f_n / k`` (a small fraction of a millimetre for the impact
+  paper's loads).
 * :class:`CoulombFriction` is the tangential law: an elastic stick spring with a stick/slip
   return mapping (an elastic predictor and a radial return to the Coulomb cone).
 * :class:`RigidSphereContact` is node-to-analytic-sphere contact (the rigid ball of radius

@@ -28,7 +28,7 @@ __all__ = ["PerOutputLSTM", "SequenceLSTM", "PointwiseMLP", "PositionalEncoding"
 
 
 class PerOutputLSTM(nn.Module):
-    """``n_out`` seed-002 models: LSTM(``n_in`` -> ``hidden``) + Linear(``hidden`` -> 1) each."""
+    """``n_out`` models of the impact paper's kind: LSTM(``n_in`` -> ``hidden``) + Linear(``hidden`` -> 1) each."""
 
     def __init__(self, n_in: int, n_out: int, hidden: int = 5, layers: int = 1):
         super().__init__()

@@ -28,8 +28,8 @@ LAPACK ``eigh``, the readable reference) and the compiled per-point kernel :func
 directions), which :meth:`J2Plasticity.update` runs when numba is installed: ~0.4 us instead
 of ~2.5 us per point. The tests hold them equal to round-off.
 
-The seed-002 materials (:data:`SEED002_FACE`, :data:`SEED002_BALL`) use SPEC's reading of the
-paper's yield tables as MPa. The face's initial yield stress (0.015 MPa) equals its Young's
+The impact paper's materials (:data:`PAPER_FACE`, :data:`PAPER_BALL`) read its yield tables,
+printed without units, as MPa. The face's initial yield stress (0.015 MPa) equals its Young's
 modulus, so in uniaxial tension it first yields at a Hencky strain ``ln(l) = sigma_y / E = 1``
 (a stretch of ``e ~ 2.7``): the face is effectively hyperelastic (Hencky) at every strain an
 impact reaches. The ball (E = 0.38 MPa, yield 0.034 MPa) yields at a Hencky strain of ~0.09.
@@ -37,6 +37,7 @@ impact reaches. The ball (E = 0.38 MPa, yield 0.034 MPa) yields at a Hencky stra
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,8 +57,8 @@ __all__ = [
     "von_mises",
     "FACE_TABLE",
     "BALL_TABLE",
-    "SEED002_FACE",
-    "SEED002_BALL",
+    "PAPER_FACE",
+    "PAPER_BALL",
 ]
 
 _SQRT_3_2 = np.sqrt(1.5)
@@ -112,8 +113,8 @@ class HardeningTable:
 
     @classmethod
     def from_pairs(cls, pairs) -> HardeningTable:
-        """The table of ``((yield stress MPa, plastic strain), ...)`` rows, as the seed and
-        :class:`~toolkit.impact.scene.MaterialSpec` write it."""
+        """The table of ``((yield stress MPa, plastic strain), ...)`` rows, as the impact paper
+        and :class:`~toolkit.impact.scene.MaterialSpec` write it."""
         arr = np.asarray(pairs, dtype=np.float64)
         if arr.ndim != 2 or arr.shape[1] != 2:
             raise ValueError(f"HardeningTable.from_pairs: expected rows of (yield stress MPa, plastic strain), "
@@ -769,7 +770,19 @@ class J2Plasticity(IsotropicModuli):
 
 #: the impact paper's face: E = 0.015 MPa, nu = 0.49, 1000 kg/m^3, yield table :data:`FACE_TABLE`
 #: (first yield at a uniaxial Hencky strain of 1: effectively hyperelastic)
-SEED002_FACE = J2Plasticity(E=papers.FACE_E, nu=papers.FACE_NU, density=papers.FACE_DENSITY, table=FACE_TABLE)
+PAPER_FACE = J2Plasticity(E=papers.FACE_E, nu=papers.FACE_NU, density=papers.FACE_DENSITY, table=FACE_TABLE)
 #: the impact paper's ball: E = 0.38 MPa, nu = 0.39, density of a solid 110 mm sphere of 0.43 kg,
 #: yield table :data:`BALL_TABLE`
-SEED002_BALL = J2Plasticity(E=papers.BALL_E, nu=papers.BALL_NU, density=papers.ball_density(), table=BALL_TABLE)
+PAPER_BALL = J2Plasticity(E=papers.BALL_E, nu=papers.BALL_NU, density=papers.ball_density(), table=BALL_TABLE)
+
+_DEPRECATED = {"SEED002_FACE": "PAPER_FACE", "SEED002_BALL": "PAPER_BALL"}
+
+
+def __getattr__(name: str):
+    """``SEED002_FACE`` and ``SEED002_BALL``: deprecated spellings of :data:`PAPER_FACE` and
+    :data:`PAPER_BALL` (a DeprecationWarning)."""
+    if name in _DEPRECATED:
+        warnings.warn(f"toolkit.impact.plasticity.{name} is deprecated: use {_DEPRECATED[name]}", DeprecationWarning,
+                      stacklevel=2)
+        return globals()[_DEPRECATED[name]]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

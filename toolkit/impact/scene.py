@@ -61,7 +61,7 @@ INTEGRATORS = ("explicit", "implicit")
 #: how the face is held: ``band`` (the impact paper: only the lower band) or ``skull`` (also the bone-side surface)
 SUPPORTS = ("band", "skull")
 
-#: duration (s) of :func:`yielding_scene`: the fastest seed ball (50 mm/s) travels 18 mm, short of the
+#: duration (s) of :func:`yielding_scene`: the impact paper's fastest ball (50 mm/s) travels 18 mm, short of the
 #: ~21 mm of tissue between the first touch and the skull
 YIELDING_DURATION = 0.36
 
@@ -316,7 +316,7 @@ def yielding_scene(velocity: float = 50.0) -> Scene:
     Where the ball hits is the impact paper's default aim (30 mm above the nose tip: nose, upper lip and
     the infraorbital region first). The soft tissue in front of the bone is only ~21 mm thick
     along the ball's path, so a skull-held face cannot follow the impact paper's 1.8 s (36-90 mm of
-    travel); 0.36 s keeps the fastest seed ball (50 mm/s, 18 mm) clear of the skull. The tissue
+    travel); 0.36 s keeps the impact paper's fastest ball (50 mm/s, 18 mm) clear of the skull. The tissue
     yields after ~12-13 mm of travel, so over 0.36 s the balls from ~35 mm/s up yield and the
     slower ones stay elastic: the database holds both regimes.
     """

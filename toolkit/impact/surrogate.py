@@ -325,7 +325,7 @@ class ImpactSurrogate:
         bundle = ModelBundle.load(directory, kind=MODEL_KIND)
         if config is not None:
             expected = resolve_config(config)
-            # through the dataclass, so a model saved before a setting existed reads as its default
+            # through the dataclass, so a setting missing from a saved model reads as its default
             require_same(SurrogateConfig(**bundle.config).identity(), expected.identity(), f"this {MODEL_KIND} model")
         cfg = SurrogateConfig(**bundle.config)
         net = build_network(cfg.network, len(cfg.inputs), len(OUTPUTS), cfg.hidden, cfg.layers, cfg.fourier)

@@ -1,4 +1,4 @@
-"""Two simple surrogates a network must beat (issue: static surrogate).
+"""Two simple surrogates a network must beat.
 
 - :class:`InfluenceMatrix`: linear superposition. On the pre-operative mesh, the
   stiffness is condensed on the nodes a bone drives (attached and mucosa, all moving

@@ -41,8 +41,8 @@ __all__ = ["Kinematics", "BlockKinematics", "kinematics", "MaterialAssignment",
 class MaterialAssignment:
     """Material of every element: a default plus overrides by element set.
 
-    ``MaterialAssignment(LinearElastic(), {"lip_muscle": TransverselyIsotropic()})`` is seed
-    001's face; a transversely isotropic material reads the cell field
+    ``MaterialAssignment(LinearElastic(), {"lip_muscle": TransverselyIsotropic()})`` is the
+    lip-sliding paper's face; a transversely isotropic material reads the cell field
     ``fibre_direction`` of the mesh.
     """
 

@@ -96,7 +96,7 @@ class ModelBundle:
                      hint=f"{what} differs from what it was trained on; train a model on it")
 
     def check_config(self, config: dict, ignore: tuple[str, ...] = ()) -> None:
-        """Refuse a configuration other than the stored one (e.g. loading seed weights as 'strong');
+        """Refuse a configuration other than the stored one (e.g. loading the ``paper`` model's weights as ``strong``);
         keys in ``ignore`` (e.g. the training budget) may differ."""
         stored = {k: v for k, v in self.config.items() if k not in ignore}
         asked = {k: v for k, v in config.items() if k not in ignore}
