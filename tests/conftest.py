@@ -1,5 +1,5 @@
-"""The suite runs on one thread, as the command line does on the 2-core machine (SPEC): importing
-``toolkit`` no longer limits threads, so the harness sets it once. Subprocesses (CLI tests,
+"""The suite runs on one thread, as the command line does by default: importing ``toolkit``
+limits no threads, so the harness sets it once. Subprocesses (CLI tests,
 notebook kernels, database workers) inherit it through the environment."""
 
 import toolkit

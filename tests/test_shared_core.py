@@ -1,6 +1,5 @@
 """The two workflows' finite-element paths give the same element stiffness and both pass the
-patch test on the tet faces (issue 11, item 6; the hex8 and wedge6 patch tests are in
-tests/static).
+patch test on the tet faces (the hex8 and wedge6 patch tests are in tests/static).
 
 Both map their cells through the shared kinematics (:mod:`toolkit.common.fem.kinematics`).
 The static linear path builds stiffness from Voigt B matrices (:mod:`toolkit.static.stiffness`);

@@ -101,7 +101,7 @@ def test_transversely_isotropic_fibre_along_x_is_the_local_matrix():
 
 @pytest.mark.parametrize("mat", [TransverselyIsotropic(), TransverselyIsotropic(0.03, 0.003, 0.45, 0.002),
                                  LinearElastic(0.003, 0.47), LinearElastic(0.003, 0.4999)],
-                         ids=["TI-seed001", "TI-10x", "iso-0.47", "iso-0.4999"])
+                         ids=["TI-lip-muscle", "TI-10x", "iso-0.47", "iso-0.4999"])
 def test_stiffness_spd_and_mean_dilatation_split_psd(mat):
     """An elastic stiffness is symmetric positive definite (positive strain energy), and
     the deviatoric remainder D - lam m m^T left after splitting off the volumetric part

@@ -28,7 +28,7 @@ def coarse():
 
 @pytest.mark.parametrize("resolution, lo, hi", [("coarse", 500, 1000), ("paper", 3500, 4500), ("fine", 45000, 55000)])
 def test_node_counts_per_resolution(resolution, lo, hi):
-    """SPEC: coarse ~500-1,000, paper ~4,000 (the PointNet++ paper: 3,960), fine ~50,000 nodes; 6 layers at fine."""
+    """coarse ~500-1,000, paper ~4,000 (the PointNet++ paper: 3,960), fine ~50,000 nodes; 6 layers at fine."""
     ph = face_hex(resolution)
     assert lo <= ph.mesh.n_points <= hi
     ph.mesh.check(min_scaled_jacobian=0.2)
@@ -52,7 +52,7 @@ def test_fine_extreme_subjects_are_valid():
         assert face_hex("fine", s).mesh.scaled_jacobian().min() > 0.2
 
 
-def test_dimensions_match_spec(coarse):
+def test_dimensions_of_the_lower_face(coarse):
     """About 120 mm wide, bone 90 mm tall, soft tissue ~10-17 mm (thicker at lips and cheeks)."""
     m = coarse.mesh
     assert m.extent[0] == pytest.approx(120, abs=8)

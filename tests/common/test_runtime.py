@@ -1,5 +1,5 @@
-"""Thread defaults (SPEC: one thread is fastest on the 2-core machine), the user option, and an
-import that changes nothing in the process."""
+"""Thread defaults (one thread: on a 2-core AMD EPYC multithreaded BLAS and torch are several
+times slower), the user option, and an import that changes nothing in the process."""
 
 import subprocess
 import sys
@@ -42,10 +42,11 @@ def test_bad_thread_counts_are_refused(monkeypatch):
 
 
 def test_importing_the_package_changes_no_environment_variable_or_thread_limit():
-    """Issue 11: ``import toolkit`` (and its workflows) used to set OMP/OPENBLAS/MKL_NUM_THREADS and
-    limit every thread pool, surprising a notebook that imports it beside other libraries. Now
-    the environment, torch's thread count and the BLAS pools already loaded are what they were
-    (torch defaults to more than one thread on this 2-core machine, so a limit would show)."""
+    """``import toolkit`` (and its workflows) sets no OMP/OPENBLAS/MKL_NUM_THREADS and limits no
+    thread pool, so a notebook that imports it beside other libraries keeps its settings: the
+    environment, torch's thread count and the BLAS pools already loaded are what they were
+    (torch defaults to more than one thread on a machine with more than one core, so a limit would
+    show)."""
     out = _run("import os, numpy, torch, threadpoolctl\n"
                "env, t = dict(os.environ), torch.get_num_threads()\n"
                "pools = {p['filepath']: p['num_threads'] for p in threadpoolctl.threadpool_info()}\n"

@@ -1,7 +1,7 @@
 """Tests for toolkit.impact.contact: penalty stiffness, Coulomb stick/slip, sphere and surface contact.
 
 Every expected value is a closed form (spring forces, Coulomb limits, loop areas, the
-central-difference response of a spring-mass), not a number the code produced before.
+central-difference response of a spring-mass), never a number the code itself produced.
 """
 
 import numpy as np

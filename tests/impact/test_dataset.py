@@ -19,8 +19,16 @@ from toolkit.impact.simulate import face_mesh, fixed_nodes
 from .conftest import TINY_HELD_OUT, TINY_VELOCITIES, tiny_scene
 
 
-def test_default_held_out_velocities_sit_between_the_seed_ones():
+def test_default_held_out_velocities_sit_between_the_paper_ones():
     assert default_held_out([20, 26, 32, 38, 44, 50]) == [23.0, 35.0, 47.0]
+
+
+def test_seed_velocities_is_a_deprecated_spelling_of_paper_velocities():
+    """SEED_VELOCITIES still reads, with a DeprecationWarning naming PAPER_VELOCITIES."""
+    from toolkit.impact import dataset
+
+    with pytest.warns(DeprecationWarning, match="PAPER_VELOCITIES"):
+        assert dataset.SEED_VELOCITIES is dataset.PAPER_VELOCITIES
 
 
 def test_records_hold_the_simulation_fields_and_their_inputs(tiny_db, tiny_db_path):
@@ -99,7 +107,7 @@ def test_local_processes_and_a_dask_local_cluster_fill_the_same_database(tmp_pat
 
 
 def test_dataset_command(tmp_path, capsys):
-    """`toolkit impact dataset` with the issue's options builds the database, prints the per-velocity
+    """`toolkit impact dataset` with velocities, held-out velocities and fidelity options builds the database, prints the per-velocity
     yield table, and refuses a file that is not an impact database."""
     out = tmp_path / "db.h5"
     argv = ["impact", "dataset", "--velocities", "30,50", "--held-out", "40", "--resolution", "coarse",

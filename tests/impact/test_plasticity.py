@@ -255,10 +255,10 @@ def test_batch_equals_one_at_a_time():
     assert not sb.eps_p[:10].any() and np.all(sb.eps_p[10:] > 0)
 
 
-def test_hardening_table_interpolation_and_seed_values():
+def test_hardening_table_interpolation_and_paper_values():
     """sigma_y interpolates the table linearly, is constant beyond the last point where the slope
-    is 0; work() is the exact area (1e-12). The impact paper's tables and materials load with SPEC's
-    values; the ball's density gives a 110 mm solid sphere 0.43 kg; the wave speed is
+    is 0; work() is the exact area (1e-12). The impact paper's tables and materials load with its
+    values (yield stresses read as MPa); the ball's density gives a 110 mm solid sphere 0.43 kg; the wave speed is
     sqrt((lam + 2 mu) / rho). The face first yields at a uniaxial Hencky strain of 1 (still
     elastic at a stretch of 2), the ball at sigma_y / E = 0.034 / 0.38 (elastic at 0.99 times
     that strain, plastic at 1.01 times)."""

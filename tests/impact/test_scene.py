@@ -1,5 +1,5 @@
 """Impact scenes: TOML round trip, validation that names the bad key or value, the impact paper's
-defaults (typed from SPEC, not from the code), what build_model builds (no ball mesh for a
+defaults (typed from the paper, not from the code), what build_model builds (no ball mesh for a
 rigid ball; the ball outside the face at t = 0; a 0.43 kg ball), and an end-to-end smoke run."""
 
 import numpy as np
@@ -19,7 +19,7 @@ from toolkit.impact import (
 )
 from toolkit.impact.simulate import sweep_travel
 
-#: the impact paper (SPEC "Impact"): yield tables (MPa, plastic strain)
+#: the impact paper's yield tables (MPa, plastic strain)
 FACE_YIELD = [(0.015, 0.0), (0.020, 0.03), (0.025, 0.032), (0.028, 0.05), (0.030, 0.06), (0.031, 0.07)]
 BALL_YIELD = [(0.034, 0.0), (0.035, 0.03), (0.036, 0.032), (0.037, 0.05), (0.038, 0.06), (0.039, 0.07)]
 
@@ -69,8 +69,8 @@ def test_bad_scene_files_name_the_problem(tmp_path, text, match):
     assert str(path) in str(info.value)
 
 
-def test_default_scene_is_seed_002():
-    """SPEC's the impact paper: face E = 0.015 MPa, nu = 0.49, 1000 kg/m^3 with its yield table; ball
+def test_default_scene_is_the_impact_papers():
+    """The impact paper's scene: face E = 0.015 MPa, nu = 0.49, 1000 kg/m^3 with its yield table; ball
     E = 0.38 MPa, nu = 0.39, radius 110 mm, 0.43 kg (solid-sphere density 0.43e-3 t / (4/3 pi
     110^3 mm^3)), its yield table; 30 mm/s for 1.8 s; friction 0.2; 10-node tetrahedra."""
     s = default_scene()
@@ -156,7 +156,7 @@ def test_a_path_into_the_fixed_region_warns_before_running():
 
 
 @pytest.mark.parametrize("velocity", [20.0, 50.0])
-def test_seed_velocity_extremes_run_the_full_duration(velocity):
+def test_paper_velocity_extremes_run_the_full_duration(velocity):
     """The impact paper's slowest and fastest balls (20 and 50 mm/s) run the whole 1.8 s on the coarse
     face (tet4, rigid ball, mass scaling 100) without inverting an element: 36 and 90 mm of travel
     with the default aim. The skin the ball first touches is carried with it, so the largest

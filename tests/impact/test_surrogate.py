@@ -132,13 +132,13 @@ def test_every_configuration_trains_saves_and_reloads(tiny_db, tmp_path):
         np.testing.assert_array_equal(v1, v2)
         assert u1.shape == (tiny_db.times.size, tiny_db.n_nodes, 3)
         assert np.all(u1[:, tiny_db.fixed] == 0.0)
-    seed_net = ImpactSurrogate.load(tmp_path / "paper").network
-    assert len(seed_net.lstms) == 4 and all(lstm.hidden_size == 5 for lstm in seed_net.lstms)
-    assert all(head.out_features == 1 for head in seed_net.heads)
+    paper_net = ImpactSurrogate.load(tmp_path / "paper").network
+    assert len(paper_net.lstms) == 4 and all(lstm.hidden_size == 5 for lstm in paper_net.lstms)
+    assert all(head.out_features == 1 for head in paper_net.heads)
 
 
 def test_models_refuse_what_they_were_not_built_for(tiny_db, tmp_path):
-    """Loading seed weights as 'strong' names the differing settings; a database of another scene
+    """Loading the paper model's weights as 'strong' names the differing settings; a database of another scene
     (other frame times) is refused naming the difference; a directory without model.pt is refused;
     asking for CUDA on a machine without it fails clearly."""
     from dataclasses import replace
@@ -161,7 +161,7 @@ def test_models_refuse_what_they_were_not_built_for(tiny_db, tmp_path):
 
 def test_train_resume_evaluate_predict_commands(tiny_db_path, tmp_path, capsys):
     """`toolkit impact train` for 2 epochs then `--resume --epochs 4` continues from the checkpoint
-    (4 epochs in the history); `evaluate` writes metrics.json with the issue's keys and the two
+    (4 epochs in the history); `evaluate` writes metrics.json (RMSE, Pearson, timings) and the two
     figures; `predict` writes face.xdmf (displacement, von_mises per frame), a summary with
     simulate's keys and scene.toml, which `toolkit impact simulate --scene` runs as FE."""
     model = tmp_path / "model"

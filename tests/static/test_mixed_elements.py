@@ -26,7 +26,7 @@ PATCH_MATERIALS = {
     "iso-0.3": LinearElastic(0.003, 0.3),
     "iso-0.47": LinearElastic(0.003, 0.47),
     "iso-0.4999": LinearElastic(0.003, 0.4999),
-    "ti-seed001": TransverselyIsotropic(),
+    "ti-lip-muscle": TransverselyIsotropic(),
     "neo-hookean-0.47": NeoHookean(0.003, 0.47),
     "neo-hookean-0.4999": NeoHookean(0.003, 0.4999),
 }

@@ -1,5 +1,5 @@
-"""The static FE over the physiological plan space: plans and meshes that failed before
-now complete, failing steps are cut, regulation never touches the skin, and a plan that
+"""The static FE over the physiological plan space: hard plans and meshes complete, failing
+steps are cut, regulation never touches the skin, and a plan that
 truly cannot be simulated raises SimulationError naming the increment, the element and a
 remedy. (Completion rates over hundreds of plans: benchmarks/static_robustness.py.)"""
 
@@ -36,11 +36,10 @@ def _ok(result, phantom):
 
 
 @pytest.mark.slow
-def test_plans_that_failed_at_paper_resolution_now_complete(paper):
-    """On main before this work, at paper resolution: the packaged plan without sliding
-    inverted 26 elements (the lip-sliding paper's method 1 could not be compared), and the sampled
-    sagittal plan 3 of seed 0 (distal 12 degrees) inverted elements at the posterior lower
-    corner where the ramus met the fixed edge. Both complete with every element positive."""
+def test_hard_plans_at_paper_resolution_complete(paper):
+    """At paper resolution, the packaged plan without sliding (the lip-sliding paper's method 1)
+    and the sampled sagittal plan 3 of seed 0 (distal 12 degrees, which presses the posterior lower
+    corner where the ramus meets the fixed edge) complete with every element positive."""
     _ok(simulate(paper, default_plan(paper), 3, "linear", "none"), paper)
     plan = sample_plans(4, 0, "sagittal", phantom=paper, max_jaw_closing_mm=None)[3]
     _ok(simulate(paper, plan), paper)
@@ -72,12 +71,12 @@ def test_a_plan_blocked_at_the_held_cut_frees_it(paper):
     and sets the distal mandible back with a ~12 degree yaw: the skin just below the lower
     end of the held posterior cut (z ~ 31 mm, 10 mm above the condyle) is dragged ~1 mm
     against its fixed neighbour 1.3 mm above and that element inverts, whatever the
-    release band or the cutting (measured before: 19 of 20 full plans at fine). The same
+    release band or the cutting. The same
     corner blocks paper when the plan's mandibular movements are doubled (Le Fort I kept
     still): with ``free_cut_radius=0`` it fails there, naming the element, whose nodes
     include fixed nodes off the bone; by default those cut nodes near it are freed, the plan
     completes with every element positive, and the result lists the freed nodes (fixed,
-    off the bone, within 6 mm, now free). No bony boundary condition changes."""
+    off the bone, within 6 mm, freed). No bony boundary condition changes."""
     plan = sample_plans(11, 0, "full", phantom=paper, max_jaw_closing_mm=10.0)[10]
     motions = dict(plan.motions)
     motions["lefort"] = RigidMotion.identity(motions["lefort"].pivot)
@@ -199,9 +198,9 @@ def test_regulation_moves_no_skin_node_and_keeps_mucosa_on_the_bone(paper, monke
 def test_mucosa_past_the_edge_of_a_bone_is_not_gathered_on_the_edge(paper):
     """Full-mode plan 11 of seed 0 (distal 10 degrees, 9 mm forward) slides the tissue over the
     right ramus ~10 mm forward and down, past the lower edge of its bone surface (an open
-    patch). Projected onto the closest point, those mucosa nodes all landed on the edge line:
-    with Neo-Hookean the corner element there collapsed (two of its nodes met; measured on main
-    before: inverted with every release band, 10/15/20 mm). Projected onto the plane of the
+    patch). Projected onto the closest point, those mucosa nodes would all land on the edge line,
+    and with Neo-Hookean the corner element there would collapse (two of its nodes meeting,
+    whatever the release band, 10/15/20 mm). Projected onto the plane of the
     edge triangle instead, they lie beyond the edge on the extended surface, and the linear run
     has nodes there: each sits on that plane (normal offset < 1e-6 mm) and off the edge line."""
     from toolkit.common.surface_distance import beyond_rim_onto_plane, closest_points

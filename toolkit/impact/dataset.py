@@ -28,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,13 +38,13 @@ from toolkit.common import papers
 from toolkit.common.database import Database, Job, Record, RunReport, read_index, run_jobs
 from toolkit.impact.scene import Scene, yielding_scene
 
-__all__ = ["DATABASE_KIND", "DATABASE_VERSION", "SEED_VELOCITIES", "default_held_out", "build_database",
+__all__ = ["DATABASE_KIND", "DATABASE_VERSION", "PAPER_VELOCITIES", "default_held_out", "build_database",
            "ImpactDatabase", "load_database", "SimulationWorker", "velocity_key", "mesh_checksum", "SceneInputs"]
 
 DATABASE_KIND = "toolkit.impact.database"
 DATABASE_VERSION = 1
 #: the impact paper's six imposed velocities, mm/s (evenly spaced over 20-50)
-SEED_VELOCITIES = papers.BALL_VELOCITIES
+PAPER_VELOCITIES = papers.BALL_VELOCITIES
 
 
 def default_held_out(velocities) -> list[float]:
@@ -100,7 +101,7 @@ class SimulationWorker:
         return Record(arrays, attrs)
 
 
-def build_database(out: str | os.PathLike, velocities=SEED_VELOCITIES, held_out=None, scene: Scene | None = None,
+def build_database(out: str | os.PathLike, velocities=PAPER_VELOCITIES, held_out=None, scene: Scene | None = None,
                    *, workers: int = 1, executor=None, retry_failed: bool = False, progress: bool = True) -> RunReport:
     """Simulate ``scene`` at every velocity and store the fields in the HDF5 file ``out``.
 
@@ -273,3 +274,12 @@ def _tomllib_loads(text) -> dict:
     import tomllib
 
     return tomllib.loads(_str(text))
+
+
+def __getattr__(name: str):
+    """``SEED_VELOCITIES``: the deprecated spelling of :data:`PAPER_VELOCITIES` (a DeprecationWarning)."""
+    if name == "SEED_VELOCITIES":
+        warnings.warn("toolkit.impact.dataset.SEED_VELOCITIES is deprecated: use PAPER_VELOCITIES", DeprecationWarning,
+                      stacklevel=2)
+        return PAPER_VELOCITIES
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
