@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from toolkit.common.fem.factors import DIRECT, amg_hierarchy, choose_method, factorize
+from toolkit.common.fem.factors import DIRECT, Refactorizable, amg_hierarchy, choose_method, factorize
 from toolkit.common.fem.ordering import fill_reducing_order
 
 __all__ = ["Factorization", "FactorMaker"]
@@ -95,7 +95,7 @@ class FactorMaker:
         spare.close()
         return None
 
-    def retire(self, factor) -> None:
+    def retire(self, factor: Refactorizable) -> None:
         """Keep a PARDISO factor no solve uses any more as the spare (one at most; another is
         freed)."""
         with self._lock:
