@@ -109,8 +109,11 @@ def ladder() -> list[Path]:
         print(f"skipped ladder: {path} not found (run benchmarks/impact_ladder.py)", file=sys.stderr)
         return []
     table = pd.read_csv(path)
-    time_col = next(c for c in table.columns if c.startswith("wall_time"))
-    error_col = next(c for c in table.columns if "rmse" in c.lower())
+    time_col = next((c for c in table.columns if c.startswith("wall_time")), None)
+    error_col = next((c for c in table.columns if "rmse" in c.lower() and "mirror" not in c.lower()), None)
+    if time_col is None or error_col is None:
+        print(f"skipped ladder: no wall-time or RMSE column in {path}", file=sys.stderr)
+        return []
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
     ax.scatter(table[time_col], table[error_col])
     ax.set_xscale("log")
