@@ -36,9 +36,9 @@ from toolkit.common.phantom import block, face_tet
 from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
 from toolkit.impact.elements import _element_stiffness, tet_kinematics
 from toolkit.impact.plasticity import FACE_TABLE, J2Plasticity
-from toolkit.static.stiffness import MaterialAssignment, _block_stiffness, linear_stiffness
 from toolkit.static.constraints import Constraints
 from toolkit.static.problem import StaticProblem
+from toolkit.static.stiffness import MaterialAssignment, _block_stiffness, linear_stiffness
 
 E_MPA, NU = 0.015, 0.45
 

@@ -91,7 +91,8 @@ def test_units_that_look_like_metres_are_refused(tmp_path, meshes):
 
 
 def test_unknown_format_and_missing_file(tmp_path, meshes):
-    with pytest.raises(ValueError, match=r"unknown mesh format '\.stl'.*expected one of \['\.inp', '\.vtu', '\.xdmf'\]"):
+    with pytest.raises(ValueError,
+                       match=r"unknown mesh format '\.stl'.*expected one of \['\.inp', '\.vtu', '\.xdmf'\]"):
         io.write(tmp_path / "m.stl", meshes["hex8"])
     with pytest.raises(FileNotFoundError, match="nope.vtu"):
         io.read(tmp_path / "nope.vtu")

@@ -58,7 +58,7 @@ def test_blocks_number_elements_globally():
 def test_single_type_accessors_name_the_types_of_a_mixed_mesh():
     m = mixed_bar(1)
     with pytest.raises(MeshError, match=r"volume cell types \['hex8', 'wedge6', 'tet4'\].*volume_blocks"):
-        m.volume_type
+        _ = m.volume_type
     with pytest.raises(MeshError, match=r"tri3, .* quad4 faces .*boundary_face_blocks"):
         m.boundary_faces()
     assert _wedge(PRISM).volume_type == "wedge6"

@@ -227,7 +227,8 @@ def test_model_bundle_round_trip_and_refusals(tmp_path):
     assert back.scalers["inputs"] == scaler and back.config == {"hidden": 32} and back.extra["train_seconds"] == 1.5
     for k, v in model.state_dict().items():
         assert torch.equal(back.state_dict[k], v)
-    with pytest.raises(IncompatibleError, match="holds a 'toolkit.test.mlp' model, expected 'toolkit.impact.surrogate'"):
+    with pytest.raises(IncompatibleError,
+                       match="holds a 'toolkit.test.mlp' model, expected 'toolkit.impact.surrogate'"):
         ModelBundle.load(tmp_path / "m", kind="toolkit.impact.surrogate")
     with pytest.raises(IncompatibleError, match="n_nodes: stored 10, asked 12"):
         back.check_data({"n_nodes": 12, "features": ["x_mm", "v_mm_s"]})

@@ -107,8 +107,8 @@ def test_local_processes_and_a_dask_local_cluster_fill_the_same_database(tmp_pat
 
 
 def test_dataset_command(tmp_path, capsys):
-    """`toolkit impact dataset` with velocities, held-out velocities and fidelity options builds the database, prints the per-velocity
-    yield table, and refuses a file that is not an impact database."""
+    """`toolkit impact dataset` with velocities, held-out velocities and fidelity options builds the
+    database, prints the per-velocity yield table, and refuses a file that is not an impact database."""
     out = tmp_path / "db.h5"
     argv = ["impact", "dataset", "--velocities", "30,50", "--held-out", "40", "--resolution", "coarse",
             "--ball", "rigid", "--order", "1", "--mass-scaling", "100", "--duration", "0.36", "--workers", "0",

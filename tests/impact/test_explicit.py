@@ -38,8 +38,14 @@ from toolkit.impact.contact import (
     penalty_stiffness,
 )
 from toolkit.impact.elements import _element_stiffness, critical_time_step, tet_kinematics
-from toolkit.impact.explicit import (Body, ContactResponse, ExplicitModel, InstabilityError, moving_sphere_contact,
-                                     run_explicit)
+from toolkit.impact.explicit import (
+    Body,
+    ContactResponse,
+    ExplicitModel,
+    InstabilityError,
+    moving_sphere_contact,
+    run_explicit,
+)
 from toolkit.impact.plasticity import FACE_TABLE, J2Plasticity
 
 RHO = 1e-9  # tonne/mm^3 (1000 kg/m^3)

@@ -88,8 +88,8 @@ def test_held_out_velocity_is_predicted_within_bounds(tiny_db):
 
 
 def test_configurations_name_existing_networks():
-    from toolkit.impact.surrogate import NETWORK_NAMES
     from toolkit.impact.networks import NETWORKS
+    from toolkit.impact.surrogate import NETWORK_NAMES
 
     assert set(NETWORK_NAMES) == set(NETWORKS)
     assert {c.network for c in CONFIGS.values()} <= set(NETWORKS)

@@ -27,8 +27,8 @@ def _normals(surface: Mesh) -> np.ndarray:
 def test_files_give_the_phantom_result(phantom, tmp_path):
     """The phantom's bone surfaces written as STL (half the triangles flipped, as some
     segmentation tools write them) and PLY, read back, oriented and attached to the face
-    mesh read from VTU (which keeps the lip muscle's fibre field), give the same surfaces (same points, every normal pointing
-    into the soft tissue like the phantom's) and the same simulation: the default plan's
+    mesh read from VTU (which keeps the lip muscle's fibre field), give the same surfaces (same
+    points, every normal pointing into the soft tissue like the phantom's) and the same simulation: the default plan's
     displacement equals the phantom run's to 1e-9 mm."""
     rng = np.random.default_rng(0)
     files = {}

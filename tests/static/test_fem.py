@@ -11,6 +11,7 @@ from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
 from toolkit.common.fem.assembly import SparsePattern
+from toolkit.common.fem.solvers import solve
 from toolkit.common.materials import (
     LinearElastic,
     NeoHookean,
@@ -18,6 +19,8 @@ from toolkit.common.materials import (
     lame,
 )
 from toolkit.common.mesh import Mesh
+from toolkit.static.constraints import Constraints
+from toolkit.static.problem import StaticProblem, solve_with_lip_contact
 from toolkit.static.stiffness import (
     MaterialAssignment,
     kinematics,
@@ -26,9 +29,6 @@ from toolkit.static.stiffness import (
     neo_hookean_system,
     small_strain,
 )
-from toolkit.static.constraints import Constraints
-from toolkit.static.problem import StaticProblem, solve_with_lip_contact
-from toolkit.common.fem.solvers import solve
 
 # VTK hex8 corner order by local (i, j, k) bits
 _ORDER = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]

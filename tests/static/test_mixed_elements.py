@@ -12,6 +12,8 @@ from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsot
 from toolkit.common.mesh import Mesh, MeshError
 from toolkit.common.mixed_bar import mixed_bar
 from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
+from toolkit.static.constraints import Constraints
+from toolkit.static.problem import ConvergenceError, StaticProblem
 from toolkit.static.stiffness import (
     MaterialAssignment,
     kinematics,
@@ -19,8 +21,6 @@ from toolkit.static.stiffness import (
     neo_hookean_energy,
     neo_hookean_system,
 )
-from toolkit.static.constraints import Constraints
-from toolkit.static.problem import ConvergenceError, StaticProblem
 
 PATCH_MATERIALS = {
     "iso-0.3": LinearElastic(0.003, 0.3),
@@ -188,7 +188,7 @@ def test_kinematics_per_block_and_global_indices():
         ("hex8", 0, 8, True), ("wedge6", 8, 6, True), ("tet4", 24, 1, False)]
     assert kin.volume.sum() == pytest.approx(125.0 * 20.0, rel=1e-12)
     with pytest.raises(MeshError, match=r"single volume block.*\['hex8', 'wedge6', 'tet4'\]"):
-        kin.grad
+        _ = kin.grad
 
 
 def test_inverted_wedge_is_refused_by_global_index():

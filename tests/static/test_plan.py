@@ -294,7 +294,8 @@ def test_hand_written_toml(tmp_path, phantom):
         SurgicalPlan.read(path)
     path.write_text("[distal]\ntranslation_mm = [0, -4, 0]\n")  # no rotation: no pivot needed
     np.testing.assert_allclose(SurgicalPlan.read(path).motions["distal"].translation, [0, -4, 0])
-    path.write_text("[distal]\nrotation_quaternion = [1, 0, 0, 0]\nrotation_vector_deg = [5, 0, 0]\npivot_mm = [0, 0, 0]")
+    path.write_text("[distal]\nrotation_quaternion = [1, 0, 0, 0]\nrotation_vector_deg = [5, 0, 0]\n"
+                    "pivot_mm = [0, 0, 0]")
     with pytest.raises(ValueError, match="differ by 5 degrees"):
         SurgicalPlan.read(path)
     path.write_text("[distal]\ntranslation = [0, -4, 0]\n")

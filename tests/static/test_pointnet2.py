@@ -315,7 +315,7 @@ def test_training_learns_a_prescribed_displacement_field():
     target = a * g
     model = PointNet2(config)
     optimiser = torch.optim.Adam(model.parameters(), lr=3e-3)
-    for step in range(50):
+    for _ in range(50):
         batch = torch.randperm(16)[:8]
         loss = torch.mean((model(features[batch], h) - target[batch]) ** 2)
         optimiser.zero_grad()

@@ -11,7 +11,6 @@ import pytest
 from toolkit.common.materials import LinearElastic
 from toolkit.common.phantom import face_hex
 from toolkit.common.surface_distance import closest_points
-from toolkit.static.stiffness import MaterialAssignment
 from toolkit.static.boundary import BoundaryConditions, NodeType
 from toolkit.static.plan import (
     PlanRangeWarning,
@@ -20,6 +19,7 @@ from toolkit.static.plan import (
     default_plan,
 )
 from toolkit.static.simulate import SimulationError, simulate
+from toolkit.static.stiffness import MaterialAssignment
 
 
 @pytest.fixture(scope="module")

@@ -131,7 +131,8 @@ def test_cli_dataset_train_evaluate_predict(tmp_path):
     from toolkit.common import io
 
     db, model, ev, pred = tmp_path / "db.h5", tmp_path / "model", tmp_path / "eval", tmp_path / "pred"
-    assert main(["static", "dataset", "--resolution", "coarse", "--plans", "3", "--workers", "0", "--out", str(db)]) == 0
+    assert main(["static", "dataset", "--resolution", "coarse", "--plans", "3", "--workers", "0",
+                 "--out", str(db)]) == 0
     assert main(["static", "train", "--data", str(db), "--out", str(model), "--epochs", "2", "--network", "tiny",
                  "--lr-schedule", "cosine"]) == 0
     assert main(["static", "evaluate", "--model", str(model), "--data", str(db), "--out", str(ev),

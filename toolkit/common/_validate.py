@@ -6,6 +6,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+
 def _as_float(x, name: str) -> np.ndarray:
     """Return ``x`` as a float64 array, raising if it holds NaN or inf."""
     try:

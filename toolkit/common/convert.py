@@ -204,8 +204,8 @@ def to_skfem(mesh: Mesh):
     Element sets become subdomains (indices into that block). Points are passed
     as scikit-fem's ``(3, n)``; see :func:`skfem_node_map` for the node order.
     """
-    from skfem.io.meshio import from_meshio as sk_from_meshio
     import meshio
+    from skfem.io.meshio import from_meshio as sk_from_meshio
 
     ctype = mesh.volume_type
     if ctype not in _SKFEM_TYPES:

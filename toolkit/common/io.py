@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Mapping
 
 import numpy as np
 
@@ -280,7 +280,7 @@ class TimeSeriesWriter:
             for name, group in self.h5.get("data", {}).items():
                 self.fields[name] = group[f"{0:06d}"].shape[1:] if len(group) else ()
             n_done = len(self.times)
-            for name, group in self.h5.get("data", {}).items():  # drop frames written after the last index
+            for group in self.h5.get("data", {}).values():  # drop frames written after the last index
                 for key in list(group):
                     if int(key) >= n_done:
                         del group[key]
@@ -358,7 +358,7 @@ class TimeSeriesWriter:
         if self.h5.id:
             self.h5.close()
 
-    def __enter__(self) -> "TimeSeriesWriter":
+    def __enter__(self) -> TimeSeriesWriter:
         return self
 
     def __exit__(self, *exc) -> None:

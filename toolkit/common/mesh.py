@@ -30,10 +30,11 @@ element quality in :mod:`toolkit.common.quality`.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from types import MappingProxyType
-from typing import Mapping, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -178,7 +179,8 @@ class Mesh:
         for name, ids in dict(self.node_sets).items():
             ids = np.unique(_as_index(ids, f"node set {name!r}").ravel())
             if ids.size and (ids[0] < 0 or ids[-1] >= n):
-                raise MeshError(f"node set {name!r} holds node {int(ids[-1] if ids[-1] >= n else ids[0])}; valid 0..{n - 1}")
+                bad = int(ids[-1] if ids[-1] >= n else ids[0])
+                raise MeshError(f"node set {name!r} holds node {bad}; valid 0..{n - 1}")
             node_sets[name] = _frozen(ids)
         element_sets = {}
         for name, ids in dict(self.element_sets).items():
@@ -291,31 +293,31 @@ class Mesh:
             raise KeyError(f"no element set {name!r}; the mesh has {sorted(self.element_sets)}") from None
 
     # ------------------------------------------------------------ transforms
-    def with_points(self, points: np.ndarray) -> "Mesh":
+    def with_points(self, points: np.ndarray) -> Mesh:
         """Copy with new coordinates ``(n_points, 3)`` mm, topology unchanged."""
         points = np.asarray(points, dtype=float)
         if points.shape != self.points.shape:
             raise MeshError(f"new points have shape {points.shape}, expected {self.points.shape}")
         return replace(self, points=points)
 
-    def translated(self, displacement: np.ndarray) -> "Mesh":
+    def translated(self, displacement: np.ndarray) -> Mesh:
         """Copy moved by ``displacement``: ``(3,)`` rigid or ``(n_points, 3)`` per node, mm."""
         return self.with_points(self.points + np.asarray(displacement, dtype=float))
 
-    def with_node_sets(self, **sets) -> "Mesh":
+    def with_node_sets(self, **sets) -> Mesh:
         """Copy with node sets added or replaced."""
         return replace(self, node_sets={**self.node_sets, **sets})
 
-    def with_element_sets(self, **sets) -> "Mesh":
+    def with_element_sets(self, **sets) -> Mesh:
         return replace(self, element_sets={**self.element_sets, **sets})
 
-    def with_point_data(self, **data) -> "Mesh":
+    def with_point_data(self, **data) -> Mesh:
         return replace(self, point_data={**self.point_data, **data})
 
-    def with_cell_data(self, **data) -> "Mesh":
+    def with_cell_data(self, **data) -> Mesh:
         return replace(self, cell_data={**self.cell_data, **data})
 
-    def without_fields(self) -> "Mesh":
+    def without_fields(self) -> Mesh:
         """Copy with no point or cell data (geometry, topology and sets only)."""
         return replace(self, point_data={}, cell_data={})
 
@@ -357,7 +359,7 @@ class Mesh:
             return np.zeros((0, size), dtype=np.int64)
         return next(iter(blocks.values()))
 
-    def surface(self) -> "Mesh":
+    def surface(self) -> Mesh:
         """The boundary surface as a ``tri3``/``quad4`` mesh with compacted points.
 
         A mixed boundary gives both blocks (``tri3`` first). Point data ``parent_node``
@@ -392,7 +394,7 @@ class Mesh:
         parts = [scaled_jacobian(b.ctype, self.points[b.cells]) for b in self.volume_blocks]
         return np.concatenate(parts) if parts else np.zeros(0)
 
-    def check(self, min_scaled_jacobian: float = 1e-3) -> "Mesh":
+    def check(self, min_scaled_jacobian: float = 1e-3) -> Mesh:
         """Raise if any volume element is inverted or degenerate; return ``self``.
 
         All volume blocks are checked; messages give global element indices.
@@ -417,7 +419,7 @@ class Mesh:
         return to_meshio(self)
 
     @classmethod
-    def from_meshio(cls, m) -> "Mesh":
+    def from_meshio(cls, m) -> Mesh:
         from toolkit.common.convert import from_meshio
 
         return from_meshio(m)
@@ -429,7 +431,7 @@ class Mesh:
         return to_pyvista(self)
 
     @classmethod
-    def from_pyvista(cls, grid) -> "Mesh":
+    def from_pyvista(cls, grid) -> Mesh:
         from toolkit.common.convert import from_pyvista
 
         return from_pyvista(grid)
@@ -446,13 +448,13 @@ class Mesh:
         return to_skfem(self)
 
     @classmethod
-    def from_skfem(cls, skmesh, **kwargs) -> "Mesh":
+    def from_skfem(cls, skmesh, **kwargs) -> Mesh:
         from toolkit.common.convert import from_skfem
 
         return from_skfem(skmesh, **kwargs)
 
     # --------------------------------------------------------------- equality
-    def equals(self, other: "Mesh", atol: float = 0.0) -> bool:
+    def equals(self, other: Mesh, atol: float = 0.0) -> bool:
         """True if points (within ``atol`` mm), cells, sets and fields all match."""
         if not isinstance(other, Mesh) or self.points.shape != other.points.shape:
             return False

@@ -46,15 +46,15 @@ a cube grid radially onto the sphere, with node set ``surface``.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from types import MappingProxyType
-from typing import Mapping
 
 import numpy as np
 
 from toolkit.common.mesh import Mesh
-from toolkit.common.topology import kuhn_tets, tet10_from_tet4
 from toolkit.common.papers import BALL_RADIUS, ball_density
+from toolkit.common.topology import kuhn_tets, tet10_from_tet4
 
 __all__ = [
     "FaceShape",
@@ -138,7 +138,7 @@ class FaceShape:
             object.__setattr__(self, f.name, value)
 
     @classmethod
-    def sample(cls, seed: int | np.random.Generator, mouth_open: bool = False) -> "FaceShape":
+    def sample(cls, seed: int | np.random.Generator, mouth_open: bool = False) -> FaceShape:
         """A random subject with every parameter uniform in its range.
 
         ``mouth_open=False`` keeps the lips closed (the usual pre-operative scan).
@@ -277,7 +277,8 @@ class _Geometry:
         theta, z = np.broadcast_arrays(theta, z)
         g = lambda v, c, s: np.exp(-0.5 * ((v - c) / s) ** 2)  # noqa: E731
         scale = sh.face_height / 90.0
-        lips = (2.0 + sh.lip_protrusion) * (g(z, 8.0 * scale, 5.0 * scale) + g(z, -8.0 * scale, 5.0 * scale)) * g(theta, 0.0, 0.4)
+        lips = ((2.0 + sh.lip_protrusion) * (g(z, 8.0 * scale, 5.0 * scale) + g(z, -8.0 * scale, 5.0 * scale))
+                * g(theta, 0.0, 0.4))
         cheeks = 3.0 * (g(theta, 0.9, 0.35) + g(theta, -0.9, 0.35)) * g(z, 5.0 * scale, 18.0 * scale)
         chin = 1.5 * g(z, -0.65 * -self.z_bot, 8.0 * scale) * g(theta, 0.0, 0.35)
         x = self.a(z) * np.sin(theta)

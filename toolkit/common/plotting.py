@@ -13,8 +13,8 @@ state, no GUI backend), so they work headless and display in Jupyter.
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -134,7 +134,8 @@ def render(
             plotter.add_legend(bcolor="white", face="circle", size=(0.22, 0.3))
         for other, opts in extra:
             g = other.to_pyvista()
-            plotter.add_mesh(g.extract_surface(algorithm="dataset_surface"), **{"color": "#9fb7d9", "opacity": 0.6, **opts})
+            plotter.add_mesh(g.extract_surface(algorithm="dataset_surface"),
+                             **{"color": "#9fb7d9", "opacity": 0.6, **opts})
         if title:
             plotter.add_text(title, font_size=11, color="black")
         direction, up = CAMERAS[camera]

@@ -21,7 +21,7 @@ The corner edge tables are the reference records' ``corner_frames``
 
 from __future__ import annotations
 
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 

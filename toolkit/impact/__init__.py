@@ -11,7 +11,6 @@ from toolkit.impact.dataset import ImpactDatabase, build_database, load_database
 from toolkit.impact.evaluation import evaluate_surrogate
 from toolkit.impact.explicit import InstabilityError
 from toolkit.impact.implicit import ConvergenceError
-from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, SurrogateConfig, predict_scene, train_surrogate
 from toolkit.impact.scene import (
     BallSpec,
     ContactSpec,
@@ -24,6 +23,7 @@ from toolkit.impact.scene import (
     yielding_scene,
 )
 from toolkit.impact.simulate import ImpactResult, SceneGeometryWarning, UnstableTimeStepError, build_model, simulate
+from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, SurrogateConfig, predict_scene, train_surrogate
 
 __all__ = [
     "Scene",

@@ -176,7 +176,7 @@ class SceneInputs:
     ball_radius: float
 
     @classmethod
-    def from_scene(cls, scene: Scene, face, times) -> "SceneInputs":
+    def from_scene(cls, scene: Scene, face, times) -> SceneInputs:
         """From a scene and its face Mesh (node set ``skin``) at the frame ``times`` (s)."""
         from toolkit.impact.simulate import ball_start, fixed_nodes
 

@@ -130,7 +130,8 @@ def plot_time_series(db: ImpactDatabase, ev: Evaluation, path, nodes=None):
     for row, i in enumerate(picks):
         node = int(ev.items[i] % db.n_nodes)
         for col, (label, fe, pr) in enumerate((
-                ("|u| (mm)", np.linalg.norm(ev.truth[i, :, :3], axis=-1), np.linalg.norm(ev.predicted[i, :, :3], axis=-1)),
+                ("|u| (mm)", np.linalg.norm(ev.truth[i, :, :3], axis=-1),
+                 np.linalg.norm(ev.predicted[i, :, :3], axis=-1)),
                 ("von Mises (MPa)", ev.truth[i, :, 3], ev.predicted[i, :, 3]))):
             ax = axes[row, col]
             ax.plot(t, fe, "k-", label="FE")

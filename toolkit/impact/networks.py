@@ -102,4 +102,5 @@ def build_network(kind: str, n_in: int, n_out: int, hidden: int, layers: int, fo
         raise ValueError(f"hidden ({hidden}) and layers ({layers}) must be >= 1, fourier ({fourier}) >= 0")
     if not fourier:
         return NETWORKS[kind](n_in, n_out, int(hidden), int(layers))
-    return Encoded(PositionalEncoding(fourier), NETWORKS[kind](n_in + 6 * int(fourier), n_out, int(hidden), int(layers)))
+    inner = NETWORKS[kind](n_in + 6 * int(fourier), n_out, int(hidden), int(layers))
+    return Encoded(PositionalEncoding(fourier), inner)

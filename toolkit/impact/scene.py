@@ -212,20 +212,20 @@ class Scene:
         if not self.duration > 0 or int(self.n_frames) < 1:
             raise SceneError(f"duration {self.duration} s must be > 0 and n_frames {self.n_frames} >= 1")
 
-    def with_fidelity(self, **kw) -> "Scene":
+    def with_fidelity(self, **kw) -> Scene:
         return replace(self, fidelity=replace(self.fidelity, **kw))
 
-    def with_ball(self, **kw) -> "Scene":
+    def with_ball(self, **kw) -> Scene:
         return replace(self, ball=replace(self.ball, **kw))
 
-    def with_face(self, **kw) -> "Scene":
+    def with_face(self, **kw) -> Scene:
         return replace(self, face=replace(self.face, **kw))
 
     def as_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Scene":
+    def from_dict(cls, d: dict) -> Scene:
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
@@ -255,7 +255,7 @@ class Scene:
         return cls(**kw)
 
     @classmethod
-    def read(cls, path: str | os.PathLike) -> "Scene":
+    def read(cls, path: str | os.PathLike) -> Scene:
         """A scene from TOML (tables ``[face]``, ``[face.material]``, ``[ball]``, ``[contact]``, ``[fidelity]``)."""
         path = Path(path)
         if path.suffix.lower() != ".toml":

@@ -138,7 +138,7 @@ class SurrogateConfig:
     def inputs(self) -> tuple[str, ...]:
         return FEATURES[self.features]
 
-    def with_(self, **kw) -> "SurrogateConfig":
+    def with_(self, **kw) -> SurrogateConfig:
         return replace(self, **kw)
 
     def train_config(self, seed: int, device: str, progress: bool) -> TrainConfig:
@@ -238,7 +238,7 @@ def _loss(name: str):
 
 def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateConfig | str = "paper",
                     split: str = "random", *, out: str | os.PathLike | None = None, seed: int = 0,
-                    device: str = "cpu", resume: bool = False, progress: bool = True) -> "ImpactSurrogate":
+                    device: str = "cpu", resume: bool = False, progress: bool = True) -> ImpactSurrogate:
     """Train a surrogate on an impact database.
 
     Parameters
@@ -269,11 +269,8 @@ def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateCon
     x_scaler = MinMaxScaler.fit(x_all[idx["train"]], cfg.inputs)
     y_scaler = MinMaxScaler.fit(y_all[idx["train"]], OUTPUTS)
 
-    def scaled(which):
-        return (x_scaler.transform(x_all[idx[which]]).astype(np.float32),
-                y_scaler.transform(y_all[idx[which]]).astype(np.float32))
-
-    train_data, val_data = scaled("train"), scaled("val")
+    train_data, val_data = ((x_scaler.transform(x_all[idx[which]]).astype(np.float32),
+                             y_scaler.transform(y_all[idx[which]]).astype(np.float32)) for which in ("train", "val"))
     del x_all, y_all
     with torch_seeded(seed):
         net = build_network(cfg.network, len(cfg.inputs), len(OUTPUTS), cfg.hidden, cfg.layers, cfg.fourier)
@@ -317,7 +314,7 @@ class ImpactSurrogate:
         self.network.eval()
 
     @classmethod
-    def load(cls, directory: str | os.PathLike, config: str | SurrogateConfig | None = None) -> "ImpactSurrogate":
+    def load(cls, directory: str | os.PathLike, config: str | SurrogateConfig | None = None) -> ImpactSurrogate:
         """Read a model directory. ``config`` (a name or SurrogateConfig), if given, must be the
         one the model was trained with; a mismatch is refused naming the differing settings."""
         from toolkit.impact.networks import build_network

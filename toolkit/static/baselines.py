@@ -50,7 +50,7 @@ class InfluenceMatrix:
     seconds: float
 
     @classmethod
-    def build(cls, mesh: Mesh, driven: np.ndarray, fixed: np.ndarray, materials="linear") -> "InfluenceMatrix":
+    def build(cls, mesh: Mesh, driven: np.ndarray, fixed: np.ndarray, materials="linear") -> InfluenceMatrix:
         """Condense the linear stiffness of ``mesh`` (mm, N/mm) on ``driven`` and ``fixed`` nodes.
 
         Parameters
@@ -123,7 +123,7 @@ class PODRegression:
 
     @classmethod
     def fit(cls, params: np.ndarray, displacements: np.ndarray, modes: int | None = None, energy: float = 0.9999,
-            ridge: float = 1e-6) -> "PODRegression":
+            ridge: float = 1e-6) -> PODRegression:
         """Fit on ``params (s, p)`` (plan parameters of each sample) and ``displacements (s, n, 3)`` mm.
 
         ``modes``: how many to keep (default: the fewest keeping ``energy`` of the variance,
@@ -173,7 +173,7 @@ class LinearPlusPOD:
     residual: PODRegression
 
     @classmethod
-    def fit(cls, params: np.ndarray, displacements: np.ndarray, linear: np.ndarray, **pod) -> "LinearPlusPOD":
+    def fit(cls, params: np.ndarray, displacements: np.ndarray, linear: np.ndarray, **pod) -> LinearPlusPOD:
         """Fit on ``params (s, p)``, the FE ``displacements (s, n, 3)`` mm and the influence-matrix
         solutions of the same samples ``linear (s, n, 3)`` mm (``pod``: PODRegression.fit options)."""
         d, lin = np.asarray(displacements, dtype=float), np.asarray(linear, dtype=float)

@@ -13,8 +13,8 @@ takes, attached and sliding on the face mesh's node sets as for the phantoms.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 import scipy.sparse as sp

@@ -11,9 +11,9 @@ mesh's types onto a down-sampled one, as the PointNet++ paper did (:func:`knn_la
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Mapping
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -188,7 +188,7 @@ class BoundaryConditions:
             out[ids, col] = 1.0
         return out
 
-    def with_sliding(self, sliding: str) -> "BoundaryConditions":
+    def with_sliding(self, sliding: str) -> BoundaryConditions:
         """Copy for a sliding model: ``"mucosa+lip"`` (the lip-sliding paper), ``"mucosa"`` (lips free)
         or ``"none"`` (mucosa nodes attached to their segment, lips free: the lip-sliding paper's method 1)."""
         if sliding not in ("none", "mucosa", "mucosa+lip"):
@@ -219,7 +219,7 @@ class BoundaryConditions:
         return d
 
     def with_release_bands(self, mesh: Mesh, width: float = DEFAULT_RELEASE_WIDTH,
-                           candidates: np.ndarray | None = None) -> "BoundaryConditions":
+                           candidates: np.ndarray | None = None) -> BoundaryConditions:
         """Copy in which the tissue along every border between differently driven regions is
         bound to neither side.
 
@@ -283,7 +283,7 @@ class BoundaryConditions:
         ids = np.union1d(self.released, np.flatnonzero(release))
         return BoundaryConditions(types, segment, self.segment_names, self.upper_lip, self.lower_lip, ids)
 
-    def with_freed(self, nodes: np.ndarray) -> "BoundaryConditions":
+    def with_freed(self, nodes: np.ndarray) -> BoundaryConditions:
         """Copy in which ``nodes`` ((k,) int; fixed, moving or mucosa nodes, not lip pairs) are
         free and listed in ``released``."""
         nodes = np.asarray(nodes, dtype=np.int64).reshape(-1)
@@ -304,7 +304,7 @@ class BoundaryConditions:
         return np.array([0] + [order.get(name, 0) for name in self.segment_names])
 
     @classmethod
-    def from_mesh(cls, mesh: Mesh, segments: Mapping, *, lip_threshold: float = 0.2) -> "BoundaryConditions":
+    def from_mesh(cls, mesh: Mesh, segments: Mapping, *, lip_threshold: float = 0.2) -> BoundaryConditions:
         """Types from the node sets ``fixed``, the segments' attachment sets,
         ``mucosa_sliding`` and ``lip_sliding``.
 
@@ -334,7 +334,7 @@ class BoundaryConditions:
             owner.update(dict.fromkeys(ids.tolist(), label))
 
         claim(mesh.node_set("fixed"), NodeType.FIXED, "fixed")
-        for k, (name, seg) in enumerate(segments.items()):
+        for k, seg in enumerate(segments.values()):
             if seg.node_set is not None and seg.node_set in mesh.node_sets:
                 ids = mesh.node_sets[seg.node_set]
                 claim(ids, NodeType.MOVING, seg.node_set)
@@ -396,7 +396,6 @@ def segments_from_mesh(mesh: Mesh, pivots: Mapping[str, np.ndarray]) -> dict:
     dict name -> BoneSegment
     """
     from toolkit.common.phantom import BoneSegment
-
     from toolkit.common.topology import triangulated_boundary
 
     tris = triangulated_boundary(mesh.cells)[:, [0, 2, 1]]  # normals into the tissue: out of the bone

@@ -157,8 +157,8 @@ def _jobs(config: DatasetConfig) -> list[Job]:
 def material_for(material: str, poisson: float | None, mesh):
     """The lip-sliding paper's material assignment, with Poisson's ratio ``poisson`` if given."""
     from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
-    from toolkit.static.stiffness import MaterialAssignment
     from toolkit.static.simulate import material_assignment
+    from toolkit.static.stiffness import MaterialAssignment
 
     if poisson is None:
         return material
@@ -377,7 +377,7 @@ class StaticDatabase:
     _bone: dict = field(default_factory=dict, repr=False)
 
     @classmethod
-    def open(cls, path: str | os.PathLike) -> "StaticDatabase":
+    def open(cls, path: str | os.PathLike) -> StaticDatabase:
         """Read a database written by :func:`generate` (refuses other files, naming what is wrong)."""
         import h5py
 

@@ -337,7 +337,7 @@ class PointNet2Config:
             raise ValueError(f"PointNet2Config: dropout must be in [0, 1), got {self.dropout}")
 
     @classmethod
-    def coarse(cls, **changes) -> "PointNet2Config":
+    def coarse(cls, **changes) -> PointNet2Config:
         """Defaults for ~800-node meshes (the ``coarse`` phantom): radii scaled with the node
         spacing (~1.7x the ~4,000-node defaults), so the groups stay ~2/3 full."""
         return cls(**{"radii": (0.25, 0.5, 1.0, 2.0), **changes})
@@ -363,7 +363,7 @@ class PointNet2Config:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> "PointNet2Config":
+    def from_dict(cls, data: dict) -> PointNet2Config:
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
@@ -421,7 +421,7 @@ class PointHierarchy:
 
     # -- construction ------------------------------------------------------------------------
     @classmethod
-    def build(cls, points, config: PointNet2Config, device: str | torch.device | None = None) -> "PointHierarchy":
+    def build(cls, points, config: PointNet2Config, device: str | torch.device | None = None) -> PointHierarchy:
         """Hierarchy of a mesh for ``config``'s levels, radii and group sizes.
 
         Parameters
@@ -509,7 +509,7 @@ class PointHierarchy:
         return h.hexdigest()
 
     # -- transforms --------------------------------------------------------------------------
-    def to(self, device: str | torch.device) -> "PointHierarchy":
+    def to(self, device: str | torch.device) -> PointHierarchy:
         """Copy on ``device`` (``center`` stays a CPU float64 tensor)."""
         move = lambda ts: tuple(t.to(device) for t in ts)  # noqa: E731
         return PointHierarchy(move(self.xyz), move(self.sample), move(self.groups), move(self.offsets),
@@ -525,7 +525,7 @@ class PointHierarchy:
         return state
 
     @classmethod
-    def from_state_dict(cls, state: dict[str, Tensor], device: str | torch.device | None = None) -> "PointHierarchy":
+    def from_state_dict(cls, state: dict[str, Tensor], device: str | torch.device | None = None) -> PointHierarchy:
         """Inverse of :meth:`state_dict`."""
         try:
             levels = state["radii"].numel()
@@ -577,7 +577,7 @@ class BoundaryTargets:
         object.__setattr__(self, "values", values)
 
     @classmethod
-    def from_types(cls, types, prescribed: Tensor) -> "BoundaryTargets":
+    def from_types(cls, types, prescribed: Tensor) -> BoundaryTargets:
         """The PointNet++ paper's boundary types: fixed nodes -> 0, moving nodes -> their prescribed ``s``.
 
         types : (n,) int — :class:`~toolkit.static.boundary.NodeType` codes (free 0, moving 1,
@@ -592,7 +592,7 @@ class BoundaryTargets:
                              prescribed)
         return cls(moving | fixed, values)
 
-    def to(self, device: str | torch.device) -> "BoundaryTargets":
+    def to(self, device: str | torch.device) -> BoundaryTargets:
         return BoundaryTargets(self.mask.to(device), self.values.to(device))
 
 
@@ -742,7 +742,7 @@ class PointNet2(nn.Module):
         out = self.head(x)
         return enforce_boundary(out, boundary) if boundary is not None else out
 
-    def fold_batch_norm(self) -> "PointNet2":
+    def fold_batch_norm(self) -> PointNet2:
         """An inference copy with every batch normalisation folded into the linear layers before
         it (in eval mode a batch norm is the affine map ``s x + t`` per channel, so ``s (W x + b)
         + t`` is one linear layer). Same outputs up to rounding, fewer operations per call; the

@@ -57,26 +57,26 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 
 from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.assembly import SparsePattern
+from toolkit.common.fem.solvers import SolverError
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import FacePhantom
 from toolkit.common.surface_distance import barycentric, beyond_rim_onto_plane, closest_points
 from toolkit.common.topology import rim_edges
-from toolkit.static.stiffness import MaterialAssignment
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
 from toolkit.static.constraints import Constraints
-from toolkit.static.problem import ConvergenceError, StaticProblem, solve_with_lip_contact
 from toolkit.static.plan import SurgicalPlan
+from toolkit.static.problem import ConvergenceError, StaticProblem, solve_with_lip_contact
 from toolkit.static.regulation import element_quality, regulate
-from toolkit.common.fem.solvers import SolverError
+from toolkit.static.stiffness import MaterialAssignment
 
 __all__ = ["simulate", "SimulationOptions", "SimulationResult", "IncrementReport", "SimulationError",
            "material_assignment", "SLIDING_MODELS", "MATERIALS"]

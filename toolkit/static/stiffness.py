@@ -22,16 +22,16 @@ MPa, N (forces), mJ (energies).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 import scipy.sparse as sp
 
 from toolkit.common.fem.assembly import SparsePattern, element_tangent
+from toolkit.common.fem.kinematics import BlockKinematics, Kinematics, deformation_gradient, element_forces, kinematics
 from toolkit.common.materials import LinearElastic
 from toolkit.common.mesh import Mesh
-from toolkit.common.fem.kinematics import BlockKinematics, Kinematics, deformation_gradient, element_forces, kinematics
 
 __all__ = ["Kinematics", "BlockKinematics", "kinematics", "MaterialAssignment",
            "linear_stiffness", "neo_hookean_system", "neo_hookean_energy", "small_strain"]

@@ -203,7 +203,7 @@ class Surrogate:
         return float(self.bundle.extra["out_scale_mm"])
 
     @classmethod
-    def load(cls, directory, device: str = "cpu") -> "Surrogate":
+    def load(cls, directory, device: str = "cpu") -> Surrogate:
         """Load a model directory written by :func:`train_surrogate`."""
         from toolkit.static.pointnet2 import PointHierarchy
 

@@ -63,7 +63,7 @@ class ModelBundle:
         return directory
 
     @classmethod
-    def load(cls, directory: str | os.PathLike, kind: str | None = None, map_location="cpu") -> "ModelBundle":
+    def load(cls, directory: str | os.PathLike, kind: str | None = None, map_location="cpu") -> ModelBundle:
         """Read a model directory; ``kind`` (if given) must match the stored one."""
         import torch
 

@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -114,7 +114,7 @@ class TrainResult:
     extra: dict = field(default_factory=dict)
 
 
-def learning_rate(config: "TrainConfig", epochs_done: int, seconds: float) -> float:
+def learning_rate(config: TrainConfig, epochs_done: int, seconds: float) -> float:
     """Adam's rate for the next epoch after ``epochs_done`` epochs and ``seconds`` of training."""
     if config.lr_schedule == "constant":
         return config.lr

@@ -57,7 +57,7 @@ class MinMaxScaler:
         return np.where(s > 0, s, 1.0)
 
     @classmethod
-    def fit(cls, x, names=None) -> "MinMaxScaler":
+    def fit(cls, x, names=None) -> MinMaxScaler:
         """Fit on ``x`` of shape ``(..., n_features)``: the minimum and maximum over all other axes."""
         a = np.asarray(x, dtype=np.float64)
         if a.ndim == 0 or a.size == 0:
@@ -102,10 +102,11 @@ class MinMaxScaler:
 
     def to_dict(self) -> dict:
         """JSON-ready: ``{"lo": [...], "hi": [...], "names": [...] or None}``."""
-        return {"lo": self.lo.tolist(), "hi": self.hi.tolist(), "names": None if self.names is None else list(self.names)}
+        return {"lo": self.lo.tolist(), "hi": self.hi.tolist(),
+                "names": None if self.names is None else list(self.names)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "MinMaxScaler":
+    def from_dict(cls, d: dict) -> MinMaxScaler:
         missing = {"lo", "hi"} - set(d)
         if missing:
             raise ValueError(f"scaler record lacks {sorted(missing)}; expected keys lo, hi (and names)")
