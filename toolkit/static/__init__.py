@@ -5,11 +5,10 @@
 for finer control. Imports nothing from :mod:`toolkit.impact`.
 """
 
-from toolkit.static.stiffness import MaterialAssignment
+from toolkit.common.fem.solvers import SolverError
 from toolkit.static.boundary import BoundaryConditions, BoundaryError, NodeType, knn_labels
 from toolkit.static.case import StaticCase, load_case
 from toolkit.static.constraints import Constraints
-from toolkit.static.problem import ConvergenceError, StaticProblem, solve_with_lip_contact
 from toolkit.static.plan import (
     PHYSIOLOGICAL_RANGES,
     SEGMENTS,
@@ -19,6 +18,7 @@ from toolkit.static.plan import (
     SurgicalPlan,
     default_plan,
 )
+from toolkit.static.problem import ConvergenceError, StaticProblem, solve_with_lip_contact
 from toolkit.static.simulate import (
     IncrementReport,
     SimulationError,
@@ -27,7 +27,7 @@ from toolkit.static.simulate import (
     material_assignment,
     simulate,
 )
-from toolkit.common.fem.solvers import SolverError
+from toolkit.static.stiffness import MaterialAssignment
 
 __all__ = [
     "simulate",
