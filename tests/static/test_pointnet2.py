@@ -347,7 +347,7 @@ def test_errors_name_the_bad_values(phantom):
         PointNet2Config.from_dict({"in_chanels": 9})
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_cuda_matches_cpu(phantom):
     h = PointHierarchy.build(phantom.mesh.points, SMALL)
     model = PointNet2(SMALL).eval()
