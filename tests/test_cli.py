@@ -1,12 +1,15 @@
 """The command line a new user meets first."""
 
+import argparse
+import contextlib
+import io as io_lib
 import json
 import subprocess
 import sys
 
 import pytest
 
-from toolkit.cli import main
+from toolkit.cli import build_parser, main
 from toolkit.common import io
 
 
@@ -30,11 +33,83 @@ def test_demo_writes_validated_phantoms(tmp_path):
     assert summary["impact"]["energy_error"] < 0.02 and (out / "impact" / "face.xdmf").exists()
 
 
-@pytest.mark.parametrize("argv", [["--help"], ["demo", "--help"], ["phantom", "--help"], ["static", "--help"],
-                                  ["static", "simulate", "--help"]])
-def test_every_command_has_help(argv):
-    done = subprocess.run([sys.executable, "-m", "toolkit.cli", *argv], capture_output=True, text=True, timeout=120)
+def _subcommands(parser, path=()):
+    """``(path, parser)`` of the top-level parser and of every subcommand, depth first."""
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _subcommands(sub, (*path, name))
+
+
+SUBCOMMANDS = [path for path, _ in _subcommands(build_parser())]
+
+
+def test_python_m_toolkit_is_the_toolkit_command(tmp_path):
+    """``python -m toolkit`` runs the same command line: help, a command, and an error with its
+    exit code 2."""
+    done = subprocess.run([sys.executable, "-m", "toolkit", "--help"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and "usage: toolkit" in done.stdout
+    for name in ("demo", "phantom", "static", "impact"):
+        assert name in done.stdout
+    done = subprocess.run([sys.executable, "-m", "toolkit", "phantom", "face-tet4", "--out", str(tmp_path / "f.vtu")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and io.read(tmp_path / "f.vtu").volume_type == "tet4"
+    done = subprocess.run([sys.executable, "-m", "toolkit", "phantom", "face-hex", "--mouth-open", "40", "--out",
+                           str(tmp_path / "g.vtu")], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stderr.startswith("error: ")
+
+
+def test_every_command_has_help():
+    """Every command and subcommand answers ``--help`` (exit 0) with its usage line."""
+    assert len(SUBCOMMANDS) == 1 + 4 + 5 + 5  # toolkit, its 4 commands, static's 5, impact's 5
+    for path in SUBCOMMANDS:
+        out = io_lib.StringIO()
+        with pytest.raises(SystemExit) as done, contextlib.redirect_stdout(out):
+            main([*path, "--help"])
+        assert done.value.code == 0, path
+        assert out.getvalue().startswith(f"usage: {' '.join(('toolkit', *path))}"), path
+
+
+@pytest.mark.parametrize("path", [p for p in SUBCOMMANDS if p not in [(), ("static",), ("impact",)]],
+                         ids=" ".join)
+def test_every_option_shows_its_default(path):
+    """Each option that takes a value and is not required says its default in ``--help``
+    (argparse's value, or in words where the value is None: "the scene's", "the packaged
+    bimaxillary plan", ...); flags are off unless given."""
+    parser = dict(_subcommands(build_parser()))[path]
+    printed = " ".join(parser.format_help().split())
+    formatter = parser._get_formatter()
+    for action in parser._actions:
+        if not action.option_strings or action.nargs == 0 or action.required:
+            continue
+        text = " ".join(formatter._expand_help(action).split()) if action.help else ""
+        assert "default" in text, (path, action.option_strings)
+        if action.default is not None and "default" not in action.help:
+            assert f"(default: {action.default})" in printed, (path, action.option_strings)
+
+
+def test_deprecated_config_name_seed_trains_the_paper_configuration(monkeypatch, capsys):
+    """``toolkit impact train --config seed`` trains the configuration now called ``paper`` and
+    says so on stderr; ``--help`` lists only paper, strong and baseline."""
+    import toolkit.impact.surrogate as surrogate
+
+    received = {}
+
+    def stop(data, cfg, split, **kwargs):
+        received["cfg"] = cfg
+        raise RuntimeError("stopped before training")
+
+    monkeypatch.setattr(surrogate, "train_surrogate", stop)
+    assert main(["impact", "train", "--data", "db.h5", "--out", "model", "--config", "seed"]) == 2
+    err = capsys.readouterr().err
+    assert "warning: the configuration name 'seed' is deprecated: use 'paper'" in err
+    assert "error: stopped before training" in err
+    assert received["cfg"] is surrogate.CONFIGS["paper"]
+    parser = dict(_subcommands(build_parser()))[("impact", "train")]
+    assert "{paper,strong,baseline}" in parser.format_help()
+    assert main(["impact", "train", "--data", "db.h5", "--out", "model", "--config", "strong"]) == 2
+    assert "deprecated" not in capsys.readouterr().err and received["cfg"] is surrogate.CONFIGS["strong"]
 
 
 def test_phantom_command_and_clear_errors(tmp_path, capsys):

@@ -1,0 +1,99 @@
+"""What every command shares: the help format, ``--threads``/``--verbose``, argument types,
+the database-run options and the Dask client."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+RESOLUTIONS = ["coarse", "paper", "fine"]
+
+
+@dataclass(frozen=True)
+class Command:
+    """One subcommand: its one-line ``help``, its ``description``, the function that adds its
+    arguments to a parser and the handler that runs it (returns the exit code)."""
+
+    help: str
+    description: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """argparse's help, with ``(default: ...)`` after every option whose text does not already
+    say its default. Flags (off unless given) and required options are left as written."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if ("default" in text or action.default is argparse.SUPPRESS or action.required or action.nargs == 0
+                or not action.option_strings):
+            return text
+        return f"{text} (default: %(default)s)" if text else "default: %(default)s"
+
+
+def add_common(parser: argparse.ArgumentParser) -> None:
+    """``--threads`` and ``--verbose``, on every subcommand."""
+    parser.add_argument("--threads", type=int, default=None,
+                        help="BLAS/torch threads (default: TOOLKIT_NUM_THREADS or 1; 1 is fastest on 2 cores)")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+
+
+def torch_threads(args: argparse.Namespace) -> None:
+    """torch picks its thread count at import: apply --threads (default 1) again once it is loaded."""
+    import torch  # noqa: F401
+
+    from toolkit.common.runtime import set_threads
+
+    set_threads(args.threads)
+
+
+def floats(text: str) -> list[float]:
+    """``"20,26.5"`` -> ``[20.0, 26.5]`` (an argparse type)."""
+    try:
+        return [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def ints(text: str) -> list[int]:
+    """``"3,17"`` -> ``[3, 17]`` (an argparse type)."""
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def add_database_run(parser: argparse.ArgumentParser, items: str) -> None:
+    """Where a learning database's simulations run and where it is written (both workflows)."""
+    parser.add_argument("--workers", type=int, default=1, help="local worker processes (0: in this process)")
+    parser.add_argument("--dask", "--scheduler", dest="dask", metavar="ADDRESS", default=None,
+                        help="run on a Dask cluster: a scheduler address (tcp://host:8786) or 'local' for a "
+                             "LocalCluster of --workers processes (default: no Dask, local processes)")
+    parser.add_argument("--retry-failed", action="store_true", help=f"rerun {items} recorded as failed")
+    parser.add_argument("--out", required=True, type=Path, help="database file (.h5)")
+
+
+@contextmanager
+def dask_client(address: str | None, workers: int):
+    """A Dask client for ``--dask`` (a scheduler address, or ``local``: a LocalCluster of
+    ``workers`` single-threaded processes); None without it. Closed on exit."""
+    if not address:
+        yield None
+        return
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=max(workers, 1), threads_per_worker=1, dashboard_address=None) \
+        if address == "local" else None
+    client = None
+    try:
+        client = Client(cluster if cluster is not None else address)
+        yield client
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()

@@ -1,0 +1,53 @@
+"""``toolkit``: wires the subcommands, sets the threads, and turns the toolkit's errors into
+``error: ...`` on stderr with exit code 2."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from toolkit.cli import demo, impact, phantom, static
+from toolkit.cli._common import Command, HelpFormatter, add_common
+
+__all__ = ["main", "build_parser"]
+
+DESCRIPTION = "Facial soft-tissue biomechanics: phantoms, orthognathic FEM, ball-impact FEM, surrogates."
+GROUPS = {"static": static, "impact": impact}
+COMMANDS = {"demo": demo.COMMAND, "phantom": phantom.COMMAND}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="toolkit", description=DESCRIPTION, formatter_class=HelpFormatter)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, command in COMMANDS.items():
+        _add(sub, name, command)
+    for name, group in GROUPS.items():
+        p = sub.add_parser(name, help=group.HELP, description=group.DESCRIPTION, formatter_class=HelpFormatter)
+        group_sub = p.add_subparsers(dest=f"{name}_command", metavar=f"{name.upper()}_COMMAND", required=True)
+        for sub_name, command in group.COMMANDS.items():
+            _add(group_sub, sub_name, command)
+    return parser
+
+
+def _add(subparsers, name: str, command: Command) -> None:
+    p = subparsers.add_parser(name, help=command.help, description=command.description, formatter_class=HelpFormatter)
+    command.add_arguments(p)
+    add_common(p)
+    p.set_defaults(func=command.run)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
+    from toolkit.common.runtime import set_threads
+
+    set_threads(args.threads)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted; finished files are complete (all writes are atomic)", file=sys.stderr)
+        return 130
+    except (ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2

@@ -1,0 +1,249 @@
+"""``toolkit impact ...``: the ball-impact workflow (the impact paper) and its LSTM surrogate."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+
+from toolkit.cli._common import Command, add_database_run, dask_client, floats, ints, torch_threads
+
+HELP = "ball-impact workflow (the impact paper)"
+DESCRIPTION = "Impact workflow: explicit elastoplastic simulation of a ball pressed into the face."
+
+
+class _Choices(tuple):
+    """Names shown in ``--help`` (``{a,b,c}``) that also accept deprecated spellings."""
+
+    def __new__(cls, names, deprecated=()):
+        choices = super().__new__(cls, names)
+        choices.deprecated = frozenset(deprecated)
+        return choices
+
+    def __contains__(self, value) -> bool:
+        return super().__contains__(value) or value in self.deprecated
+
+
+CONFIG_NAMES = _Choices(["paper", "strong", "baseline"], deprecated=["seed"])
+
+
+def _add_scene_options(parser: argparse.ArgumentParser, scene: str) -> None:
+    """Options that change the scene (each one keeps the scene's own value when not given)."""
+    parser.add_argument("--scene", type=Path, help=f"scene TOML (default: {scene})")
+    parser.add_argument("--resolution", choices=["coarse", "paper"], help="face resolution (default: the scene's)")
+    parser.add_argument("--ball", choices=["deformable", "rigid"], help="ball model (default: the scene's)")
+    parser.add_argument("--order", type=int, choices=[1, 2],
+                        help="tetrahedron order (1: tet4, 2: tet10) (default: the scene's)")
+    parser.add_argument("--mass-scaling", type=float,
+                        help="density factor >= 1 (longer stable steps) (default: the scene's)")
+
+
+def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
+    _add_scene_options(parser, "the impact paper's scene: paper face, deformable ball, tet10, no mass scaling")
+    parser.add_argument("--velocity", type=float,
+                        help="ball velocity, mm/s (the impact paper: 20-50) (default: the scene's, 30)")
+    parser.add_argument("--integrator", choices=["explicit", "implicit"],
+                        help="explicit dynamics or quasi-static Newton load steps (default: the scene's, explicit)")
+    parser.add_argument("--duration", type=float, help="simulated time, s (default: the scene's, 1.8)")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
+
+
+def simulate(args: argparse.Namespace) -> int:
+    from toolkit.impact.scene import default_scene
+    from toolkit.impact.simulate import simulate
+
+    result = simulate(scene(args, default_scene), out=args.out, progress=True, preview=not args.no_preview)
+    s = result.summary()
+    print(f"{s['face_nodes']} face nodes ({s['element']}), {s['ball']} ball at {s['velocity_mm_s']} mm/s: "
+          f"{s['steps']} steps of {s['dt_s']:.3g} s in {s['wall_time_s']:.1f} s; max displacement "
+          f"{s['max_displacement_mm']:.2f} mm, max von Mises {s['max_von_mises_mpa']:.4f} MPa, energy error "
+          f"{s['energy_error']:.2%}")
+    print(f"wrote {args.out}/ (face.xdmf, {'ball.xdmf, ' if result.ball is not None else ''}history.h5, "
+          f"summary.json{'' if args.no_preview else ', preview.png'})")
+    return 0
+
+
+def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--velocities", type=floats, default=None,
+                        help="training velocities, mm/s, comma-separated (default: the impact paper's "
+                             "20,26,32,38,44,50)")
+    parser.add_argument("--held-out", type=floats, default=None,
+                        help="held-out velocities, mm/s (default: midpoints of every other gap, 23,35,47); '' for "
+                             "none")
+    _add_scene_options(parser, "the skull-held yielding scene, 0.36 s")
+    parser.add_argument("--duration", type=float, help="simulated time, s (default: the scene's, 0.36)")
+    add_database_run(parser, "velocities")
+
+
+def dataset(args: argparse.Namespace) -> int:
+    from toolkit.common.database import read_index
+    from toolkit.common.papers import BALL_VELOCITIES
+    from toolkit.impact.dataset import build_database
+    from toolkit.impact.scene import yielding_scene
+
+    velocities = args.velocities or list(BALL_VELOCITIES)
+    with dask_client(args.dask, args.workers) as client:
+        report = build_database(args.out, velocities, args.held_out, scene(args, yielding_scene), workers=args.workers,
+                                executor=client, retry_failed=args.retry_failed, progress=True)
+    print(f"{len(report.done)} simulated, {len(report.skipped)} already there or failed before, "
+          f"{len(report.failed)} failed now ({report.seconds:.1f} s) -> {args.out}")
+    for key, reason in report.failed.items():
+        print(f"  failed {key}: {reason}")
+    table = read_index(args.out)
+    if len(table):
+        cols = ["key", "held_out", "max_displacement_mm", "max_von_mises_mpa", "max_equivalent_plastic_strain",
+                "plastic_volume_fraction", "energy_error", "wall_time_s"]
+        print(table[[c for c in cols if c in table]].sort_values("key").to_string(index=False, float_format="%.4g"))
+    return 1 if report.failed else 0
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, type=Path, help="database (.h5) from `toolkit impact dataset`")
+    parser.add_argument("--out", required=True, type=Path, help="model directory")
+    parser.add_argument("--config", default="paper", choices=CONFIG_NAMES,
+                        help="the impact paper's per-output LSTM (paper), a stronger LSTM (strong) or the "
+                             "non-recurrent baseline (baseline)")
+    parser.add_argument("--split", default="random", choices=["random", "velocity"],
+                        help="random: 76%% of the items train (the impact paper); velocity: held-out velocities are "
+                             "the test set")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto")
+    parser.add_argument("--seed", type=int, default=0, help="weights, batch order and split")
+    parser.add_argument("--epochs", type=int, default=None, help="maximum epochs (default: the configuration's)")
+    parser.add_argument("--max-minutes", type=float, default=None,
+                        help="training time limit (default: the configuration's, 15)")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+
+
+def train(args: argparse.Namespace) -> int:
+    torch_threads(args)
+    from toolkit.impact.surrogate import resolve_config, train_surrogate
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DeprecationWarning)
+        cfg = resolve_config(args.config)
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    if args.epochs is not None:
+        cfg = cfg.with_(epochs=args.epochs)
+    if args.max_minutes is not None:
+        cfg = cfg.with_(max_seconds=60.0 * args.max_minutes)
+    model = train_surrogate(args.data, cfg, args.split, out=args.out, seed=args.seed, device=args.device,
+                            resume=args.resume, progress=True)
+    e = model.bundle.extra
+    print(f"{cfg.name} ({cfg.network}, hidden {cfg.hidden}, layers {cfg.layers}) on the {args.split} split: "
+          f"{e['epochs_run']} epochs ({e['stopped']}), best validation loss {e['best_val_loss']:.4g} at epoch "
+          f"{e['best_epoch']}, {e['train_seconds']:.1f} s -> {args.out}/ (model.pt, config.json)")
+    return 0
+
+
+def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, type=Path, help="model directory")
+    parser.add_argument("--data", required=True, type=Path, help="the database it was trained on")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--split", choices=["random", "velocity"], default=None,
+                        help="test split (default: the one the model was trained with)")
+    parser.add_argument("--nodes", type=ints, default=None,
+                        help="node ids for timeseries.png, comma-separated (default: the test nodes of largest final "
+                             "displacement, largest stress and median displacement)")
+    parser.add_argument("--frames", type=ints, default=None,
+                        help="frame indices for fields.png, comma-separated (default: the middle and the last)")
+
+
+def evaluate(args: argparse.Namespace) -> int:
+    torch_threads(args)
+    from toolkit.impact.dataset import load_database
+    from toolkit.impact.evaluation import evaluate_surrogate, write_evaluation
+    from toolkit.impact.surrogate import ImpactSurrogate
+
+    model = ImpactSurrogate.load(args.model)
+    db = load_database(args.data)
+    ev = evaluate_surrogate(model, db, args.split)
+    write_evaluation(ev, db, model, args.out, nodes=args.nodes, frames=args.frames)
+    m = ev.metrics
+    print(f"{m['config']} on the {m['split']} split ({m['n_test_items']} test node series, velocities "
+          f"{m['test_velocities_mm_s']} mm/s):")
+    print(f"  displacement RMSE {m['displacement_rmse_mm']:.3g} mm, Pearson {m['displacement_pearson']:.4f}, "
+          f"NRMSE {m['displacement_nrmse']:.3%}")
+    print(f"  von Mises    RMSE {m['von_mises_rmse_mpa']:.3g} MPa, Pearson {m['von_mises_pearson']:.4f}, "
+          f"NRMSE {m['von_mises_nrmse']:.3%}")
+    print(f"  trained {m['train_seconds']:.1f} s; {m['inference_ms']:.2f} ms per whole-face frame "
+          f"(FE {m['fe_ms_per_frame']:.0f} ms per frame)")
+    print(f"wrote {args.out}/ (metrics.json, timeseries.png, fields.png)")
+    return 0
+
+
+def add_predict_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, type=Path, help="model directory")
+    parser.add_argument("--velocity", required=True, type=float, help="ball velocity, mm/s")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+
+
+def predict(args: argparse.Namespace) -> int:
+    torch_threads(args)
+    from toolkit.impact.surrogate import ImpactSurrogate, predict_scene
+
+    pred = predict_scene(ImpactSurrogate.load(args.model), args.velocity)
+    pred.write(args.out)
+    s = pred.summary()
+    print(f"{s['face_nodes']} face nodes at {s['velocity_mm_s']} mm/s, {pred.times.size} frames in "
+          f"{s['wall_time_s']:.2f} s: max displacement {s['max_displacement_mm']:.2f} mm, max von Mises "
+          f"{s['max_von_mises_mpa']:.4f} MPa")
+    print(f"wrote {args.out}/ (face.xdmf, summary.json, scene.toml)")
+    return 0
+
+
+def scene(args: argparse.Namespace, base):
+    """The scene of ``--scene`` (or ``base()``) with the options given on the command line."""
+    from dataclasses import replace
+
+    from toolkit.impact.scene import Scene
+
+    out = Scene.read(args.scene) if args.scene else base()
+    if getattr(args, "velocity", None) is not None:
+        out = out.with_ball(velocity=args.velocity)
+    if args.resolution is not None:
+        out = out.with_face(resolution=args.resolution)
+    if args.ball is not None:
+        out = out.with_ball(rigid=args.ball == "rigid")
+    if args.order is not None:
+        out = out.with_fidelity(order=args.order)
+    if args.mass_scaling is not None:
+        out = out.with_fidelity(mass_scaling=args.mass_scaling)
+    if getattr(args, "integrator", None) is not None:
+        out = out.with_fidelity(integrator=args.integrator)
+    if args.duration is not None:
+        out = replace(out, duration=args.duration)
+    return out
+
+
+COMMANDS = {
+    "simulate": Command(
+        help="run an impact scene",
+        description="Run the simulation (explicit or quasi-static) and write face.xdmf (displacement, von_mises), "
+                    "ball.xdmf (deformable ball), history.h5, summary.json and preview.png.",
+        add_arguments=add_simulate_arguments, run=simulate),
+    "dataset": Command(
+        help="build the learning database (one simulation per velocity)",
+        description="Simulate the scene at every training and held-out velocity and store the per-node "
+                    "displacement and von Mises time series in one resumable HDF5 file (rerun to resume; failures "
+                    "are recorded). Default scene: the face held by the skull, 0.36 s (yielding_scene).",
+        add_arguments=add_dataset_arguments, run=dataset),
+    "train": Command(
+        help="train a surrogate on a database",
+        description="Train the impact paper's LSTM, the stronger LSTM or the non-recurrent baseline; writes "
+                    "model.pt, config.json (with the scalers) and checkpoint.pt. The configuration 'seed' is the "
+                    "deprecated name of 'paper'.",
+        add_arguments=add_train_arguments, run=train),
+    "evaluate": Command(
+        help="score a model on its test split",
+        description="RMSE, Pearson and NRMSE of displacement and von Mises on the model's test split; writes "
+                    "metrics.json, timeseries.png and fields.png.",
+        add_arguments=add_evaluate_arguments, run=evaluate),
+    "predict": Command(
+        help="predict the database's scene at a velocity",
+        description="Whole-face displacement and von Mises time series at VELOCITY; writes face.xdmf, summary.json "
+                    "and scene.toml (run its FE with `toolkit impact simulate --scene OUT/scene.toml`).",
+        add_arguments=add_predict_arguments, run=predict),
+}

@@ -1,0 +1,239 @@
+"""``toolkit static ...``: the orthognathic-surgery workflow (the lip-sliding paper) and its
+PointNet++ surrogate (the PointNet++ paper)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from toolkit.cli._common import RESOLUTIONS, Command, add_database_run, dask_client
+
+HELP = "orthognathic-surgery workflow (the lip-sliding paper)"
+DESCRIPTION = "Static workflow: incremental FEM of the face after orthognathic surgery."
+MATERIALS = ["linear", "neo-hookean"]
+SLIDINGS = ["none", "mucosa", "mucosa+lip"]
+
+
+def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--mesh", type=Path,
+                        help="face mesh (.inp/.vtu/.xdmf) with the phantom's node sets (default: the built-in phantom)")
+    source.add_argument("--resolution", default="coarse", choices=RESOLUTIONS, help="built-in phantom resolution")
+    parser.add_argument("--plan", type=Path,
+                        help="plan (.toml/.json) (default: the packaged bimaxillary plan, phantom only)")
+    parser.add_argument("--bone", action="append", default=[], metavar="SEGMENT=FILE",
+                        help="bone surface of a segment (lefort, distal, proximal_left, proximal_right, skull) as "
+                             "STL/OBJ/PLY/VTK/VTU/OFF in mm, e.g. --bone lefort=maxilla.stl; repeatable (default: "
+                             "the phantom's surfaces, or for --mesh the surfaces rebuilt from its bone-side faces)")
+    parser.add_argument("--increments", type=int, default=3, help="number of increments (the lip-sliding paper: 3)")
+    parser.add_argument("--material", default="linear", choices=MATERIALS, help="soft-tissue material law")
+    parser.add_argument("--sliding", default="mucosa+lip", choices=SLIDINGS,
+                        help="sliding model (mucosa+lip: the lip-sliding paper)")
+    parser.add_argument("--solver", default="auto", choices=["auto", "superlu", "amg", "cholmod"],
+                        help="linear solver (auto: chosen by the expected fill of the factor)")
+    parser.add_argument("--force", action="store_true", help="accept movements beyond twice the physiological range")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
+
+
+def simulate(args: argparse.Namespace) -> int:
+    from toolkit.static import SimulationOptions, load_case
+
+    case = load_case(args.mesh, resolution=args.resolution, plan=args.plan, bones=bones(args.bone), force=args.force)
+    result = case.simulate(increments=args.increments, material=args.material, sliding=args.sliding,
+                           options=SimulationOptions(solver=args.solver, progress=True))
+    result.write(args.out, preview=not args.no_preview)
+    s = result.summary()
+    for r in s["increments_report"]:
+        print(f"increment {r['increment']}: {r['seconds_step1'] + r['seconds_step2']:.1f} s, {r['linear_solves']} "
+              f"linear solves, {r['substeps']} sub-step(s), min scaled Jacobian {r['min_scaled_jacobian']:.3f}")
+    print(f"{s['nodes']} nodes, {s['increments']} increments, {s['material']}, {s['sliding']}: "
+          f"max displacement {s['max_displacement_mm']:.2f} mm, min scaled Jacobian {s['min_scaled_jacobian']:.3f}, "
+          f"max penetration {s['max_penetration_mm']:.2e} mm, {s['wall_time_s']:.1f} s")
+    print(f"wrote {args.out}/ (result.vtu: pre-operative face with 'displacement'; postop.vtu: post-operative face; "
+          f"increments.xdmf, summary.json{'' if args.no_preview else ', preview.png'})")
+    return 0
+
+
+def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--resolution", default="coarse", choices=RESOLUTIONS, help="phantom resolution")
+    parser.add_argument("--subjects", type=int, default=1,
+                        help="phantom subjects (0: default shape; k: FaceShape.sample(k))")
+    parser.add_argument("--plans", type=int, required=True, help="plans per subject")
+    parser.add_argument("--mode", default="sagittal", choices=["sagittal", "full"], help="plan directions")
+    parser.add_argument("--increments", type=int, default=3, help="increments per simulation")
+    parser.add_argument("--material", default="linear", choices=MATERIALS, help="soft-tissue material law")
+    parser.add_argument("--sliding", default="mucosa+lip", choices=SLIDINGS,
+                        help="sliding model (mucosa+lip: the lip-sliding paper)")
+    parser.add_argument("--poisson-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                        help="draw Poisson's ratio per simulation, for models with material channels "
+                             "(default: none, Poisson's ratio 0.47 as in the lip-sliding paper)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of the plan sampling")
+    add_database_run(parser, "simulations")
+
+
+def dataset(args: argparse.Namespace) -> int:
+    from toolkit.static.dataset import DatasetConfig, generate
+
+    config = DatasetConfig(resolution=args.resolution, subjects=args.subjects, plans=args.plans, mode=args.mode,
+                           increments=args.increments, material=args.material, sliding=args.sliding, seed=args.seed,
+                           poisson_range=tuple(args.poisson_range) if args.poisson_range else None)
+    with dask_client(args.dask, args.workers) as client:
+        report = generate(args.out, config, executor=client, workers=args.workers, retry_failed=args.retry_failed)
+    print(f"{len(report.done)} simulations done, {len(report.skipped)} already there, {len(report.failed)} failed "
+          f"in {report.seconds:.1f} s -> {args.out}")
+    for key, reason in list(report.failed.items())[:10]:
+        print(f"  failed {key}: {reason[:160]}")
+    return 0
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, type=Path, help="database (.h5) from `toolkit static dataset`")
+    parser.add_argument("--out", required=True, type=Path, help="model directory")
+    parser.add_argument("--variant", default="explicit", choices=["explicit", "implicit", "hard"],
+                        help="boundary types as inputs (explicit, the PointNet++ paper), none (implicit), or explicit "
+                             "with exact boundary values (hard)")
+    parser.add_argument("--extra-channels", action="store_true",
+                        help="mucosa/lip one-hot, jaw side, mucosa bone motion")
+    parser.add_argument("--material-channels", action="store_true", help="Poisson's ratio per node")
+    parser.add_argument("--linear-prior", action="store_true",
+                        help="learn the residual over the linear influence-matrix solution (given as input, added "
+                             "back)")
+    parser.add_argument("--network", default="small", choices=["paper", "small", "tiny"], help="network size")
+    parser.add_argument("--test-subjects", type=int, nargs="*", default=None,
+                        help="hold these subjects out for testing (default: 70/10/20 split by simulation)")
+    parser.add_argument("--epochs", type=int, default=100, help="maximum epochs")
+    parser.add_argument("--batch-size", type=int, default=8, help="samples per batch")
+    parser.add_argument("--lr", type=float, default=1e-3, help="learning rate")
+    parser.add_argument("--lr-schedule", default="constant", choices=["constant", "cosine"],
+                        help="cosine: decay to 1%% of --lr over the epochs (or over --max-minutes when given)")
+    parser.add_argument("--max-minutes", type=float, default=None, help="training time limit (default: none)")
+    parser.add_argument("--seed", type=int, default=0, help="weights, batch order and split")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+
+
+def train(args: argparse.Namespace) -> int:
+    from toolkit.static.features import FeatureSpec
+    from toolkit.static.surrogate import SurrogateConfig, train_surrogate
+
+    config = SurrogateConfig(
+        FeatureSpec(args.variant, args.extra_channels, args.material_channels, args.linear_prior),
+        network=args.network,
+        coarse_radii=_database_resolution(args.data) == "coarse",
+        split="subjects" if args.test_subjects else "plans", test_subjects=tuple(args.test_subjects or ()),
+        epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
+        max_seconds=None if args.max_minutes is None else 60 * args.max_minutes, lr_schedule=args.lr_schedule)
+    model = train_surrogate(args.data, args.out, config, resume=args.resume)
+    x = model.bundle.extra
+    print(f"trained {config.features.variant} PointNet++ ({x['parameters']:,} parameters) on {x['split']['train']} "
+          f"samples in {x['train_seconds']:.0f} s: best epoch {x['best_epoch']} ({x['stopped']}) -> {args.out}")
+    return 0
+
+
+def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, type=Path, help="model directory")
+    parser.add_argument("--data", required=True, type=Path, help="database (.h5) to score it on")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
+    parser.add_argument("--no-render", action="store_true", help="skip error_map.png")
+
+
+def evaluate(args: argparse.Namespace) -> int:
+    from toolkit.static.dataset import subject_phantom
+    from toolkit.static.surrogate import Surrogate, evaluate_surrogate, write_evaluation
+
+    model = Surrogate.load(args.model, device=args.device)
+    result = evaluate_surrogate(model, args.data)
+    mesh = None if args.no_render else subject_phantom(_database_resolution(args.data), 0).mesh
+    write_evaluation(result, args.out, mesh)
+    m = result["metrics"]
+    print(f"{m['samples']} samples: mean error {m['mean_error_mm']:.3f} mm (median {m['median_error_mm']:.3f}, p95 "
+          f"{m['p95_error_mm']:.3f}, max {m['max_error_mm']:.3f}); free nodes {m['free_mean_error_mm']:.3f}, lips "
+          f"{m['lips_mean_error_mm']:.3f}; {m['inference_ms']:.1f} ms per prediction vs {m['fe_ms']:.0f} ms FE per "
+          f"increment -> {args.out}/metrics.json")
+    return 0
+
+
+def add_predict_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, type=Path, help="model directory")
+    parser.add_argument("--plan", type=Path,
+                        help="plan (.toml/.json) (default: the packaged bimaxillary plan, phantom only)")
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--mesh", type=Path,
+                        help="face mesh with the phantom's node sets, needs --plan (default: the built-in phantom)")
+    source.add_argument("--resolution", default=None, choices=RESOLUTIONS,
+                        help="built-in phantom (default: the training database's)")
+    parser.add_argument("--bone", action="append", default=[], metavar="SEGMENT=FILE",
+                        help="as for simulate (default: the phantom's surfaces, or the mesh's bone-side faces)")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
+
+
+def predict(args: argparse.Namespace) -> int:
+    from toolkit.static import load_case
+    from toolkit.static.surrogate import Surrogate
+
+    model = Surrogate.load(args.model, device=args.device)
+    resolution = args.resolution or model.bundle.data["database"]["resolution"]
+    case = load_case(args.mesh, resolution=resolution, plan=args.plan, bones=bones(args.bone))
+    result = model.predict_plan(case.subject, case.plan, segments=case.segments)
+    result.write(args.out, preview=not args.no_preview)
+    s = result.summary()
+    print(f"{s['nodes']} nodes, {s['increments']} increments predicted in {s['wall_time_s'] * 1e3:.0f} ms: max "
+          f"displacement {s['max_displacement_mm']:.2f} mm, min scaled Jacobian {s['min_scaled_jacobian']:.3f} -> "
+          f"{args.out}/ (result.vtu, postop.vtu, increments.xdmf, summary.json)")
+    return 0
+
+
+def bones(specs: list[str]) -> dict[str, Path]:
+    """``["lefort=maxilla.stl", ...]`` (the ``--bone`` values) -> ``{"lefort": Path("maxilla.stl"), ...}``."""
+    out = {}
+    for spec in specs:
+        name, sep, path = spec.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(f"--bone {spec!r}: expected SEGMENT=FILE, e.g. --bone lefort=maxilla.stl")
+        if name in out:
+            raise ValueError(f"--bone {name}= given twice")
+        out[name] = Path(path)
+    return out
+
+
+def _database_resolution(path) -> str:
+    """The phantom resolution a static database was generated at (``paper`` when it does not say)."""
+    import json
+
+    from toolkit.common.database import Database
+
+    return json.loads(Database.open_attrs(Path(path)).get("config", "{}")).get("resolution", "paper")
+
+
+COMMANDS = {
+    "simulate": Command(
+        help="simulate a surgical plan on a face",
+        description="Run the incremental FE simulation (mucosa and lip sliding) and write result.vtu (reference "
+                    "mesh + displacement), postop.vtu (post-operative face), increments.xdmf, summary.json and "
+                    "preview.png.",
+        add_arguments=add_simulate_arguments, run=simulate),
+    "dataset": Command(
+        help="generate the surrogate's learning database",
+        description="Simulate sampled plans on phantom subjects; every increment is a learning sample (the "
+                    "PointNet++ paper). Resumable: a rerun skips finished simulations; failures are recorded with "
+                    "their reason. Ctrl-C loses no finished simulation.",
+        add_arguments=add_dataset_arguments, run=dataset),
+    "train": Command(
+        help="train the PointNet++ surrogate on a database",
+        description="Train PointNet++ (the PointNet++ paper) on a static database; writes model.pt and config.json "
+                    "(checkpoint.pt while training; --resume continues it).",
+        add_arguments=add_train_arguments, run=train),
+    "evaluate": Command(
+        help="score a surrogate on a database",
+        description="Mean Euclidean nodal error per sample (all, free, lips), inference and FE times; writes "
+                    "metrics.json, per_sample.csv and error_map.png.",
+        add_arguments=add_evaluate_arguments, run=evaluate),
+    "predict": Command(
+        help="predict a plan with a surrogate",
+        description="Run a plan with the surrogate instead of the FE; writes the files of `toolkit static simulate`.",
+        add_arguments=add_predict_arguments, run=predict),
+}
