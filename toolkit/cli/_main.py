@@ -1,4 +1,5 @@
-"""``toolkit``: wires the subcommands, sets the threads, and turns the toolkit's errors into
+"""``toolkit``: wires the subcommands, sets the threads, and turns the toolkit's errors (any
+:class:`~toolkit.common.errors.ToolkitError`, bad input, a missing file, a failed solve) into
 ``error: ...`` on stderr with exit code 2."""
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ def _add(subparsers, name: str, command: Command) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
+    from toolkit.common.errors import ToolkitError
     from toolkit.common.runtime import set_threads
 
     set_threads(args.threads)
@@ -48,6 +50,6 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted; finished files are complete (all writes are atomic)", file=sys.stderr)
         return 130
-    except (ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
+    except (ToolkitError, ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
