@@ -46,7 +46,7 @@ GOALS = {"displacement_rmse_mm": ("<", 1.0), "displacement_pearson": (">=", 0.99
 #: loss of the impact paper with a bigger LSTM, then one knob at a time (output scaling by the travel,
 #: positional encoding, sizes, separate single-output LSTMs)
 SWEEP = {
-    "lstm64x2_seed_inputs_mae": dict(features="paper", loss="mae", fourier=0, per_travel=False),
+    "lstm64x2_paper_inputs_mae": dict(features="paper", loss="mae", fourier=0, per_travel=False),
     "lstm64x2_ball_mse": dict(fourier=0, per_travel=False),
     "lstm64x2_ball_mse_travel": dict(fourier=0),
     "lstm64x2_ball_mse_travel_fourier6": dict(),

@@ -115,7 +115,7 @@ def run_one(name: str, method: str) -> dict:
 def main(argv=None) -> pd.DataFrame:
     parser = argparse.ArgumentParser(description="static linear solver comparison")
     parser.add_argument("--meshes", nargs="+", default=list(MESHES), choices=MESHES)
-    parser.add_argument("--methods", nargs="+", default=["superlu", "amg", "cholmod"])
+    parser.add_argument("--methods", nargs="+", default=["superlu", "pardiso", "amg", "cholmod", "auto"])
     parser.add_argument("--superlu-max-dofs", type=int, default=60_000)
     parser.add_argument("--out", type=Path, default=RESULTS / "static_solvers.csv")
     args = parser.parse_args(argv)

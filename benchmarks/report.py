@@ -1,0 +1,609 @@
+"""Generate the documentation's benchmark tables from the committed results.
+
+Every table of figures in ``README.md`` and ``docs/*.md`` sits between two markers::
+
+    <!-- results: NAME -->
+    ...generated: a table and the line saying where, how and from what it was measured...
+    <!-- /results -->
+
+This script rewrites the content between the markers of every block it knows (:data:`BLOCKS`)
+from ``benchmarks/results/NAME.csv`` and its provenance sidecar ``NAME.json`` (written by
+:mod:`_provenance`), and writes ``docs/benchmarks.md`` whole (every block, what it measures,
+and each result's machine, versions, commit and command). A result that is missing renders as
+one line saying the command that measures it and how long that takes, so no page quotes a
+figure that was not measured.
+
+    python benchmarks/report.py            # rewrite the blocks and docs/benchmarks.md
+    python benchmarks/report.py --check    # exit 1 naming each block (or file) that differs
+
+``--root`` and ``--results`` point at another tree (the tests use a temporary one).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parent.parent
+MACHINE = "AMD EPYC, 2 cores"
+MARKER = re.compile(r"(?P<open><!-- results: (?P<name>[\w-]+) -->)(?P<body>.*?)(?P<close><!-- /results -->)",
+                    re.DOTALL)
+BENCHMARKS_PAGE = Path("docs") / "benchmarks.md"
+
+
+@dataclass(frozen=True)
+class Source:
+    """A result file a block reads, and how to measure it when it is missing."""
+
+    stem: str  #: ``benchmarks/results/<stem>.csv``
+    command: str  #: the command that writes it
+    minutes: float  #: its expected duration on the reference machine (AMD EPYC, 2 cores), min
+
+
+@dataclass(frozen=True)
+class Block:
+    """One generated table: its sources and how they render."""
+
+    name: str
+    title: str
+    about: str
+    sources: tuple[Source, ...]
+    render: Callable[[dict], str]  #: ``{stem: (DataFrame, sidecar)}`` of the present sources -> Markdown
+
+
+# ----------------------------------------------------------------------------------------------
+# formatting
+
+
+def _number(v, spec: str | None = None) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "–"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, str):
+        return v.replace("|", "\\|").replace("\n", " ")
+    if spec is not None:
+        return spec.format(v)
+    if isinstance(v, int):
+        return f"{v:,}"
+    a = abs(float(v))
+    if a >= 1000:
+        return f"{v:,.0f}"
+    if a >= 100:
+        return f"{v:.0f}"
+    if a >= 0.01:
+        return f"{v:#.3g}"
+    return "0" if a == 0 else f"{v:.2e}"
+
+
+def table(df: pd.DataFrame, columns: list[tuple] | None = None) -> str:
+    """Markdown table of ``df``.
+
+    ``columns`` lists ``(column, header)`` or ``(column, header, format)`` (a ``str.format``
+    spec such as ``"{:.4f}"``); columns ``df`` lacks are left out. Default: every column.
+    """
+    if columns is None:
+        columns = [(c, c) for c in df.columns]
+    columns = [c if len(c) == 3 else (*c, None) for c in columns if c[0] in df.columns]
+    lines = ["| " + " | ".join(h for _, h, _ in columns) + " |",
+             "|" + "|".join("---:" if pd.api.types.is_numeric_dtype(df[c]) else "---" for c, _, _ in columns) + "|"]
+    for _, row in df.iterrows():
+        lines.append("| " + " | ".join(_number(_plain(row[c]), f) for c, _, f in columns) + " |")
+    return "\n".join(lines)
+
+
+def _plain(v):
+    if hasattr(v, "item"):
+        return v.item()
+    return v
+
+
+def _cpu(prov: dict) -> str:
+    m = prov.get("machine", {})
+    threads = m.get("threads", {})
+    n = threads.get("env", {}).get("TOOLKIT_NUM_THREADS") or threads.get("torch")
+    thread_text = f", {n} thread{'s' if str(n) != '1' else ''}" if n else ""
+    family = f" (family {m['cpu_family']}, model {m['cpu_model']})" if m.get("cpu_family") else ""
+    return f"{m.get('cpu', 'unknown CPU')}{family}, {m.get('cores', '?')} cores{thread_text}"
+
+
+def _provenance_text(side: dict) -> str:
+    """Machine, commit, date and command(s) (with their wall time) of a result."""
+    if not side:
+        return "provenance not recorded."
+    prov = side["provenance"]
+    runs = side.get("runs") or [{"command": prov["command"], "date": prov["date"], "commit": prov["git"]["commit"],
+                                 "dirty": prov["git"]["dirty"]}]
+    commits = sorted({r["commit"][:7] + (" with uncommitted changes" if r["dirty"] else "") for r in runs})
+    dates = sorted({r["date"][:10] for r in runs})
+    commands = "; ".join(f"`{r['command']}`" + (f" ({r['elapsed_s'] / 60:.1f} min)" if "elapsed_s" in r else "")
+                         for r in runs)
+    return (f"{_cpu(prov)}; commit {', '.join(commits)}; {', '.join(dates)}; "
+            f"{'commands' if len(runs) > 1 else 'command'}: {commands}.")
+
+
+def versions_line(side: dict) -> str:
+    v = side.get("provenance", {}).get("versions", {})
+    return ", ".join(f"{k} {val}" for k, val in v.items())
+
+
+def not_measured(source: Source) -> str:
+    return f"not measured: run `{source.command}` (about {source.minutes:g} min on {MACHINE})."
+
+
+def _sources_footer(data: dict, sources) -> str:
+    """One line per provenance: results measured by the same command share a line."""
+    groups: dict[str, list[str]] = {}
+    for s in sources:
+        if s.stem in data:
+            groups.setdefault(_provenance_text(data[s.stem][1]), []).append(f"`{s.stem}`")
+    return "\n".join(f"- {', '.join(stems)}: {text}" for text, stems in groups.items())
+
+
+# ----------------------------------------------------------------------------------------------
+# the blocks
+
+
+def _headline(data: dict) -> str:
+    rows = []
+    conv = data.get("static_convergence_runs")
+    if conv is not None:
+        df = conv[0]
+        cells = [f"{r.resolution} ({r.nodes:,} nodes) {r.seconds:.1f} s" for r in df.itertuples()]
+        rows.append(("Static", "FE time per simulation (default plan: 3 increments, linear, mucosa + lip sliding)",
+                     "; ".join(cells), "~30 min per incremental simulation (the PointNet++ paper)"))
+    else:
+        rows.append(("Static", "FE time per simulation", not_measured(_source("static_convergence_runs")),
+                     "~30 min per incremental simulation (the PointNet++ paper)"))
+    surrogate = next((s for s in ("static_surrogate", "static_surrogate_coarse") if s in data), None)
+    if surrogate:
+        df, side = data[surrogate]
+        one = df[df.test == "one subject"]
+        size = side.get("extra", {})
+        where = (f"{size.get('resolution', '?')} face, {size.get('plans', '?')} plans, "
+                 f"at most {size.get('max_minutes', '?'):g} min training per model, CPU")
+        pn = one[one.method == "PointNet++ explicit"]
+        best = one.loc[one.mean_error_mm.idxmin()]
+        err = f"PointNet++ explicit {pn.mean_error_mm.iloc[0]:.3g} mm; " if len(pn) else ""
+        rows.append(("Static", "surrogate mean nodal error on test plans",
+                     f"{err}best method: {best.method} {best.mean_error_mm:.3g} mm ({where})", "0.159-0.642 mm"))
+        ms = f"PointNet++ explicit {pn.inference_ms.iloc[0]:.3g} ms" if len(pn) else f"{best.inference_ms:.3g} ms"
+        rows.append(("Static", "surrogate inference per prediction", f"{ms} (CPU, batch 1)", "< 700 ms (GPU)"))
+    else:
+        rows.append(("Static", "surrogate mean nodal error", not_measured(_source("static_surrogate_coarse")),
+                     "0.159-0.642 mm"))
+    ladder = data.get("impact_ladder")
+    fe = None
+    if ladder is not None:
+        df = ladder[0]
+        hit = df[(df.resolution == "paper") & (df.integrator == "implicit") & (df.order == 2)
+                 & (df.ball == "deformable") & (df.status == "ok")]
+        if "velocity" in df:
+            hit = hit[hit.velocity == 30]
+        if len(hit):
+            r = hit.iloc[0]
+            nodes = (f", {int(r.face_nodes):,} nodes, {int(r.face_elements):,} elements"
+                     if "face_nodes" in hit and pd.notna(r.face_nodes) else "")
+            fe = (f"{r.wall_time_s:.1f} s (quasi-static, paper face{nodes}, tet10, deformable ball, 30 mm/s, "
+                  f"{int(r.newton_iterations)} Newton iterations)")
+    rows.append(("Impact", "FE time per run", fe or not_measured(_source("impact_ladder")),
+                 "~45 s (Abaqus, ~30,000 C3D10)"))
+    surrogate = next((s for s in ("impact_surrogate", "impact_surrogate_coarse") if s in data), None)
+    if surrogate:
+        df, side = data[surrogate]
+        size = side.get("extra", {})
+        where = (f"{size.get('resolution', '?')} face, tet{4 if size.get('order') == 1 else 10}, "
+                 f"{size.get('ball', '?')} ball, mass scaling {size.get('mass_scaling', '?'):g}, "
+                 f"at most {size.get('max_minutes') or 'unlimited'} min training per model, random split")
+        rnd = df[df.split == "random"].set_index("config")
+        for cfg in ("paper", "strong"):
+            if cfg not in rnd.index:
+                continue
+            r = rnd.loc[cfg]
+            rows.append(("Impact", f"LSTM `{cfg}`: displacement RMSE / Pearson; von Mises RMSE / Pearson",
+                         f"{r.displacement_rmse_mm:.3g} mm / {r.displacement_pearson:.3f}; "
+                         f"{r.von_mises_rmse_mpa:.2e} MPa / {r.von_mises_pearson:.3f} ({where})",
+                         "3.13 mm / 0.98; 0.001 MPa / 0.94"))
+            rows.append(("Impact", f"LSTM `{cfg}`: training; inference per frame",
+                         f"{r.train_seconds:.0f} s; {r.inference_ms:.3g} ms (CPU)", "~3 h training"))
+    else:
+        rows.append(("Impact", "LSTM accuracy", not_measured(_source("impact_surrogate_coarse")),
+                     "3.13 mm / 0.98; 0.001 MPa / 0.94"))
+    out = [table(pd.DataFrame(rows, columns=["Workflow", "Measure", f"This toolkit ({MACHINE})", "Source paper"]))]
+    missing = [s for s in (_source("static_surrogate"), _source("impact_surrogate")) if s.stem not in data]
+    for s in missing:
+        out.append(f"Paper-size `{s.stem}`: {not_measured(s)}")
+    footer = _sources_footer(data, [_source(s) for s in ("static_convergence_runs", "static_surrogate",
+                                                          "static_surrogate_coarse", "impact_ladder",
+                                                          "impact_surrogate", "impact_surrogate_coarse")])
+    return "\n\n".join([*out, footer] if footer else out)
+
+
+def _phantoms(data):
+    df, side = data["phantoms"]
+    return table(df, [("phantom", "phantom"), ("resolution", "resolution"), ("nodes", "nodes"),
+                      ("elements", "elements"), ("min_scaled_jacobian", "min scaled Jacobian", "{:.3f}"),
+                      ("p01_scaled_jacobian", "1st percentile", "{:.3f}"), ("build_s", "build (s)"),
+                      ("peak_mib", "peak memory (MiB)")])
+
+
+def _mixed(data):
+    df, side = data["mixed_elements"]
+    piv = df.pivot_table(index=["mesh", "nu"], columns="h_mm", values="max_error_rel", sort=False)
+    piv = piv[sorted(piv.columns, reverse=True)]
+    slopes = df.groupby(["mesh", "nu"], sort=False).slope.first()
+    out = piv.reset_index()
+    out.columns = ["mesh", "nu", *[f"h = {h:g} mm" for h in piv.columns]]
+    out["slope"] = slopes.to_numpy()
+    cols = [("mesh", "mesh"), ("nu", "nu", "{:g}"), *[(c, c, "{:.2e}") for c in out.columns[2:-1]],
+            ("slope", "log-log slope", "{:.2f}")]
+    return table(out, cols)
+
+
+def _convergence(data):
+    parts = []
+    if "static_convergence_runs" in data:
+        parts.append(table(data["static_convergence_runs"][0], [
+            ("resolution", "resolution"), ("nodes", "nodes"), ("elements", "elements"), ("seconds", "FE time (s)"),
+            ("min_scaled_jacobian", "min scaled Jacobian", "{:.3f}"),
+            ("mean_skin_displacement_mm", "mean skin displacement (mm)", "{:.3f}")]))
+    if "static_convergence" in data:
+        parts.append(table(data["static_convergence"][0], [
+            ("pair", "resolutions"), ("points", "skin points"), ("mean_mm", "mean (mm)", "{:.3f}"),
+            ("p95_mm", "95th percentile (mm)", "{:.3f}"), ("max_mm", "max (mm)", "{:.3f}")]))
+    return "\n\n".join(parts)
+
+
+def _solvers(data):
+    df = data["static_solvers"][0].copy()
+    df["status"] = df["status"].astype(str).str.split(":").str[0]  # the reason of an unavailable solver is long
+    return table(df, [
+        ("mesh", "mesh"), ("method", "method"), ("used", "used"), ("dofs", "dofs"), ("status", "status"),
+        ("solve_s", "solve (s)"),
+        ("iterations", "iterations"), ("reuse_s", "next solve, reused factor (s)"),
+        ("reuse_iterations", "its iterations"), ("peak_rss_mib", "peak memory (MiB)"), ("auto_choice", "auto picks")])
+
+
+def _ladder(data):
+    df = data["static_ladder"][0]
+    return table(df, [
+        ("resolution", "resolution"), ("material", "material"), ("increments", "increments"), ("sliding", "sliding"),
+        ("status", "status"), ("wall_time_s", "time (s)"), ("peak_rss_mib", "peak memory (MiB)"),
+        ("skin_mean_diff_mm", "mean skin difference (mm)", "{:.3f}"),
+        ("skin_max_diff_mm", "max skin difference (mm)", "{:.3f}"),
+        ("min_scaled_jacobian", "min scaled Jacobian", "{:.3f}")])
+
+
+def _robustness(data):
+    return table(data["static_robustness"][0], [
+        ("resolution", "resolution"), ("material", "material"), ("sliding", "sliding"), ("mode", "plans drawn"),
+        ("plans", "plans"), ("completed", "completed"), ("median_s", "median time (s)"), ("max_s", "max time (s)"),
+        ("min_sj", "min scaled Jacobian", "{:.3f}"), ("wider_band", "wider release band"),
+        ("freed_cut", "cut nodes freed")])
+
+
+def _surrogate_static(data):
+    parts = []
+    for stem, label in (("static_surrogate", "Paper size"), ("static_surrogate_coarse", "Coarse size")):
+        if stem not in data:
+            parts.append(f"{label}: {not_measured(_source(stem))}")
+            continue
+        df, side = data[stem]
+        x = side.get("extra", {})
+        parts.append(f"{label}: {x.get('resolution', '?')} face, {x.get('plans', '?')} plans ({x.get('mode', '?')}), "
+                     f"{x.get('subjects', 1)} subject(s), network `{x.get('network', '?')}`, "
+                     f"at most {x.get('max_minutes', '?'):g} min training per model.")
+        parts.append(table(df, [
+            ("method", "method"), ("test", "test"), ("samples", "samples"),
+            ("mean_error_mm", "mean error (mm)", "{:.3f}"), ("median_error_mm", "median (mm)", "{:.3f}"),
+            ("p95_error_mm", "95th percentile (mm)", "{:.3f}"), ("free_mean_error_mm", "free nodes (mm)", "{:.3f}"),
+            ("train_seconds", "training (s)"), ("inference_ms", "inference (ms)"), ("fe_ms", "FE (ms)"),
+            ("speedup_vs_fe", "speed-up")]))
+        ab = x.get("ablation")
+        if ab:
+            parts.append(f"Explicit vs implicit boundary input: {ab['explicit_mean_mm']:.3f} mm vs "
+                         f"{ab['implicit_mean_mm']:.3f} mm on {ab['n']} paired test samples, Wilcoxon signed-rank "
+                         f"p = {ab['wilcoxon_p']:.3g}.")
+    return "\n\n".join(parts)
+
+
+def _impact_columns(extra: list[tuple] = ()):
+    return [("resolution", "resolution"), ("velocity", "velocity (mm/s)", "{:g}"), ("integrator", "integrator"),
+            *extra, ("order", "order"), ("ball", "ball"), ("mass_scaling", "mass scaling", "{:g}"),
+            ("status", "status"), ("steps", "steps"), ("wall_time_s", "time (s)"),
+            ("peak_rss_mib", "peak memory (MiB)"), ("max_displacement_mm", "max displacement (mm)", "{:.2f}"),
+            ("max_von_mises_mpa", "max von Mises (MPa)", "{:.4f}"),
+            ("rmse_displacement_mm", "RMSE to reference (mm)", "{:.3f}"),
+            ("pearson_displacement", "Pearson", "{:.4f}"), ("rmse_mirrored_mm", "RMSE mirrored (mm)", "{:.3f}")]
+
+
+def _impact_ladder(data):
+    df = data["impact_ladder"][0]
+    return table(df, _impact_columns())
+
+
+def _quasi_static(data):
+    df = data["impact_ladder"][0]
+    df = df[df.integrator == "implicit"] if "integrator" in df else df.iloc[:0]
+    if not len(df):
+        return not_measured(Source("impact_ladder", "python benchmarks/impact_ladder.py --resolutions coarse "
+                                   "--orders 2 --integrators implicit", 3))
+    return table(df, [("resolution", "resolution"), ("velocity", "velocity (mm/s)", "{:g}"),
+                      ("tolerance", "tolerance", "{:g}"), ("order", "order"), ("ball", "ball"), ("status", "status"),
+                      ("steps", "load steps"), ("newton_iterations", "Newton iterations"), ("step_cuts", "cuts"),
+                      ("wall_time_s", "time (s)"), ("peak_rss_mib", "peak memory (MiB)"),
+                      ("max_displacement_mm", "max displacement (mm)", "{:.2f}"),
+                      ("max_von_mises_mpa", "max von Mises (MPa)", "{:.4f}"),
+                      ("rmse_displacement_mm", "RMSE to explicit (mm)", "{:.3f}"),
+                      ("pearson_displacement", "Pearson", "{:.4f}")])
+
+
+def _velocities(data):
+    return table(data["impact_ladder_velocities"][0], _impact_columns([("tolerance", "tolerance", "{:g}")]))
+
+
+def _surrogate_impact(data):
+    parts = []
+    for stem, label in (("impact_surrogate", "Paper size"), ("impact_surrogate_coarse", "Quick size")):
+        if stem not in data:
+            parts.append(f"{label}: {not_measured(_source(stem))}")
+            continue
+        df, side = data[stem]
+        x = side.get("extra", {})
+        parts.append(f"{label}: {x.get('resolution', '?')} face, tet{4 if x.get('order') == 1 else 10}, "
+                     f"{x.get('ball', '?')} ball, mass scaling {x.get('mass_scaling', '?'):g}, "
+                     f"training limit {x.get('max_minutes') or 'none'} min per model; the impact paper: "
+                     "3.13 mm / 0.98 (displacement), 0.001 MPa / 0.94 (von Mises), ~3 h training.")
+        parts.append(table(df, [
+            ("config", "configuration"), ("split", "split"), ("displacement_rmse_mm", "displacement RMSE (mm)"),
+            ("displacement_pearson", "Pearson", "{:.4f}"), ("displacement_nrmse", "NRMSE", "{:.3f}"),
+            ("von_mises_rmse_mpa", "von Mises RMSE (MPa)", "{:.2e}"), ("von_mises_pearson", "Pearson", "{:.4f}"),
+            ("train_seconds", "training (s)"), ("inference_ms", "inference (ms/frame)"),
+            ("fe_ms_per_frame", "FE (ms/frame)")]))
+    return "\n\n".join(parts)
+
+
+def _solver_split(data):
+    df = data["solver_split"][0]
+    if not {"case", "code", "wall_s"} <= set(df.columns):
+        return table(df)
+    summary = df.pivot_table(index="case", columns="code", values="wall_s", aggfunc=["median", "count"], sort=False)
+    rows = []
+    for case in summary.index:
+        row = {"case": case}
+        for code in summary["median"].columns:
+            row[f"{code} median (s)"] = summary.loc[case, ("median", code)]
+            row[f"{code} runs"] = summary.loc[case, ("count", code)]
+        if {"before", "after"} <= set(summary["median"].columns):
+            row["after / before"] = summary.loc[case, ("median", "after")] / summary.loc[case, ("median", "before")]
+        rows.append(row)
+    out = pd.DataFrame(rows)
+    spec = [(c, c, "{:.3f}" if c == "after / before" else None) for c in out.columns]
+    parts = [table(out, spec), table(df.drop(columns=["note"], errors="ignore"))]
+    if "note" in df:
+        notes = df.groupby("case", sort=False).note.agg(lambda n: sorted({x for x in n if isinstance(x, str) and x}))
+        parts.append("\n".join(f"- {case}: {' / '.join(n)}" for case, n in notes.items() if n))
+    return "\n\n".join(p for p in parts if p)
+
+
+def _source(stem: str) -> Source:
+    return SOURCES[stem]
+
+
+SOURCES = {s.stem: s for s in (
+    Source("static_convergence_runs", "python benchmarks/static_convergence.py", 2),
+    Source("static_convergence", "python benchmarks/static_convergence.py", 2),
+    Source("static_surrogate", "python benchmarks/static_surrogate.py --plans 100 --subjects 4 --subject-plans 25 "
+           "--max-minutes 7", 70),
+    Source("static_surrogate_coarse", "python benchmarks/static_surrogate.py --resolution coarse --plans 30 "
+           "--subjects 1 --max-minutes 1 --variants explicit implicit hard+prior --suffix _coarse", 5),
+    Source("impact_ladder", "python benchmarks/impact_ladder.py --resolutions paper --orders 2 --balls deformable "
+           "--mass-scaling 1 --integrators implicit --tolerances 3e-3", 1),
+    Source("impact_ladder_velocities", "python benchmarks/impact_ladder.py --resolutions coarse --orders 2 "
+           "--balls deformable --integrators implicit --velocities 20 30 50 --mass-scaling 1 "
+           "--out benchmarks/results/impact_ladder_velocities.csv", 2),
+    Source("impact_surrogate", "python benchmarks/impact_surrogate.py --max-minutes 6 --strong-minutes 14", 130),
+    Source("impact_surrogate_coarse", "python benchmarks/impact_surrogate.py --resolution coarse --order 1 "
+           "--ball rigid --mass-scaling 100 --max-minutes 1 --suffix _coarse", 8),
+    Source("phantoms", "python benchmarks/phantoms.py", 2),
+    Source("mixed_elements", "python benchmarks/mixed_elements.py", 1),
+    Source("static_solvers", "python benchmarks/static_solvers.py --meshes coarse paper paper-tet4 bulk-tet4 "
+           "--methods superlu pardiso amg auto", 1),
+    Source("static_ladder", "python benchmarks/static_ladder.py --resolutions coarse paper --increments 1 3 10", 5),
+    Source("static_robustness", "python benchmarks/static_robustness.py --resolutions coarse paper --materials "
+           "linear --slidings mucosa+lip --modes full --plans 20", 2),
+    Source("solver_split", "python benchmarks/solver_split.py", 5),
+)}
+
+BLOCKS = {b.name: b for b in (
+    Block("headline", "Headline: this toolkit beside the source papers",
+          "Per workflow, the FE time of one simulation and the surrogate's accuracy and speed, measured here, "
+          "beside the figures the source papers report (their machines, meshes and data differ: a GPU for the "
+          "PointNet++ paper, Abaqus on ~30,000 C3D10 elements for the impact paper). The surrogate rows say the "
+          "size they were measured at.",
+          tuple(SOURCES[s] for s in ("static_convergence_runs", "static_surrogate", "static_surrogate_coarse",
+                                     "impact_ladder", "impact_surrogate", "impact_surrogate_coarse")), _headline),
+    Block("phantoms", "Phantoms", "Time and peak traced memory to build each procedural phantom at each resolution, "
+          "with its node and element counts and element quality (scaled Jacobian).", (SOURCES["phantoms"],),
+          _phantoms),
+    Block("mixed_elements", "Element types against a closed form",
+          "Max nodal error relative to max |u| for Lame's pressurised-cavity field prescribed on the boundary of a "
+          "box of hex8, wedge6 or tet4 cells and of the mixed bar, at three cell sizes, and the log-log slope "
+          "(2: the O(h^2) of linear elements; about 0: volumetric locking).", (SOURCES["mixed_elements"],), _mixed),
+    Block("static_convergence", "Static FE under mesh refinement",
+          "The packaged default plan (3 increments, linear, mucosa + lip sliding) on the coarse, paper and fine "
+          "faces: the time of each simulation (one thread), then the differences of the skin displacement "
+          "between resolutions at common skin points.",
+          (SOURCES["static_convergence_runs"], SOURCES["static_convergence"]), _convergence),
+    Block("static_solvers", "Linear solvers on the static system",
+          "Time and peak memory of one solve of the first increment's constrained system with each solver, the "
+          "automatic choice, and the next lip-contact solve that reuses the factorization.",
+          (SOURCES["static_solvers"],), _solvers),
+    Block("static_ladder", "Static speed/accuracy ladder",
+          "The packaged plan at half scale for every material x increments x sliding model, each in a fresh "
+          "process; differences are to the highest-fidelity run of the same resolution (Neo-Hookean, 10 "
+          "increments, mucosa + lip sliding).", (SOURCES["static_ladder"],), _ladder),
+    Block("static_robustness", "Static robustness over the plan space",
+          "Plans drawn from the lip-sliding paper's ranges (both segments moved): how many complete, how long they "
+          "take, the worst element quality, and how many needed a wider release band or freed cut nodes.",
+          (SOURCES["static_robustness"],), _robustness),
+    Block("static_surrogate", "Static surrogate",
+          "PointNet++ variants and the baselines on the same held-out test plans: mean nodal Euclidean error per "
+          "sample (mm), time per prediction at batch 1 on the CPU, and the FE time of the same increments.",
+          (SOURCES["static_surrogate"], SOURCES["static_surrogate_coarse"]), _surrogate_static),
+    Block("impact_ladder", "Impact speed/accuracy ladder",
+          "The impact paper's scene (ball at 30 mm/s for 1.8 s) at each fidelity, each run in a fresh process; "
+          "accuracy is the skin displacement series against the highest-fidelity explicit run of the same "
+          "resolution (RMSE, Pearson; mirrored: after reflecting across the midsagittal plane, for a run that "
+          "slid to the other side).", (SOURCES["impact_ladder"],), _impact_ladder),
+    Block("impact_quasi_static", "Quasi-static impact path",
+          "The implicit (quasi-static Newton) runs of the impact ladder: load steps, Newton iterations, step cuts, "
+          "time and memory, and the agreement with the explicit reference where one was run.",
+          (SOURCES["impact_ladder"],), _quasi_static),
+    Block("impact_velocities", "Impact at the papers' velocity range",
+          "The quasi-static path at 20, 30 and 50 mm/s (the impact paper's range) on the coarse face.",
+          (SOURCES["impact_ladder_velocities"],), _velocities),
+    Block("impact_surrogate", "Impact surrogate",
+          "The impact paper's LSTM (`paper`), the stronger LSTM (`strong`) and the non-recurrent baseline on the "
+          "random split and on held-out velocities: RMSE and Pearson correlation of displacement and von Mises "
+          "stress, training time and inference per face frame.",
+          (SOURCES["impact_surrogate"], SOURCES["impact_surrogate_coarse"]), _surrogate_impact),
+    Block("solver_split", "Linear solver parts against a single solver class",
+          "Wall time of the same runs with the linear solver composed of parts (factor backends, reuse policy, "
+          "local correction: `after`) and with the single class it replaces (`before`), interleaved in the same "
+          "minutes: the median per case and the ratio, then every run.", (SOURCES["solver_split"],), _solver_split),
+)}
+#: blocks whose table needs every source (the others render what is present, the rest as one line)
+_PARTIAL = {"headline", "static_surrogate", "impact_surrogate", "static_convergence"}
+
+
+# ----------------------------------------------------------------------------------------------
+# generation
+
+
+def load(results: Path) -> dict:
+    """``{stem: (DataFrame, sidecar)}`` of every ``*.csv`` in ``results``."""
+    data = {}
+    for csv in sorted(Path(results).glob("*.csv")):
+        side = csv.with_suffix(".json")
+        data[csv.stem] = (pd.read_csv(csv), json.loads(side.read_text()) if side.exists() else {})
+    return data
+
+
+def render(name: str, data: dict) -> str:
+    """The Markdown between the markers of block ``name``."""
+    block = BLOCKS[name]
+    present = {s.stem: data[s.stem] for s in block.sources if s.stem in data}
+    if name not in _PARTIAL:
+        missing = [s for s in block.sources if s.stem not in data]
+        if missing:
+            return not_measured(missing[0])
+        body = block.render(present)
+        return body + "\n\n" + _sources_footer(present, block.sources)
+    if not present and name != "headline":
+        return not_measured(block.sources[-1])
+    body = block.render(present)
+    if name in ("static_surrogate", "impact_surrogate", "static_convergence"):
+        body += "\n\n" + _sources_footer(present, block.sources)
+    return body
+
+
+def fill(text: str, blocks: dict[str, str]) -> tuple[str, list[str], list[str]]:
+    """``text`` with every known block's content replaced; the names that changed; unknown names."""
+    changed, unknown = [], []
+
+    def sub(m):
+        name = m.group("name")
+        if name not in blocks:
+            unknown.append(name)
+            return m.group(0)
+        body = "\n\n" + blocks[name] + "\n\n"
+        if m.group("body") != body:
+            changed.append(name)
+        return m.group("open") + body + m.group("close")
+
+    return MARKER.sub(sub, text), changed, unknown
+
+
+def benchmarks_page(blocks: dict[str, str], data: dict) -> str:
+    """``docs/benchmarks.md``: every block with what it measures and its results' versions."""
+    out = ["# Benchmarks", "",
+           "Every table here is generated by `python benchmarks/report.py` from the files committed in "
+           "`benchmarks/results/` (a table `NAME.csv` and its provenance `NAME.json`: CPU, cores, threads, "
+           "library versions, commit, command, date). The same tables fill the blocks of the README and the "
+           "other pages. To measure again, run the command under a table (each takes the time it says on "
+           f"{MACHINE}), then `python benchmarks/report.py`; `python benchmarks/report.py --check` fails when a "
+           "page differs from the results.", ""]
+    for name, block in BLOCKS.items():
+        out += [f"## {block.title}", "", block.about, "", f"<!-- results: {name} -->", "", blocks[name], "",
+                "<!-- /results -->", ""]
+        versions: dict[str, list[str]] = {}
+        for src in block.sources:
+            if src.stem in data and data[src.stem][1]:
+                versions.setdefault(versions_line(data[src.stem][1]), []).append(f"`{src.stem}`")
+        if len(versions) == 1:
+            out += [f"Versions: {next(iter(versions))}.", ""]
+        elif versions:
+            out += ["Versions: " + "; ".join(f"{', '.join(st)}: {v}" for v, st in versions.items()) + ".", ""]
+    return "\n".join(out).rstrip("\n") + "\n"
+
+
+def pages(root: Path) -> list[Path]:
+    """README.md and docs/*.md under ``root`` (those that exist), without the generated page."""
+    found = [root / "README.md", *sorted((root / "docs").glob("*.md"))]
+    return [p for p in found if p.exists() and p != root / BENCHMARKS_PAGE]
+
+
+def run(root: Path, results: Path, check: bool) -> list[str]:
+    """Rewrite (or, with ``check``, compare) the pages; the differences found, as messages."""
+    data = load(results)
+    blocks = {name: render(name, data) for name in BLOCKS}
+    problems = []
+    for page in pages(root):
+        text = page.read_text()
+        new, changed, unknown = fill(text, blocks)
+        rel = page.relative_to(root)
+        problems += [f"{rel}: block '{n}' differs from benchmarks/results" for n in changed]
+        problems += [f"{rel}: unknown block '{n}' (known: {', '.join(BLOCKS)})" for n in unknown]
+        if not check and new != text:
+            page.write_text(new)
+    target = root / BENCHMARKS_PAGE
+    page_text = benchmarks_page(blocks, data)
+    if not target.exists() or target.read_text() != page_text:
+        problems.append(f"{BENCHMARKS_PAGE}: differs from benchmarks/results")
+        if not check:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_text(page_text)
+    return problems
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--check", action="store_true", help="compare only; exit 1 naming each block that differs")
+    ap.add_argument("--root", type=Path, default=ROOT, help="repository root holding README.md and docs/")
+    ap.add_argument("--results", type=Path, default=None, help="results folder (default: ROOT/benchmarks/results)")
+    args = ap.parse_args(argv)
+    results = args.results or args.root / "benchmarks" / "results"
+    problems = run(args.root, results, args.check)
+    if args.check:
+        for p in problems:
+            print(p, file=sys.stderr)
+        return 1 if problems else 0
+    unknown = [p for p in problems if "unknown block" in p]
+    for p in unknown:
+        print(p, file=sys.stderr)
+    updated = [p for p in problems if "unknown block" not in p]
+    print(f"updated {len(updated)} block(s)/page(s)" + "".join(f"\n  {p}" for p in updated))
+    return 1 if unknown else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
