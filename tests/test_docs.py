@@ -10,7 +10,9 @@ The rules (one test per Markdown file):
   ``<!-- norun: REASON -->`` is not run; a ``norun`` without a reason is an error;
 - a block preceded by ``<!-- file: NAME -->`` (e.g. a ```toml plan) is written to
   ``NAME`` in the working directory, for the blocks after it;
-- other fences (```text, ```console, ```toml without a file marker) are not run.
+- other fences (```text, ```console, ```toml without a file marker) are not run; a
+  fence written ```py, ```sh or ```shell (an alias of a run language) without a marker
+  is an error, so that no example is left unrun by a spelling.
 
 A failing block fails the test with the Markdown file, the block's line number and the
 error (python tracebacks carry the Markdown file's own line numbers).
@@ -37,6 +39,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: seconds all the blocks of one Markdown file may take
 TIMEOUT = 900
 RUN_LANGUAGES = ("python", "bash")
+#: fence languages a reader takes for runnable code but the harness would not run
+ALIASES = {"py": "python", "python3": "python", "ipython": "python", "sh": "bash", "shell": "bash", "zsh": "bash"}
 
 _FENCE = re.compile(r"^(?P<indent> *)(?P<fence>`{3,}|~{3,})(?P<info>.*)$")
 _MARKER = re.compile(r"^\s*<!--\s*(?P<kind>norun|file)\b\s*(?P<colon>:?)\s*(?P<value>.*?)\s*-->\s*$")
@@ -85,16 +89,20 @@ def parse_blocks(text: str, source: str = "<markdown>") -> list[Block]:
         i += 1
         while i < len(lines):
             close = _FENCE.match(lines[i])
-            if close and close["fence"][0] == fence[0] and len(close["fence"]) >= len(fence) and not close["info"].strip():
+            if close and close["fence"].startswith(fence) and not close["info"].strip():
                 break
             body.append(lines[i][indent:] if lines[i][:indent].strip() == "" else lines[i].lstrip())
             i += 1
         else:
-            raise ValueError(f"{source}:{start + 1}: the fence {fence}{language} is never closed; expected a closing {fence}")
+            raise ValueError(f"{source}:{start + 1}: the fence {fence}{language} is never closed; "
+                             f"expected a closing {fence}")
         i += 1
         code = "\n".join(body) + "\n"
         marker = _MARKER.match(lines[start - 1]) if start > 0 else None
         if marker is None:
+            if language in ALIASES:
+                raise ValueError(f"{source}:{start + 1}: fence {fence}{language} is not run; write {fence}"
+                                 f"{ALIASES[language]} to run it, or put <!-- norun: REASON --> on the line before")
             action = language if language in RUN_LANGUAGES else "skip"
             blocks.append(Block(start + 1, language, code, action))
         elif marker["kind"] == "norun":
@@ -231,6 +239,14 @@ def test_parse_markers():
 def test_norun_without_reason_is_an_error(marker):
     with pytest.raises(ValueError, match=r"page.md:2: .*gives no reason"):
         parse_blocks(f"text\n{marker}\n```python\n1/0\n```\n", "page.md")
+
+
+@pytest.mark.parametrize("language", sorted(ALIASES))
+def test_alias_of_a_run_language_is_an_error(language):
+    with pytest.raises(ValueError, match=rf"page.md:2: fence ```{language} is not run; write ```{ALIASES[language]}"):
+        parse_blocks(f"x\n```{language}\necho 1\n```\n", "page.md")
+    norun, = parse_blocks(f"<!-- norun: shown only -->\n```{language}\necho 1\n```\n")
+    assert norun.action == "skip"
 
 
 def test_file_marker_without_name_and_unclosed_fence_are_errors():
