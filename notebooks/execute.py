@@ -10,7 +10,9 @@ temporary folder (the notebooks write their own files into ``tempfile.mkdtemp()`
 folders as well), then is written back in place with its outputs. Images are
 stored compactly (:func:`shrink_images`), and a notebook larger than
 :data:`MAX_BYTES` is reported as an error (exit status 1) but still written, so
-the oversized outputs can be inspected. The tests (``tests/test_notebooks.py``)
+the oversized outputs can be inspected. The digest of the code cells is stored in the
+notebook's metadata (``toolkit.code_sha256``), so a test can tell stored outputs that
+no longer belong to the code. The tests (``tests/test_notebooks.py``)
 run the same :func:`execute` on a copy and check the stored files with
 :func:`check_stored`.
 """
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import hashlib
 import io
 import sys
 import tempfile
@@ -60,6 +63,12 @@ def execute(nb, cwd: str | Path):
                                      resources={"metadata": {"path": str(cwd)}})
     client.execute()
     return nb
+
+
+def code_digest(nb) -> str:
+    """SHA-256 of the notebook's code cells: the stored outputs belong to this code."""
+    code = "\n\0".join(c.source for c in nb.cells if c.cell_type == "code")
+    return hashlib.sha256(code.encode("utf-8")).hexdigest()
 
 
 def shrink_images(nb, max_width: int = MAX_IMAGE_WIDTH) -> int:
@@ -114,7 +123,8 @@ def drop_widget_warnings(nb) -> int:
 
 
 def check_stored(path: str | Path) -> list[str]:
-    """What is wrong with the stored notebook at ``path``: no outputs, no image, an error, too large."""
+    """What is wrong with the stored notebook at ``path``: too large, not executed, outputs of other
+    code, no image, an error output. An empty list when nothing is."""
     import nbformat
 
     path = Path(path)
@@ -128,6 +138,10 @@ def check_stored(path: str | Path) -> list[str]:
     unrun = [i for i, c in enumerate(nb.cells) if c.cell_type == "code" and c.get("execution_count") is None]
     if unrun:
         problems.append(f"{path.name}: code cells {unrun} have not been executed")
+    stored_digest = nb.metadata.get("toolkit", {}).get("code_sha256")
+    if stored_digest != code_digest(nb):
+        problems.append(f"{path.name}: the code changed since the outputs were stored (code_sha256 "
+                        f"{stored_digest!r}); run python notebooks/execute.py {path.stem}")
     if not any("image/png" in o.get("data", {}) for o in outputs):
         problems.append(f"{path.name} stores no image/png output; expected at least one figure")
     errors = [o.get("ename", "") for o in outputs if o.output_type == "error"]
@@ -149,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory(prefix=f"{path.stem}-") as cwd:
             execute(nb, cwd)
         shrunk = shrink_images(nb)
+        nb.metadata["toolkit"] = {"code_sha256": code_digest(nb)}
         drop_widget_warnings(nb)
         nbformat.write(nb, path)
         problems = check_stored(path)

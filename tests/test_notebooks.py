@@ -39,7 +39,7 @@ def test_notebook_runs(path, tmp_path):
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_is_stored_with_figures(path):
-    """Executed, with at least one image, no error output, under 1 MB (``python notebooks/execute.py``)."""
+    """Executed from its current code, with an image, no error output, under 1 MB (``python notebooks/execute.py``)."""
     pytest.importorskip("nbformat")
     assert _execute_module().check_stored(path) == []
 
