@@ -478,7 +478,7 @@ BLOCKS = {b.name: b for b in (
           "The implicit (quasi-static Newton) runs of the impact ladder: load steps, Newton iterations, step cuts, "
           "time and memory, and the agreement with the explicit reference where one was run.",
           (SOURCES["impact_ladder"],), _quasi_static),
-    Block("impact_velocities", "Impact at the papers' velocity range",
+    Block("impact_velocities", "Impact across the impact paper's velocities",
           "The quasi-static path at 20, 30 and 50 mm/s (the impact paper's range) on the coarse face: load steps, "
           "Newton iterations, time and memory, and the peak displacement and stress.",
           (SOURCES["impact_ladder_velocities"],), _velocities),
