@@ -381,29 +381,6 @@ def _surrogate_impact(data):
     return "\n\n".join(parts)
 
 
-def _solver_split(data):
-    df = data["solver_split"][0]
-    if not {"case", "code", "wall_s"} <= set(df.columns):
-        return table(df)
-    summary = df.pivot_table(index="case", columns="code", values="wall_s", aggfunc=["median", "count"], sort=False)
-    rows = []
-    for case in summary.index:
-        row = {"case": case}
-        for code in summary["median"].columns:
-            row[f"{code} median (s)"] = summary.loc[case, ("median", code)]
-            row[f"{code} runs"] = summary.loc[case, ("count", code)]
-        if {"before", "after"} <= set(summary["median"].columns):
-            row["after / before"] = summary.loc[case, ("median", "after")] / summary.loc[case, ("median", "before")]
-        rows.append(row)
-    out = pd.DataFrame(rows)
-    spec = [(c, c, "{:.3f}" if c == "after / before" else None) for c in out.columns]
-    parts = [table(out, spec), table(df.drop(columns=["note"], errors="ignore"))]
-    if "note" in df:
-        notes = df.groupby("case", sort=False).note.agg(lambda n: sorted({x for x in n if isinstance(x, str) and x}))
-        parts.append("\n".join(f"- {case}: {' / '.join(n)}" for case, n in notes.items() if n))
-    return "\n\n".join(p for p in parts if p)
-
-
 def _source(stem: str) -> Source:
     return SOURCES[stem]
 
@@ -430,7 +407,6 @@ SOURCES = {s.stem: s for s in (
     Source("static_ladder", "python benchmarks/static_ladder.py --resolutions coarse paper --increments 1 3 10", 5),
     Source("static_robustness", "python benchmarks/static_robustness.py --resolutions coarse paper --materials "
            "linear --slidings mucosa+lip --modes full --plans 20", 2),
-    Source("solver_split", "python benchmarks/solver_split.py", 5),
 )}
 
 BLOCKS = {b.name: b for b in (
@@ -487,10 +463,6 @@ BLOCKS = {b.name: b for b in (
           "random split and on held-out velocities: RMSE and Pearson correlation of displacement and von Mises "
           "stress, training time and inference per face frame.",
           (SOURCES["impact_surrogate"], SOURCES["impact_surrogate_coarse"]), _surrogate_impact),
-    Block("solver_split", "Linear solver parts against a single solver class",
-          "Wall time of the same runs with the linear solver composed of parts (factor backends, reuse policy, "
-          "local correction: `after`) and with the single class it replaces (`before`), interleaved in the same "
-          "minutes: the median per case and the ratio, then every run.", (SOURCES["solver_split"],), _solver_split),
 )}
 #: blocks whose table needs every source (the others render what is present, the rest as one line)
 _PARTIAL = {"headline", "static_surrogate", "impact_surrogate", "static_convergence"}

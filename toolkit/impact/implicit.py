@@ -59,8 +59,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -68,13 +68,32 @@ import scipy.sparse as sp
 from toolkit.common.errors import ConvergenceError
 from toolkit.common.fem.assembly import SparsePattern, add_local
 from toolkit.common.fem.kinematics import deformation_gradient
-from toolkit.common.fem.newton import (InadmissibleState, LoadSteps, NewtonFailed, ResidualDecrease, SecantOnDirection,
-                                       Trial, newton)
-from toolkit.common.fem.solvers import (REUSED_DIRECT_MAX_ENTRIES, LinearSolver, SolverError, estimate_factor_entries,
-                                       rigid_body_modes)
+from toolkit.common.fem.newton import (
+    InadmissibleState,
+    LoadSteps,
+    NewtonFailed,
+    ResidualDecrease,
+    SecantOnDirection,
+    Trial,
+    newton,
+)
+from toolkit.common.fem.solvers import (
+    REUSED_DIRECT_MAX_ENTRIES,
+    LinearSolver,
+    SolverError,
+    estimate_factor_entries,
+    rigid_body_modes,
+)
 from toolkit.impact.contact import RigidSphereContact
-from toolkit.impact.explicit import (ContactResponse, ExplicitModel, _frame, _internal_forces, _Inverted,
-                                     _prescribed, _WorkLedger)
+from toolkit.impact.explicit import (
+    ContactResponse,
+    ExplicitModel,
+    _frame,
+    _internal_forces,
+    _Inverted,
+    _prescribed,
+    _WorkLedger,
+)
 
 __all__ = ["ImplicitOptions", "StepContact", "ContactLinearization", "ConvergenceError", "run_quasistatic"]
 

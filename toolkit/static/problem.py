@@ -27,6 +27,7 @@ from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.fem.newton import ArmijoOnMerit, InadmissibleState, LoadSteps, NewtonFailed, Trial, newton
 from toolkit.common.fem.solvers import LinearSolver, SolveInfo, estimate_factor_entries, rigid_body_modes
 from toolkit.common.mesh import Mesh
+from toolkit.static.constraints import Constraints
 from toolkit.static.stiffness import (
     MaterialAssignment,
     kinematics,
@@ -34,7 +35,6 @@ from toolkit.static.stiffness import (
     neo_hookean_energy,
     neo_hookean_system,
 )
-from toolkit.static.constraints import Constraints
 
 __all__ = ["StaticProblem", "Solution", "ConvergenceError", "solve_with_lip_contact", "ContactResult"]
 

@@ -12,7 +12,7 @@ Units follow the caller (mm, N, MPa: stiffness in N/mm).
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import scipy.sparse as sp

@@ -18,7 +18,7 @@ to the measure of the reference cell (2, 4, 8, 1/2, 1/6, 1).
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 
@@ -38,7 +38,7 @@ def _frozen(*arrays):
     return arrays
 
 
-@lru_cache(maxsize=None)
+@cache
 def gauss_line(order: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Legendre rule on [-1, 1]: points ``(Q, 1)``, weights ``(Q,)`` (sum 2)."""
     x, w = np.polynomial.legendre.leggauss(_points_per_direction(order))
@@ -53,13 +53,13 @@ def _tensor(rules) -> tuple[np.ndarray, np.ndarray]:
     return _frozen(np.ascontiguousarray(points), np.ascontiguousarray(weights))
 
 
-@lru_cache(maxsize=None)
+@cache
 def gauss_quad(order: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss product rule on [-1, 1]^2: points ``(Q, 2)``, weights (sum 4)."""
     return _tensor([gauss_line(order)] * 2)
 
 
-@lru_cache(maxsize=None)
+@cache
 def gauss_hex(order: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss product rule on [-1, 1]^3: points ``(Q, 3)``, weights (sum 8); order 2 is 2x2x2."""
     return _tensor([gauss_line(order)] * 3)
@@ -73,7 +73,7 @@ def _jacobi01(n: int, alpha: float) -> tuple[np.ndarray, np.ndarray]:
     return 0.5 * (1.0 + x), w * 0.5 ** (alpha + 1.0)
 
 
-@lru_cache(maxsize=None)
+@cache
 def triangle_rule(order: int) -> tuple[np.ndarray, np.ndarray]:
     """Rule on the unit triangle: points ``(Q, 2)``, weights (sum 1/2).
 
@@ -93,7 +93,7 @@ def triangle_rule(order: int) -> tuple[np.ndarray, np.ndarray]:
     return _frozen(points, np.outer(wu, wv).ravel())
 
 
-@lru_cache(maxsize=None)
+@cache
 def tet_rule(order: int) -> tuple[np.ndarray, np.ndarray]:
     """Rule on the unit tetrahedron: points ``(Q, 3)``, weights (sum 1/6).
 
@@ -117,7 +117,7 @@ def tet_rule(order: int) -> tuple[np.ndarray, np.ndarray]:
     return _frozen(points, weights)
 
 
-@lru_cache(maxsize=None)
+@cache
 def wedge_rule(order: int) -> tuple[np.ndarray, np.ndarray]:
     """Rule on the reference wedge (triangle x [-1, 1]): points ``(Q, 3)``, weights (sum 1).
 

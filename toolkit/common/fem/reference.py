@@ -29,9 +29,9 @@ Everything here is dimensionless (reference coordinates); arrays are read-only.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Callable, Mapping
 
 import numpy as np
 

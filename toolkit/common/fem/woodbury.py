@@ -25,7 +25,7 @@ threshold trades columns for Krylov iterations (paper run, factorizing 3 solves 
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import scipy.linalg as sla
