@@ -137,3 +137,5 @@ def test_options_are_checked_frozen_and_taken_by_the_solver():
         LinearSolver(ordering="amd")
     with pytest.raises(TypeError):
         LinearSolver(no_such_option=1)
+    with pytest.raises(AttributeError, match="'timed_budget' is set at construction"):
+        solver.timed_budget = False  # would otherwise be a silent no-op

@@ -196,6 +196,12 @@ class LinearSolver:
                                    options.factorize_ahead_above)
         self._stored: StoredFactor | None = None
 
+    def __setattr__(self, name: str, value) -> None:
+        if name in SolverOptions.__dataclass_fields__:
+            raise AttributeError(f"LinearSolver's {name!r} is set at construction: "
+                                 f"LinearSolver(..., {name}={value!r}) or LinearSolver.from_options(...)")
+        super().__setattr__(name, value)
+
     @classmethod
     def from_options(cls, options: SolverOptions) -> LinearSolver:
         """A solver with ``options``."""
