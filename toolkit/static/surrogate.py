@@ -14,8 +14,13 @@ kind, naming the difference.
 :func:`evaluate_surrogate` scores a model on the samples it did not train on: per-sample
 mean Euclidean nodal error on all nodes, on free nodes and on the lips, summarised as mean,
 median, 95th percentile and max; inference time per prediction against the FE time per
-increment. :meth:`Surrogate.predict_plan` runs a plan increment by increment like the FE
-(CLI ``toolkit static predict``).
+increment. The model records the identity of every simulation it trained on (its subject's
+shape, plan parameters and Poisson's ratio), so that on another database it scores only what
+it has not seen, and says which samples it scored (``metrics["scored"]``); a database of
+another resolution, material, sliding model or increment count is refused.
+:meth:`Surrogate.predict_plan` runs a plan increment by increment like the FE
+(CLI ``toolkit static predict``); its summary records, per plan parameter, how far the plan
+lies outside the training plans (``"extrapolation"``).
 
 With ``FeatureSpec(linear_prior=True)`` the network learns a residual: the linear
 influence-matrix solution of each increment (:class:`~toolkit.static.baselines.InfluenceMatrix`,
@@ -46,9 +51,11 @@ from toolkit.common.training import (
 )
 from toolkit.common.training import train as train_loop
 from toolkit.static.features import FeatureSpec, channel_names, encode
+from toolkit.static.simulate import SimulationResult
 
 __all__ = ["SurrogateConfig", "Surrogate", "train_surrogate", "evaluate_surrogate", "network_config",
-           "linear_prior", "MODEL_KIND", "NETWORK_PRESETS"]
+           "linear_prior", "MODEL_KIND", "NETWORK_PRESETS", "PLAN_PARAMETERS", "PlanPrediction",
+           "plan_extrapolation", "MUST_MATCH"]
 
 MODEL_KIND = "toolkit.static.pointnet2"
 #: network sizes: ``paper`` (the PointNet++ paper's widths), ``small`` (a quarter of the widths; the
@@ -133,6 +140,63 @@ def linear_prior(mesh, types: np.ndarray):
     return InfluenceMatrix.build(mesh, np.flatnonzero(types == 1), np.flatnonzero(types == 2))
 
 
+#: the plan parameters whose range over the plans a model trained or validated on it records, in the order of
+#: :data:`toolkit.static.dataset.PLAN_FEATURES` (without its increment fraction)
+PLAN_PARAMETERS = tuple(f"{seg}.{kind}_{axis}_{unit}" for seg in ("lefort", "distal")
+                        for kind, unit in (("translation", "mm"), ("rotation", "deg")) for axis in "xyz")
+#: database settings a model is scored on only when they equal its training database's
+MUST_MATCH = ("resolution", "material", "sliding", "increments")
+
+
+def _simulation_identities(db) -> dict:
+    """Simulation key -> what the simulation is (hash of its subject's points, its plan parameters
+    per increment and Poisson's ratio): equal for the same simulation in two databases, whatever
+    its key there."""
+    from toolkit.static.dataset import PLAN_FEATURES
+
+    subject_keys = {int(sid): _points_key(p) for sid, p in db.points.items()}
+    out = {}
+    for key, g in db.samples.groupby("key", sort=True):
+        h = hashlib.sha1(subject_keys[int(g.subject.iloc[0])].encode())
+        feats = np.round(g.sort_values("increment")[list(PLAN_FEATURES)].to_numpy(np.float64), 6) + 0.0  # no -0.0
+        h.update(feats.tobytes())
+        h.update(np.float64(round(float(g.poisson.iloc[0]), 9)).tobytes())
+        out[str(key)] = h.hexdigest()[:20]
+    return out
+
+
+def _plan_ranges(db, keys) -> dict:
+    """Plan parameter -> ``[min, max]`` over the whole plans (last increment) of simulations ``keys``."""
+    from toolkit.static.dataset import PLAN_FEATURES
+
+    s = db.samples
+    last = s[s.key.isin(list(keys))].sort_values("increment").groupby("key").tail(1)
+    values = last[list(PLAN_FEATURES[:len(PLAN_PARAMETERS)])].to_numpy(np.float64)
+    return {name: [float(values[:, j].min()), float(values[:, j].max())] for j, name in enumerate(PLAN_PARAMETERS)}
+
+
+def plan_extrapolation(plan, ranges: dict | None) -> dict:
+    """How far each parameter of ``plan`` lies outside the training ``ranges`` (name -> [min, max]).
+
+    Returns ``{"outside": bool or "unknown", "parameters": {name: {"value", "train_range",
+    "outside_by"}}}`` with only the parameters outside their range (``outside_by`` in the
+    parameter's unit, > 0); ``"outside": "unknown"`` when the model holds no ranges.
+    """
+    from toolkit.static.dataset import plan_features
+
+    if not ranges:
+        return {"outside": "unknown", "parameters": {},
+                "note": "the model does not record its training plans' ranges (retrain it to get them)"}
+    values = plan_features(plan, 1)[0, :len(PLAN_PARAMETERS)]
+    out = {}
+    for name, value in zip(PLAN_PARAMETERS, values.tolist()):
+        lo, hi = ranges[name]
+        by = max(lo - value, value - hi, 0.0)
+        if by > 1e-9 * max(1.0, abs(lo), abs(hi)):
+            out[name] = {"value": round(value, 6), "train_range": [lo, hi], "outside_by": round(by, 6)}
+    return {"outside": bool(out), "parameters": out}
+
+
 def _points_key(points: np.ndarray) -> str:
     return hashlib.sha1(np.ascontiguousarray(points, dtype=np.float64).tobytes()).hexdigest()[:20]
 
@@ -148,6 +212,17 @@ def _mesh_signature(points: np.ndarray, cells: dict) -> dict:
 
 
 # ------------------------------------------------------------------ the model
+@dataclass(frozen=True, eq=False)
+class PlanPrediction(SimulationResult):
+    """A surrogate's prediction of a plan: a SimulationResult whose summary also holds
+    ``extrapolation`` (:func:`plan_extrapolation`: the plan parameters outside the training plans)."""
+
+    extrapolation: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        return {**super().summary(), "extrapolation": self.extrapolation}
+
+
 def _face_module():
     import torch
     from torch import nn
@@ -284,15 +359,11 @@ class Surrogate:
 
         Returns
         -------
-        SimulationResult (``.write(out)`` gives the files of ``toolkit static simulate``)
+        PlanPrediction (``.write(out)`` gives the files of ``toolkit static simulate``; its summary's
+        ``extrapolation`` names the plan parameters outside the training plans)
         """
         from toolkit.static.dataset import DatasetConfig, jaw_side
-        from toolkit.static.simulate import (
-            IncrementReport,
-            SimulationResult,
-            boundary_conditions,
-            face_mesh_and_segments,
-        )
+        from toolkit.static.simulate import IncrementReport, boundary_conditions, face_mesh_and_segments
 
         t0 = time.perf_counter()
         data = DatasetConfig(**self.bundle.data["database"])
@@ -324,8 +395,12 @@ class Surrogate:
         wall = time.perf_counter() - t0
         reports = [IncrementReport(k, wall / len(quality), 0.0, 0, 0, 0, float(q.min()), int(np.argmin(q)),
                                    0.0, 0.0, 0.0, 0) for k, q in enumerate(quality, start=1)]
-        return SimulationResult(mesh, np.stack(U), bc, reports, wall, f"surrogate ({self.config.features.variant})",
-                                data.sliding)
+        return PlanPrediction(mesh, np.stack(U), bc, reports, wall, f"surrogate ({self.config.features.variant})",
+                              data.sliding, extrapolation=self.extrapolation(plan))
+
+    def extrapolation(self, plan) -> dict:
+        """How far ``plan`` lies outside the plans the model was trained on (:func:`plan_extrapolation`)."""
+        return plan_extrapolation(plan, self.bundle.extra.get("train_plan_ranges"))
 
 
 # ------------------------------------------------------------------ data
@@ -407,11 +482,12 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
     """
     import torch
 
+    from toolkit.common.outputs import check_output_dir
     from toolkit.static.dataset import StaticDatabase
     from toolkit.static.pointnet2 import PointHierarchy
 
+    out = check_output_dir(out, what="model directory")
     db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
-    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if config.features.material_channels and db.config.poisson_range is None:
         raise ValueError("material_channels needs a database whose simulations vary Poisson's ratio "
@@ -449,11 +525,15 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
     state = {"net": {k: v.detach().cpu() for k, v in module.net.state_dict().items()},
              "hierarchies": {str(s): {k: v.cpu() for k, v in h.state_dict().items()} for s, h in hierarchies.items()}}
     test_keys = sorted(set(data.keys[test_idx].tolist()))
+    identities = _simulation_identities(db)
+    seen_keys = set(data.keys[np.concatenate([train_idx, val_idx])].tolist())  # trained or validated on
+    seen = sorted({identities[str(k)] for k in seen_keys})
     extra = {"out_scale_mm": out_scale, "train_seconds": result.seconds, "prior_seconds": t_prior,
              "best_epoch": result.best_epoch,
              "stopped": result.stopped, "history": result.history.to_dict(orient="list"),
              "split": {"train": int(train_idx.size), "validation": int(val_idx.size), "test": int(test_idx.size)},
              "test_keys": test_keys, "parameters": int(sum(p.numel() for p in module.net.parameters())),
+             "seen_simulations": seen, "train_plan_ranges": _plan_ranges(db, seen_keys),
              "subject_points": {_points_key(pts): int(s) for s, pts in db.points.items()}}
     bundle = ModelBundle(MODEL_KIND, {"surrogate": config.as_dict(), "network": net_config.to_dict()}, signature,
                          {"inputs": scaler}, state, extra)
@@ -463,27 +543,67 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
 
 # ------------------------------------------------------------------ evaluation
 def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_samples: int = 20) -> dict:
-    """Score ``model`` on a database's samples (default: the model's test simulations when the
-    database is the one it was trained on, else every sample).
+    """Score ``model`` on a database's samples it has not seen.
+
+    By default: the model's test simulations when the database is the one it was trained on;
+    on another database, every simulation except those the model trained or validated on (the
+    same subject shape, plan parameters and Poisson's ratio, whatever their keys). ``keys``
+    scores the given simulations as they are (training ones are counted, not excluded). A
+    database of another resolution, material, sliding model or increment count than the
+    training one is refused with :class:`~toolkit.common.config_diff.IncompatibleError`.
 
     Returns a dict: ``per_sample`` DataFrame (key, subject, increment, errors in mm),
     ``metrics`` (mean/median/p95/max of the per-sample mean nodal error on all nodes, free
-    nodes, lips; ``inference_ms`` per prediction; ``fe_ms`` FE time per increment), and
-    ``predictions`` ``(m, n, 3)`` mm with ``targets``.
+    nodes, lips; ``inference_ms`` per prediction; ``fe_ms`` FE time per increment; ``scored``
+    which samples were scored, in words; ``training_samples_excluded`` and
+    ``training_samples_scored``, None where unknown), and ``predictions`` ``(m, n, 3)`` mm with
+    ``targets``.
     """
     import pandas as pd
 
+    from toolkit.common.config_diff import require_same
     from toolkit.common.metrics import nodal_errors
     from toolkit.static.dataset import StaticDatabase
 
     db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
     model.check_mesh(db.points[0], db.cells)
-    same = db.config.as_dict() == model.bundle.data["database"]
-    if keys is None:
-        keys = model.bundle.extra["test_keys"] if same else sorted(db.samples.key.unique())
+    trained_on = model.bundle.data["database"]
+    asked = db.config.as_dict()
+    require_same({k: trained_on.get(k) for k in MUST_MATCH}, {k: asked[k] for k in MUST_MATCH},
+                 f"database {db.path}: the model's training database",
+                 hint="Score the model on a database generated with its settings (`toolkit static dataset "
+                      + " ".join(f"--{k} {trained_on.get(k)}" for k in MUST_MATCH) + "`)")
+    same = asked == trained_on
+    seen = model.bundle.extra.get("seen_simulations")
+    identities = _simulation_identities(db) if seen is not None else {}
+    seen = set(seen) if seen is not None else None
+    per_key = db.samples.key.value_counts()
+    excluded = scored_training = None
+    if keys is not None:
+        scored = f"the {len(set(keys))} requested simulations of {db.path}"
+        if seen is not None:
+            scored_training = int(sum(per_key.get(k, 0) for k in set(keys) if identities.get(str(k)) in seen))
+    elif same:
+        keys = model.bundle.extra["test_keys"]
+        scored = "test split of the training database"
+        scored_training = 0
+    elif seen is None:
+        keys = sorted(db.samples.key.unique())
+        scored = ("all samples of another database (the model does not record its training simulations: "
+                  "some samples may be ones it trained on)")
+    else:
+        everything = sorted(db.samples.key.unique())
+        keys = [k for k in everything if identities[str(k)] not in seen]
+        excluded = int(sum(per_key[k] for k in everything if identities[str(k)] in seen))
+        scored_training = 0
+        if not keys:
+            raise ValueError(f"every simulation of {db.path} ({len(everything)}) is one the model trained on; "
+                             "nothing is left to score: generate a database with another --seed")
+        scored = f"all samples of another database, {excluded} training samples excluded"
     rows = np.flatnonzero(db.samples.key.isin(list(keys)).to_numpy())
     if not rows.size:
-        raise ValueError("no sample of the database belongs to the requested simulations")
+        raise ValueError(f"no sample of {db.path} belongs to the requested simulations {sorted(keys)[:5]}...; "
+                         f"it holds {db.samples.key.nunique()} simulations")
     subjects = np.unique(db.samples.subject.to_numpy()[rows])
     priors = None
     if model.config.features.linear_prior:
@@ -536,7 +656,8 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
                "inference_ms": 1e3 * float(np.median(times)),
                "fe_ms": 1e3 * float(db.samples.seconds.to_numpy()[rows].mean()),
                "train_seconds": float(model.bundle.extra.get("train_seconds", np.nan)),
-               "variant": model.config.features.variant}
+               "variant": model.config.features.variant, "scored": scored,
+               "training_samples_excluded": excluded, "training_samples_scored": scored_training}
     return {"per_sample": per_sample, "metrics": metrics, "predictions": preds, "targets": target, "rows": rows}
 
 

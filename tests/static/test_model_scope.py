@@ -1,0 +1,132 @@
+"""What a static surrogate knows about its training data: an evaluation never scores a training
+simulation without saying so and refuses a database of other settings; a prediction records how
+far its plan lies outside the training plans."""
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from toolkit.common.config_diff import IncompatibleError
+from toolkit.static.dataset import DatasetConfig, StaticDatabase, generate, subject_phantom
+from toolkit.static.features import FeatureSpec
+from toolkit.static.plan import PlanRangeWarning, SurgicalPlan, default_plan, sample_plans
+from toolkit.static.surrogate import PLAN_PARAMETERS, SurrogateConfig, evaluate_surrogate, train_surrogate
+
+
+def _database(tmp_path_factory, name, **kw):
+    path = tmp_path_factory.mktemp("scope") / f"{name}.h5"
+    generate(path, DatasetConfig(resolution="coarse", **kw), workers=0, progress=False)
+    return path
+
+
+@pytest.fixture(scope="module")
+def db6(tmp_path_factory):
+    """6 sagittal plans on the coarse face (18 samples)."""
+    return _database(tmp_path_factory, "db6", plans=6)
+
+
+@pytest.fixture(scope="module")
+def model(db6, tmp_path_factory):
+    config = SurrogateConfig(FeatureSpec("hard"), network="tiny", coarse_radii=True, epochs=2)
+    return train_surrogate(db6, tmp_path_factory.mktemp("model") / "m", config, progress=False)
+
+
+def test_the_training_database_is_scored_on_its_test_split(db6, model):
+    m = evaluate_surrogate(model, db6)["metrics"]
+    assert m["scored"] == "test split of the training database"
+    assert m["training_samples_scored"] == 0
+    assert m["samples"] == 3 * len(model.bundle.extra["test_keys"])
+
+
+def test_another_database_is_scored_without_the_training_simulations(db6, model, tmp_path_factory):
+    """A database of 8 plans with the same seed holds the 6 of the training database (plan i
+    depends only on the seed and i) under the same keys: the 4 or so the model trained or
+    validated on are excluded, by what they are (subject shape, plan, Poisson's ratio), and
+    the metrics say how many."""
+    db8 = _database(tmp_path_factory, "db8", plans=8)
+    result = evaluate_surrogate(model, db8)
+    m = result["metrics"]
+    seen = len(set(StaticDatabase.open(db6).samples.key) - set(model.bundle.extra["test_keys"]))
+    assert m["training_samples_excluded"] == 3 * seen
+    assert m["scored"] == f"all samples of another database, {3 * seen} training samples excluded"
+    assert m["samples"] == 3 * (8 - seen)
+    assert not set(result["per_sample"].key) - (set(StaticDatabase.open(db8).samples.key)
+                                                - (set(StaticDatabase.open(db6).samples.key)
+                                                   - set(model.bundle.extra["test_keys"])))
+
+
+def test_a_database_of_other_plans_is_scored_whole(model, tmp_path_factory):
+    """Another seed draws other plans with the same keys (s000-p00000...): nothing is excluded."""
+    other = _database(tmp_path_factory, "seed1", plans=2, seed=1)
+    m = evaluate_surrogate(model, other)["metrics"]
+    assert m["training_samples_excluded"] == 0 and m["samples"] == 6
+    assert m["scored"].startswith("all samples of another database")
+
+
+def test_requested_simulations_count_the_training_ones(db6, model):
+    train_key = sorted(set(StaticDatabase.open(db6).samples.key) - set(model.bundle.extra["test_keys"]))[0]
+    m = evaluate_surrogate(model, db6, keys=[train_key])["metrics"]
+    assert m["training_samples_scored"] == 3
+
+
+@pytest.mark.parametrize("setting", [{"sliding": "none"}, {"increments": 2}, {"material": "neo-hookean"}])
+def test_a_database_of_other_settings_is_refused(model, tmp_path_factory, setting):
+    """Another sliding model, increment count or material changes what a sample means: refused
+    before scoring, naming the setting and the option that rebuilds a matching database."""
+    key, value = next(iter(setting.items()))
+    other = _database(tmp_path_factory, f"{key}", plans=1, **setting)
+    with pytest.raises(IncompatibleError, match=f"{key}: stored .*, asked {value!r}") as info:
+        evaluate_surrogate(model, other)
+    assert f"--{key} " in str(info.value)
+    assert [d[0] for d in info.value.differences] == [key]
+
+
+def test_a_bundle_without_its_training_simulations_says_so(db6, model, tmp_path_factory):
+    """A model saved without ``seen_simulations`` (or ``train_plan_ranges``) still scores and
+    predicts, saying what it cannot know."""
+    from toolkit.common.training import ModelBundle
+    from toolkit.static.surrogate import Surrogate
+
+    b = model.bundle
+    extra = {k: v for k, v in b.extra.items() if k not in ("seen_simulations", "train_plan_ranges")}
+    out = ModelBundle(b.kind, b.config, b.data, b.scalers, b.state_dict, extra).save(
+        tmp_path_factory.mktemp("old") / "m")
+    old = Surrogate.load(out)
+    other = _database(tmp_path_factory, "old_other", plans=1, seed=2)
+    m = evaluate_surrogate(old, other)["metrics"]
+    assert "does not record its training simulations" in m["scored"] and m["training_samples_excluded"] is None
+    phantom = subject_phantom("coarse", 0)
+    assert old.predict_plan(phantom, default_plan(phantom)).summary()["extrapolation"]["outside"] == "unknown"
+
+
+# ------------------------------------------------------------------ extrapolation
+def test_a_training_plan_is_inside_the_training_ranges(db6, model):
+    phantom = subject_phantom("coarse", 0)
+    plans = sample_plans(6, np.random.default_rng([0, 0]), phantom=phantom)
+    train_plans = {f"s000-p{p:05d}" for p in range(6)} - set(model.bundle.extra["test_keys"])
+    plan = plans[int(sorted(train_plans)[0][-5:])]
+    ex = model.predict_plan(phantom, plan).summary()["extrapolation"]
+    assert ex == {"outside": False, "parameters": {}}
+    ranges = model.bundle.extra["train_plan_ranges"]
+    assert list(ranges) == list(PLAN_PARAMETERS) and all(lo <= hi for lo, hi in ranges.values())
+
+
+def test_a_plan_beyond_the_training_ranges_is_recorded(model, tmp_path):
+    """A setback of 20 mm (the sampled plans stay within 11.5 mm) is recorded in the summary and
+    in summary.json: the parameter, its value, the training range and how far outside."""
+    phantom = subject_phantom("coarse", 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PlanRangeWarning)
+        plan = SurgicalPlan.from_dict({"distal": {"translation_mm": [0.0, -20.0, 0.0]}}, phantom=phantom)
+        result = model.predict_plan(phantom, plan)
+    ex = result.summary()["extrapolation"]
+    assert ex["outside"] is True
+    ty = ex["parameters"]["distal.translation_y_mm"]
+    lo, hi = model.bundle.extra["train_plan_ranges"]["distal.translation_y_mm"]
+    assert ty["value"] == -20.0 and ty["train_range"] == [lo, hi]
+    assert ty["outside_by"] == pytest.approx(lo + 20.0, abs=1e-6) and ty["outside_by"] > 0
+    result.write(tmp_path / "pred", preview=False)
+    assert json.loads((tmp_path / "pred" / "summary.json").read_text())["extrapolation"] == json.loads(
+        json.dumps(ex))
