@@ -3,6 +3,10 @@ with h5py + pandas alone, reruns skip what is done (and failed, unless retried),
 run keeps every finished job, leftover shards are merged, and foreign, mismatched or corrupt
 files are refused with a message naming the problem."""
 
+import os
+import re
+import shutil
+import signal
 from concurrent.futures import ThreadPoolExecutor
 
 import h5py
@@ -11,7 +15,18 @@ import pandas as pd
 import pytest
 
 from toolkit.common.config_diff import IncompatibleError
-from toolkit.common.database import Database, DatabaseError, Job, Record, read_failures, read_index, run_jobs
+from toolkit.common.database import (
+    Database,
+    DatabaseError,
+    IncompleteDatabaseWarning,
+    Job,
+    Record,
+    check_complete,
+    database_status,
+    read_failures,
+    read_index,
+    run_jobs,
+)
 
 KIND = "toolkit.test.database"
 
@@ -120,3 +135,72 @@ def test_foreign_mismatched_and_corrupt_files_are_refused(tmp_path):
         run_jobs(_db(tmp_path), _jobs([1, 1]), square, workers=0, progress=False)
     with pytest.raises(ValueError, match="job key 'a/b'"):
         Job("a/b")
+
+
+def interrupting(params):
+    """A worker interrupted (Ctrl-C) on x = 5."""
+    if params["x"] == 5:
+        raise KeyboardInterrupt
+    return square(params)
+
+
+def test_an_interrupted_h5_alone_holds_the_finished_jobs_and_says_how_far_it_got(tmp_path):
+    """Ctrl-C on the third of four jobs: no shard is left behind, a copy of the .h5 alone holds
+    the two finished records, and its status reads "interrupted database FILE: 2 of 4
+    simulations done; rerun ... to finish it" (a warning when used). The rerun finishes it."""
+    db = _db(tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        run_jobs(db, _jobs([1, 2, 5, 6]), interrupting, workers=0, progress=False)
+    assert not db.shards.exists()
+    copy = tmp_path / "copy" / "db.h5"
+    copy.parent.mkdir()
+    shutil.copyfile(db.path, copy)
+    status = database_status(copy)
+    assert (status.done, status.planned, status.complete) == (2, 4, False)
+    assert sorted(read_index(copy)["key"]) == ["x1", "x2"]
+    expected = r"interrupted database .*db\.h5: 2 of 4 simulations done; rerun `make db` to finish it"
+    assert re.fullmatch(expected, status.message("`make db`"))
+    with pytest.warns(IncompleteDatabaseWarning, match=expected):
+        check_complete(copy, "`make db`")
+    run_jobs(db, _jobs([1, 2, 5, 6]), square, workers=0, progress=False)
+    status = database_status(db.path)
+    assert (status.done, status.planned, status.complete) == (4, 4, True)
+
+
+def test_an_interrupt_before_any_record_is_refused_when_used(tmp_path):
+    db = _db(tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        run_jobs(db, _jobs([5, 6]), interrupting, workers=0, progress=False)
+    with pytest.raises(DatabaseError, match=r"0 of 2 simulations done; rerun `make db` to finish it"):
+        check_complete(db.path, "`make db`")
+
+
+def test_a_second_ctrl_c_during_the_final_merge_waits_for_it(tmp_path, monkeypatch):
+    """A SIGINT arriving while the finished shards are merged is held until the merge is done:
+    the records are in the .h5 and the KeyboardInterrupt still reaches the caller."""
+    db = _db(tmp_path)
+    real_merge = Database.merge
+    calls = []
+
+    def merge_then_interrupted(self):
+        calls.append(1)
+        if len(calls) == 2:  # the final merge (the first one is the start's)
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_merge(self)
+
+    monkeypatch.setattr(Database, "merge", merge_then_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_jobs(db, _jobs([1, 2]), square, workers=0, progress=False)
+    assert not db.shards.exists() and sorted(read_index(db.path)["key"]) == ["x1", "x2"]
+
+
+def test_string_columns_of_the_index_read_as_str(tmp_path):
+    """read_index gives str keys and labels; so does the documented h5py + pandas recipe."""
+    db = _db(tmp_path)
+    run_jobs(db, _jobs([1, 2]), square, workers=0, progress=False)
+    table = read_index(db.path)
+    assert all(isinstance(v, str) for v in [*table["key"], *table["label"]])
+    with h5py.File(db.path) as f:
+        index = pd.DataFrame(f["index"][()])
+    index = index.apply(lambda c: c.str.decode("utf-8") if c.dtype == object else c)
+    assert sorted(index["key"]) == ["x1", "x2"] and sorted(index["label"]) == ["x1", "x2"]

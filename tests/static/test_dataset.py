@@ -2,13 +2,17 @@
 subjects, crash-safe and resumable generation, clear refusal of foreign files."""
 
 import importlib
+import json
+import shutil
+import warnings
 from concurrent.futures import Future
 
 import h5py
 import numpy as np
+import pandas.testing as pd_testing
 import pytest
 
-from toolkit.common.database import DatabaseError
+from toolkit.common.database import DatabaseError, IncompleteDatabaseWarning
 from toolkit.static.dataset import DatasetConfig, StaticDatabase, generate, read_samples
 
 dataset_module = importlib.import_module("toolkit.static.dataset")
@@ -56,8 +60,10 @@ def test_samples_are_increments_with_exact_inputs(small_db):
 
 def test_rerun_resumes_and_an_interrupted_run_gives_the_same_database(small_db, tmp_path):
     """A rerun skips the 4 finished simulations. A run interrupted (Ctrl-C) after its second
-    simulation keeps those two; the rerun does the other two, and the database then equals
-    the uninterrupted one (every array identical)."""
+    simulation keeps those two in the .h5 itself (a copy of the file alone opens, with its 6
+    samples and a warning "interrupted database ...: 2 of 4 simulations done; rerun ..."); the
+    rerun does the other two, and the database then equals the uninterrupted one (every array
+    identical) and opens without a warning."""
     again = generate(small_db, CONFIG, workers=0, progress=False)
     assert not again.done and len(again.skipped) == 4
 
@@ -80,12 +86,75 @@ def test_rerun_resumes_and_an_interrupted_run_gives_the_same_database(small_db, 
 
     assert len(Database(path, dataset_module.DATABASE_KIND, dataset_module.DATABASE_VERSION, CONFIG.as_dict())
                .keys()) == 2
+    copy = tmp_path / "copy" / "cut.h5"
+    copy.parent.mkdir()
+    shutil.copyfile(path, copy)
+    with pytest.warns(IncompleteDatabaseWarning, match=r"interrupted database .*cut\.h5: 2 of 4 simulations done; "
+                                                       r"rerun `toolkit static dataset` with the same options"):
+        partial = StaticDatabase.open(copy)
+    assert len(partial) == 6
     report = generate(path, CONFIG, workers=0, progress=False)
     assert len(report.done) == 2 and len(report.skipped) == 2
-    a, b = StaticDatabase.open(small_db), StaticDatabase.open(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        a, b = StaticDatabase.open(small_db), StaticDatabase.open(path)
     assert list(a.samples.key) == list(b.samples.key)
     for key in a.samples.key.unique():
         np.testing.assert_array_equal(a._U[key], b._U[key])
+
+
+def test_an_interrupt_before_any_simulation_leaves_a_database_that_says_so(tmp_path, monkeypatch):
+    """Ctrl-C during the first simulation: opening the file is refused with "0 of 2 simulations
+    done; rerun ... to finish it" (not "has no /samples table")."""
+    def interrupted(params):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dataset_module, "simulate_job", interrupted)
+    path = tmp_path / "empty.h5"
+    with pytest.raises(KeyboardInterrupt):
+        generate(path, DatasetConfig(resolution="coarse", plans=2), workers=0, progress=False)
+    with pytest.raises(DatabaseError, match=r"interrupted database .*empty\.h5: 0 of 2 simulations done; rerun"):
+        StaticDatabase.open(path)
+
+
+def test_more_plans_grow_the_database_with_the_same_first_plans(small_db, tmp_path):
+    """3 plans on the 2-plan database: the 4 finished simulations are kept (arrays unchanged) and
+    only the third plan of each subject runs; its plan is the one a fresh 3-plan database draws
+    (plan p depends only on seed, subject and p), and the file records 3 plans."""
+    grown = tmp_path / "grown.h5"
+    shutil.copyfile(small_db, grown)
+    bigger = DatasetConfig(resolution="coarse", subjects=2, plans=3, seed=3)
+    report = generate(grown, bigger, workers=0, progress=False)
+    assert sorted(report.done) == ["s000-p00002", "s001-p00002"] and len(report.skipped) == 4
+    a, b = StaticDatabase.open(small_db), StaticDatabase.open(grown)
+    assert b.config == bigger and len(b) == 18
+    for key in a.samples.key.unique():
+        np.testing.assert_array_equal(a._U[key], b._U[key])
+    fresh = {job.key: job.params["motions"] for job in dataset_module._jobs(bigger)}
+    with h5py.File(grown) as f:
+        for key, motions in fresh.items():
+            assert json.loads(f["records"][key].attrs["params"])["motions"] == motions
+    # a smaller run afterwards keeps everything and the record of 3 plans
+    assert len(generate(grown, CONFIG, workers=0, progress=False).skipped) == 4
+    assert StaticDatabase.open(grown).config.plans == 3
+
+
+def test_samples_are_rebuilt_from_the_records_when_the_table_is_missing_or_stale(small_db, tmp_path):
+    """A file whose /samples table was never written (killed before it) or lags its records reads
+    the same per-increment table, rebuilt from the records; its string columns are str."""
+    ref = read_samples(small_db)
+    for name in ("missing.h5", "stale.h5"):
+        path = tmp_path / name
+        shutil.copyfile(small_db, path)
+        with h5py.File(path, "a") as f:
+            if name == "missing.h5":
+                del f["samples"]
+            else:
+                rows = f["samples"][()]
+                del f["samples"]
+                f.create_dataset("samples", data=rows[:3])
+        pd_testing.assert_frame_equal(read_samples(path), ref)
+    assert isinstance(ref.key[0], str) and isinstance(ref.status[0], str)
 
 
 def test_failures_are_recorded_and_foreign_files_refused(tmp_path, monkeypatch):
@@ -107,8 +176,8 @@ def test_failures_are_recorded_and_foreign_files_refused(tmp_path, monkeypatch):
     table = read_samples(path)
     assert table.status.str.startswith("failed").sum() == 1
     assert len(generate(path, cfg, workers=0, progress=False).skipped) == 2
-    with pytest.raises(ValueError, match="plans: stored 2, asked 3"):
-        generate(path, DatasetConfig(resolution="coarse", plans=3), workers=0, progress=False)
+    with pytest.raises(ValueError, match="increments: stored 3, asked 2"):
+        generate(path, DatasetConfig(resolution="coarse", plans=2, increments=2), workers=0, progress=False)
     (tmp_path / "junk.h5").write_bytes(b"not hdf5 at all")
     with pytest.raises(DatabaseError, match="cannot read"):
         StaticDatabase.open(tmp_path / "junk.h5")

@@ -12,23 +12,30 @@ Safety:
   *shard* file (``<db>.shards/<key>.h5``, atomically renamed into place), so a crash or
   Ctrl-C loses at most the jobs still running;
 - shards are merged into the main file copy-on-write (a copy is extended and renamed
-  over the original), every ``merge_every`` seconds, at the end, on Ctrl-C and at the
-  next start: the main file is always a complete, consistent database;
+  over the original), every ``merge_every`` seconds, at the end, on Ctrl-C or a failure
+  (a second Ctrl-C waits for that merge) and at the next start: the main file is always a
+  consistent database, and after an interrupt it alone holds every finished job;
+- the keys of the last run's jobs are stored (root attribute ``planned``), so a reader
+  tells a finished database from an interrupted one (:func:`database_status`: "N of M
+  done; rerun the same command to finish it");
 - a job that raised is recorded with its reason and traceback under ``/failures`` and
   skipped on the next run unless ``retry_failed``.
 
-Layout: root attributes ``format`` (a tag naming the kind of database), ``format_version``
-and ``config`` (JSON: what generated it; a rerun with another configuration is refused,
-naming the differences); ``/shared/...`` arrays common to every record (a mesh);
+Layout: root attributes ``format`` (a tag naming the kind of database), ``format_version``,
+``config`` (JSON: what generated it; a rerun with another configuration is refused,
+naming the differences, except for the keys the database ``grows`` along) and ``planned``
+(JSON list of the last run's job keys); ``/shared/...`` arrays common to every record (a mesh);
 ``/records/<key>/`` each record's arrays with ``params`` (JSON) and its scalar ``attrs``;
 ``/failures/<key>`` (``reason``, ``traceback``, ``params``); ``/index``, a table with one
 row per record (key, params, scalar attributes), readable without the toolkit::
 
     import h5py, pandas as pd
     with h5py.File("db.h5") as f:
-        index = pd.DataFrame(f["index"][()])      # strings come back as bytes
+        index = pd.DataFrame(f["index"][()])
+    # h5py returns the strings of a table as bytes: decode them
+    index = index.apply(lambda c: c.str.decode("utf-8") if c.dtype == object else c)
 
-or with :func:`read_index` (strings decoded).
+or with :func:`read_index` (strings already ``str``).
 """
 
 from __future__ import annotations
@@ -37,11 +44,14 @@ import json
 import logging
 import os
 import shutil
+import signal
+import threading
 import time
 import traceback
 import warnings
 from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,13 +61,68 @@ from toolkit.common.config_diff import jsonable, require_same
 from toolkit.common.errors import ToolkitError
 
 __all__ = ["Job", "Record", "RunReport", "DatabaseError", "Database", "run_jobs", "read_index", "read_failures",
-           "InProcessExecutor"]
+           "InProcessExecutor", "DatabaseStatus", "database_status", "IncompleteDatabaseWarning",
+           "check_complete", "deferred_interrupt"]
 
 log = logging.getLogger(__name__)
 
 
 class DatabaseError(ToolkitError, ValueError):
     """A file is not a database of the expected kind, version or configuration, or is unreadable."""
+
+
+class IncompleteDatabaseWarning(UserWarning):
+    """A database is used while some jobs of its last run are not finished (it was interrupted)."""
+
+
+@dataclass(frozen=True)
+class DatabaseStatus:
+    """How far the last run of a database got: ``done`` records and ``failed`` jobs among the
+    ``planned`` ones (``planned`` is None for a file that does not record it), ``records`` held in
+    all, and ``pending`` finished jobs still in ``<db>.shards/`` (merged by the next run)."""
+
+    path: Path
+    done: int
+    failed: int
+    planned: int | None
+    records: int
+    pending: int
+
+    @property
+    def complete(self) -> bool:
+        """Every planned job finished (done or failed) and merged."""
+        return self.pending == 0 and (self.planned is None or self.done + self.failed >= self.planned)
+
+    def message(self, command: str = "the same command") -> str:
+        """``interrupted database FILE: N of M simulations done; rerun ... to finish it``."""
+        total = self.records if self.planned is None else self.planned
+        finished = self.records if self.planned is None else self.done
+        text = f"interrupted database {self.path}: {finished} of {total} simulations done"
+        if self.failed:
+            text += f", {self.failed} failed"
+        if self.pending:
+            text += f", {self.pending} more finished in {self.path.name}.shards/ (not yet merged)"
+        return text + f"; rerun {command} to finish it"
+
+
+@contextmanager
+def deferred_interrupt():
+    """Hold a Ctrl-C (SIGINT) arriving inside the block until the block ends, then raise it.
+
+    Wraps short, atomic file updates (a merge) so that an impatient second Ctrl-C does not throw
+    finished work away. Outside the main thread (where signals cannot be handled) it does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
 
 
 @dataclass(frozen=True)
@@ -130,11 +195,14 @@ class Database:
     kind : format tag (e.g. ``"toolkit.impact.database"``); a file with another tag is refused
     version : format version the caller reads and writes
     config : JSON-able description of what generates the records; must match an existing file's
+    grows : dotted keys of ``config`` that may differ from the stored ones (the database grows
+        along them, e.g. the number of plans); each run stores its own values
     """
 
-    def __init__(self, path: str | os.PathLike, kind: str, version: int, config: Mapping):
+    def __init__(self, path: str | os.PathLike, kind: str, version: int, config: Mapping, grows: tuple = ()):
         self.path = Path(path)
         self.kind, self.version, self.config = kind, int(version), jsonable(dict(config))
+        self.grows = tuple(grows)
         self.shards = self.path.with_name(self.path.name + ".shards")
 
     # ------------------------------------------------------------------ opening / checking
@@ -166,7 +234,7 @@ class Database:
         """Refuse an existing file of another kind, version or configuration."""
         attrs = self.verified_attrs(self.path, self.kind, self.version, "choose another output file")
         stored = json.loads(attrs.get("config", "{}"))
-        require_same(stored, self.config, f"database {self.path}",
+        require_same(stored, self.config, f"database {self.path}", ignore=self.grows,
                      hint="use the options it was made with, or another output file")
 
     def create(self, shared: Mapping[str, np.ndarray] | None = None, shared_attrs: Mapping | None = None) -> None:
@@ -191,6 +259,23 @@ class Database:
                 f.create_group("records")
                 f.create_group("failures")
                 _write_index(f)
+
+    def begin(self, keys: Iterable[str]) -> None:
+        """Record the keys of the run about to start (``planned``) and this run's ``config``
+        (copy-on-write; nothing is written when both are already stored)."""
+        import h5py
+
+        from toolkit.common.io import atomic_path
+
+        planned, config = json.dumps(list(keys)), json.dumps(self.config)
+        attrs = self.open_attrs(self.path)
+        if attrs.get("planned") == planned and attrs.get("config") == config:
+            return
+        with atomic_path(self.path) as tmp:
+            shutil.copyfile(self.path, tmp)
+            with h5py.File(tmp, "a") as f:
+                f.attrs["planned"] = planned
+                f.attrs["config"] = config
 
     # ------------------------------------------------------------------ contents
     def keys(self) -> list[str]:
@@ -369,6 +454,38 @@ def read_failures(path: str | os.PathLike):
     return pd.DataFrame(rows, columns=["key", "reason", "params"])
 
 
+def database_status(path: str | os.PathLike) -> DatabaseStatus:
+    """How complete the database at ``path`` is (:class:`DatabaseStatus`)."""
+    import h5py
+
+    path = Path(path)
+    attrs = Database.open_attrs(path)
+    planned = json.loads(attrs["planned"]) if "planned" in attrs else None
+    with h5py.File(path, "r") as f:
+        records = set(f["records"].keys()) if "records" in f else set()
+        failures = set(f["failures"].keys()) if "failures" in f else set()
+    shards = path.with_name(path.name + ".shards")
+    pending = len([p for p in shards.glob("*.h5") if not p.name.startswith(".")]) if shards.is_dir() else 0
+    if planned is None:
+        return DatabaseStatus(path, len(records), len(failures), None, len(records), pending)
+    planned = set(planned)
+    return DatabaseStatus(path, len(planned & records), len(planned & failures - records), len(planned),
+                          len(records), pending)
+
+
+def check_complete(path: str | os.PathLike, command: str) -> DatabaseStatus:
+    """Refuse a database holding no record (:class:`DatabaseError`), warn
+    (:class:`IncompleteDatabaseWarning`) on an interrupted one; ``command`` is the remedy's
+    command (e.g. ``"`toolkit static dataset` with the same options"``)."""
+    status = database_status(path)
+    if status.records == 0:
+        if not status.complete:
+            raise DatabaseError(status.message(command))
+    elif not status.complete:
+        warnings.warn(status.message(command), IncompleteDatabaseWarning, stacklevel=3)
+    return status
+
+
 def _resolve_executor(executor, workers: int):
     if executor is not None:
         if hasattr(executor, "get_executor"):  # a dask.distributed Client
@@ -419,6 +536,7 @@ def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=No
     if int(workers) < 0:
         raise ValueError(f"workers must be >= 0 (0: in this process), got {workers}")
     db.merge()  # shards left by a crashed run
+    db.begin(keys)
     done_before, failed_before = set(db.keys()), db.failures()
     skip = done_before | (set() if retry_failed else set(failed_before))
     todo = [j for j in jobs if j.key not in skip]
@@ -474,5 +592,6 @@ def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=No
         bar.close()
         if owned:
             pool.shutdown(wait=False, cancel_futures=True)
-        db.merge()
+        with deferred_interrupt():  # the .h5 alone holds every finished job, even after a second Ctrl-C
+            db.merge()
     return RunReport(report.done, report.failed, skipped, time.perf_counter() - t0)

@@ -25,6 +25,14 @@ without the toolkit (:func:`read_samples`).
 
 Generation runs on any ``concurrent.futures``-style executor (local processes by default,
 a ``dask.distributed.Client`` for a cluster); CLI ``toolkit static dataset``.
+
+Resuming and growing: rerunning :func:`generate` on an existing file skips the finished
+simulations; after an interrupt the file already holds every finished one (and its
+``/samples``), and :meth:`StaticDatabase.open` warns "interrupted database FILE: N of M
+simulations done". A larger ``plans`` grows the database: plan ``p`` of subject ``k`` depends
+only on ``seed``, ``k`` and ``p``, so 30 then 32 plans hold the same 32 simulations as 32 at
+once; the stored configuration records the largest number of plans asked. The other settings
+(and ``subjects``) must match the file's.
 """
 
 from __future__ import annotations
@@ -38,7 +46,16 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.database import Database, Job, Record, RunReport, read_index, run_jobs
+from toolkit.common.database import (
+    Database,
+    Job,
+    Record,
+    RunReport,
+    check_complete,
+    deferred_interrupt,
+    read_index,
+    run_jobs,
+)
 from toolkit.common.papers import TISSUE_NU
 from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES
 
@@ -251,15 +268,26 @@ def generate(path: str | os.PathLike, config: DatasetConfig, *, executor=None, w
     -------
     RunReport (``done``, ``failed`` with reasons, ``skipped``, ``seconds``)
     """
-    db = Database(path, DATABASE_KIND, DATABASE_VERSION, config.as_dict())
+    stored = dict(config.as_dict())
+    if Path(path).exists():
+        Database(path, DATABASE_KIND, DATABASE_VERSION, stored, grows=_GROWS).check()
+        before = json.loads(Database.open_attrs(Path(path)).get("config", "{}"))
+        stored["plans"] = max(int(before.get("plans", 0)), config.plans)
+    db = Database(path, DATABASE_KIND, DATABASE_VERSION, stored, grows=_GROWS)
     if not Path(path).exists():
         db.create(_shared(config))
-    else:
-        db.check()
-    report = run_jobs(db, _jobs(config), simulate_job, executor=executor, workers=workers,
-                      retry_failed=retry_failed, progress=progress)
-    _write_samples(Path(path))
+    try:
+        report = run_jobs(db, _jobs(config), simulate_job, executor=executor, workers=workers,
+                          retry_failed=retry_failed, progress=progress)
+    finally:  # also after a Ctrl-C or a failure: the finished simulations are usable at once
+        with deferred_interrupt():
+            _write_samples(Path(path))
     return report
+
+
+#: configuration keys a static database grows along (more plans from the same random streams)
+_GROWS = ("plans",)
+_REMEDY = "`toolkit static dataset` with the same options"
 
 
 def _write_samples(path: Path) -> None:
@@ -340,13 +368,22 @@ def read_samples(path: str | os.PathLike):
 
     Database.open_attrs(Path(path))
     with h5py.File(path, "r") as f:
-        if "samples" not in f:
-            raise ValueError(f"{path} has no /samples table: is it a static database? (regenerate or complete it)")
-        table = pd.DataFrame(f["samples"][()])
+        if "records" not in f:
+            raise ValueError(f"{path} has no /records group: it is not a static database; "
+                             f"create one with `toolkit static dataset`")
+        stored = set(f["records"].keys()) | set(f["failures"].keys())
+        table = pd.DataFrame(f["samples"][()]) if "samples" in f else None
+    if table is None or set(table["key"].map(_decode)) != stored:
+        # interrupted before /samples was (re)written: the records are the truth
+        return _sample_table(Path(path))
     for c in table.columns:
         if table[c].dtype == object:
-            table[c] = table[c].map(lambda v: v.decode() if isinstance(v, bytes) else v)
+            table[c] = table[c].map(_decode)
     return table
+
+
+def _decode(v):
+    return v.decode() if isinstance(v, bytes) else v
 
 
 @dataclass(eq=False)
@@ -387,6 +424,7 @@ class StaticDatabase:
         attrs = Database.verified_attrs(path, DATABASE_KIND, DATABASE_VERSION,
                                         "create one with `toolkit static dataset`")
         config = DatasetConfig(**json.loads(attrs["config"]))
+        check_complete(path, _REMEDY)
         samples = read_samples(path)
         samples = samples[samples.status == "ok"].reset_index(drop=True)
         points, types, segment, cells, sets, U, bone = {}, {}, {}, {}, {}, {}, {}
