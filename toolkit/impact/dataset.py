@@ -17,8 +17,10 @@ positions), its cells, a ``fixed`` mask (nodes held by the scene) and ``skin``/`
 masks, and the scene itself as TOML. Items for learning are the node time series
 (inputs per frame: initial position, imposed velocity, time, fixed flag). The file is the
 resumable :class:`toolkit.common.database.Database` (tag ``toolkit.impact.database``):
-finished simulations survive a crash, failures are recorded with their reason, and a
-rerun with the same scene does only what is missing.
+finished simulations survive a crash (after a Ctrl-C or a failure the ``.h5`` alone holds
+them all), failures are recorded with their reason, and a rerun with the same scene does
+only what is missing; more velocities grow the database. :func:`load_database` warns
+"interrupted database FILE: N of M simulations done" on an unfinished one.
 
 Units: mm, s, MPa, mm/s.
 """
@@ -35,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common import papers
-from toolkit.common.database import Database, Job, Record, RunReport, read_index, run_jobs
+from toolkit.common.database import Database, Job, Record, RunReport, check_complete, read_index, run_jobs
 from toolkit.impact.scene import Scene, yielding_scene
 
 __all__ = ["DATABASE_KIND", "DATABASE_VERSION", "PAPER_VELOCITIES", "default_held_out", "build_database",
@@ -241,6 +243,7 @@ def load_database(path: str | os.PathLike) -> ImpactDatabase:
 
     path = Path(path)
     Database.verified_attrs(path, DATABASE_KIND, DATABASE_VERSION, "build one with `toolkit impact dataset`")
+    check_complete(path, "`toolkit impact dataset` with the same options")
     with h5py.File(path, "r") as f:
         shared = f["shared"]
         scene = Scene.from_dict(_tomllib_loads(shared.attrs["scene_toml"]))
