@@ -73,13 +73,21 @@ def test_resume_adds_only_missing_velocities_and_refuses_another_scene(tmp_path)
         build_database(path, [30.0], [], scene.with_fidelity(mass_scaling=50.0), workers=0, progress=False)
 
 
-def test_a_failing_simulation_is_recorded_and_the_others_kept(tmp_path):
-    """With 0.7 s the 50 mm/s ball travels 35 mm, through the ~21 mm of tissue into the skull: the
-    run stops (inverted element) and is recorded as a failure with that reason, while 20 mm/s
-    (14 mm) finishes; a rerun skips both."""
-    from dataclasses import replace
+def test_a_failing_simulation_is_recorded_and_the_others_kept(tmp_path, monkeypatch):
+    """A simulation that stops (here the 50 mm/s one raises an instability) is recorded as a
+    failure with its reason, while 20 mm/s finishes; a rerun skips both."""
+    from toolkit.impact import dataset
+    from toolkit.impact.explicit import InstabilityError
 
-    scene = replace(tiny_scene(), duration=0.7)
+    real = dataset.SimulationWorker.__call__
+
+    def unstable_at_50(self, params):
+        if params["velocity"] == 50.0:
+            raise InstabilityError("inverted element 12 (test)", 0.51, "face", 12, "a shorter duration")
+        return real(self, params)
+
+    monkeypatch.setattr(dataset.SimulationWorker, "__call__", unstable_at_50)
+    scene = tiny_scene()
     path = tmp_path / "db.h5"
     report = build_database(path, [20.0, 50.0], [], scene, workers=0, progress=False)
     assert report.done == ["v20"] and list(report.failed) == ["v50"]
@@ -125,3 +133,46 @@ def test_dataset_command(tmp_path, capsys):
         h5.attrs["format"] = "something else"
     assert main(argv[:-1] + [str(other)]) == 2
     assert "is not a 'toolkit.impact.database' database" in capsys.readouterr().err
+
+
+def test_an_interrupted_database_is_usable_at_once_and_the_rerun_finishes_it(tmp_path, monkeypatch):
+    """Ctrl-C during the 40 mm/s simulation (after 30 mm/s finished): a copy of the .h5 alone
+    loads the 30 mm/s simulation with a warning "interrupted database ...: 1 of 2 simulations
+    done; rerun `toolkit impact dataset` with the same options to finish it"; a Ctrl-C during
+    the very first simulation leaves a file whose loading is refused with "0 of 1"; the rerun of
+    the same build finishes the first and then loads without a warning."""
+    import shutil
+    import warnings
+
+    from toolkit.common.database import DatabaseError, IncompleteDatabaseWarning
+    from toolkit.impact import dataset
+
+    real = dataset.SimulationWorker.__call__
+
+    def interrupted_at_40(self, params):
+        if params["velocity"] == 40.0:
+            raise KeyboardInterrupt
+        return real(self, params)
+
+    scene = tiny_scene()
+    path = tmp_path / "db.h5"
+    monkeypatch.setattr(dataset.SimulationWorker, "__call__", interrupted_at_40)
+    with pytest.raises(KeyboardInterrupt):
+        build_database(path, [30.0, 40.0], [], scene, workers=0, progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        build_database(tmp_path / "empty.h5", [40.0], [], scene, workers=0, progress=False)
+    monkeypatch.setattr(dataset.SimulationWorker, "__call__", real)
+    copy = tmp_path / "copy" / "db.h5"
+    copy.parent.mkdir()
+    shutil.copyfile(path, copy)
+    with pytest.warns(IncompleteDatabaseWarning, match=r"interrupted database .*db\.h5: 1 of 2 simulations done; "
+                                                       r"rerun `toolkit impact dataset` with the same options"):
+        assert load_database(copy).velocities.tolist() == [30.0]
+    with pytest.raises(DatabaseError, match=r"empty\.h5: 0 of 1 simulations done; rerun"):
+        load_database(tmp_path / "empty.h5")
+    report = build_database(path, [30.0, 40.0], [], scene, workers=0, progress=False)
+    assert report.done == ["v40"] and report.skipped == ["v30"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        db = load_database(path)
+    assert db.velocities.tolist() == [30.0, 40.0] and isinstance(db.index["key"][0], str)
