@@ -154,3 +154,21 @@ def test_surface_mesh_maps_back_to_parent_nodes():
     assert np.allclose(surf.points, P[parent])
     assert surf.n_points == 26  # 27 grid nodes minus the centre
     assert np.array_equal(parent[surf.node_sets["bottom"]], mesh.node_sets["bottom"])
+
+
+def test_mesh_deep_copies_and_pickles_with_sets_and_fields():
+    """A mesh survives ``copy.deepcopy`` and ``pickle`` (process pools send meshes pickled) with its
+    node/element sets and point/cell fields, and the copy stays read-only."""
+    import copy
+    import pickle
+
+    mesh = Mesh(REG_TET, {"tet4": [[0, 1, 2, 3]]}, node_sets={"a": [3, 1]}, element_sets={"e": [0]},
+                point_data={"u": np.arange(12.0).reshape(4, 3)}, cell_data={"k": np.array([7])})
+    for other in (copy.deepcopy(mesh), pickle.loads(pickle.dumps(mesh))):
+        assert other is not mesh and other.equals(mesh)
+        assert other.node_sets["a"].tolist() == [1, 3] and other.element_sets["e"].tolist() == [0]
+        assert other.point_data["u"].tolist() == mesh.point_data["u"].tolist()
+        assert other.cell_data["k"].tolist() == [7]
+        assert not other.points.flags.writeable
+        with pytest.raises(TypeError):
+            other.node_sets["b"] = np.array([0])

@@ -13,11 +13,17 @@ file under the final name.
 Units: files are taken to be in mm. A mesh whose extent looks like metres
 (largest bounding-box edge < 1) or micrometres (> 5,000) is refused unless
 ``units=`` says how to convert it.
+
+A file that cannot be read (not text, empty, truncated, a value that is not a number, an
+element or set naming a node no ``*NODE`` line defines, a node id defined twice, no volume
+cells) raises :class:`~toolkit.common.mesh.MeshError` naming the file, the line where known,
+and what was expected.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -27,7 +33,7 @@ import numpy as np
 
 from toolkit.common.abaqus import write_abaqus
 from toolkit.common.convert import ELSET_PREFIX, NODESET_PREFIX, from_meshio, to_meshio
-from toolkit.common.mesh import Mesh, MeshError
+from toolkit.common.mesh import VOLUME_TYPES, Mesh, MeshError
 
 __all__ = [
     "read",
@@ -58,7 +64,7 @@ class UnitsError(MeshError):
 def _format(path: Path) -> str:
     fmt = FORMATS.get(path.suffix.lower())
     if fmt is None:
-        raise ValueError(f"unknown mesh format {path.suffix!r} of {str(path)!r}; expected one of {sorted(FORMATS)}")
+        raise MeshError(f"unknown mesh format {path.suffix!r} of {str(path)!r}; expected one of {sorted(FORMATS)}")
     return fmt
 
 
@@ -71,12 +77,12 @@ def check_units(mesh: Mesh, source: str = "mesh") -> None:
     if ext < lo:
         raise UnitsError(
             f"{source} is {ext:.4g} units across: that looks like metres, not mm (a face is ~100-200 mm)."
-            f" Pass units='m' to convert, or units='mm' with check_units=False if it really is that small."
+            f" Pass units='m' (command line: --units m) to convert, or check=False if it really is that small."
         )
     if ext > hi:
         raise UnitsError(
             f"{source} is {ext:.4g} units across: that looks like micrometres, not mm (a face is ~100-200 mm)."
-            f" Pass units='um' to convert."
+            f" Pass units='um' (command line: --units um) to convert."
         )
 
 
@@ -184,6 +190,7 @@ def read(
     require_node_sets: Iterable[str] = (),
     require_element_sets: Iterable[str] = (),
     check: bool = True,
+    require_volume: bool = True,
 ) -> Mesh:
     """Read a VTU, XDMF or Abaqus ``.inp`` mesh with its sets.
 
@@ -194,20 +201,24 @@ def read(
         converted to mm
     require_node_sets, require_element_sets : names that must be present
     check : refuse meshes whose size does not look like mm (see :func:`check_units`)
+    require_volume : refuse a mesh without volume cells (a surface mesh)
 
     Returns
     -------
     Mesh, points ``(n, 3)`` mm
     """
-    import meshio
-
     path = Path(path)
     fmt = _format(path)
     if not path.exists():
         raise FileNotFoundError(f"mesh file {str(path)!r} does not exist")
     if units not in UNIT_SCALES:
         raise ValueError(f"unknown units {units!r}; expected one of {sorted(UNIT_SCALES)}")
-    mesh = _decode_sets(from_meshio(meshio.read(path, file_format=fmt)))
+    mesh = _decode_sets(_read_meshio(path, fmt))
+    if require_volume and mesh.n_volume_cells == 0:
+        raise MeshError(
+            f"{path.name} holds no volume cells (cell blocks: {_describe_blocks(mesh)}); expected a volume mesh"
+            f" of {', '.join(VOLUME_TYPES)}"
+        )
     if UNIT_SCALES[units] != 1.0:
         mesh = mesh.with_points(mesh.points * UNIT_SCALES[units])
     if check:
@@ -220,6 +231,115 @@ def read(
             f" {sorted(mesh.element_sets)}"
         )
     return mesh
+
+
+_FORMAT_NAMES = {"vtu": "a VTU (VTK XML) file", "xdmf": "an XDMF file with its .h5",
+                 "abaqus": "an Abaqus .inp text file"}
+#: messages of Python's number parsing: the offending text is quoted at the end
+_NUMBER_ERROR = re.compile(r"(?:could not convert string to float|invalid literal for int\(\) with base \d+): '(.*)'$")
+
+
+def _describe_blocks(mesh: Mesh) -> str:
+    return ", ".join(f"{t}: {c.shape[0]}" for t, c in mesh.cells.items()) or "none"
+
+
+def _read_meshio(path: Path, fmt: str) -> Mesh:
+    """``meshio`` reading with every failure turned into a :class:`MeshError` that names the file
+    (and the line of an Abaqus file where it can be found)."""
+    expected = _FORMAT_NAMES[fmt]
+    if path.stat().st_size == 0:
+        raise MeshError(f"{path.name} is empty (0 bytes); expected {expected}")
+    lines = None
+    if fmt == "abaqus":
+        raw = path.read_bytes()
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            line = raw.count(b"\n", 0, exc.start) + 1
+            raise MeshError(f"{path.name}, line {line}: byte 0x{raw[exc.start]:02x} is not text (UTF-8);"
+                            f" expected {expected}") from None
+        lines = text.splitlines()
+        _check_abaqus_node_ids(path, lines)
+    # meshio's own ``read`` prints and calls sys.exit on a file it cannot parse; its per-format
+    # readers raise instead
+    from meshio._helpers import reader_map
+
+    try:
+        m = reader_map[fmt](str(path))
+    except (MemoryError, KeyboardInterrupt):
+        raise
+    except Exception as exc:  # noqa: BLE001 - any parse failure of a third-party reader
+        raise MeshError(_parse_failure(path, fmt, exc, lines)) from exc
+    try:
+        return from_meshio(m)
+    except MeshError as exc:
+        if np.asarray(m.points).size == 0:
+            raise MeshError(f"{path.name} holds no points; expected {expected} with nodes and cells") from exc
+        raise MeshError(f"{path.name}: {exc}") from exc
+
+
+def _parse_failure(path: Path, fmt: str, exc: Exception, lines: list[str] | None) -> str:
+    expected = _FORMAT_NAMES[fmt]
+    cause = exc
+    while str(cause) in ("", type(cause).__name__) and (cause.__cause__ or cause.__context__) is not None:
+        cause = cause.__cause__ or cause.__context__  # meshio's ReadError() wraps the parser's message
+    reason = f"{type(cause).__name__}: {cause}" if str(cause) else type(cause).__name__
+    if lines is None:
+        return f"{path.name} cannot be read as {expected} ({reason}); is it truncated or of another format?"
+    token = None
+    if isinstance(exc, KeyError):
+        token = str(int(exc.args[0])) if exc.args and np.issubdtype(type(exc.args[0]), np.integer) else None
+        if token is not None:
+            line = _abaqus_line(lines, token, data_only=("*ELEMENT", "*NSET", "*ELSET"))
+            where = f", line {line}" if line else ""
+            return (f"{path.name}{where}: refers to node or element {token}, which no *NODE or *ELEMENT line"
+                    f" defines; expected ids defined in the file")
+    match = _NUMBER_ERROR.search(reason)
+    if match:
+        token = match.group(1)
+        line = _abaqus_line(lines, token.strip())
+        where = f", line {line}" if line else ""
+        return f"{path.name}{where}: {token.strip()!r} is not a number; expected comma-separated numbers"
+    named = str(cause).rpartition(": ")[2].strip()
+    line = next((k for k, text in enumerate(lines, 1) if named and named.upper() in text.upper()), None)
+    where = f", line {line}" if line and named != str(cause) else ""
+    return f"{path.name}{where} cannot be read as {expected}: {cause}"
+
+
+def _abaqus_line(lines: list[str], token: str, data_only: tuple[str, ...] | None = None) -> int | None:
+    """1-based number of the first data line holding the field ``token`` (in the given keyword blocks)."""
+    keyword = ""
+    for k, line in enumerate(lines, 1):
+        if line.startswith("*"):
+            keyword = line.split(",")[0].strip().upper()
+            continue
+        if data_only is not None and keyword not in data_only:
+            continue
+        fields = [f.strip() for f in line.split(",")]
+        if data_only is not None and keyword == "*ELEMENT":
+            fields = fields[1:]  # the element's own id
+        if token in fields:
+            return k
+    return None
+
+
+def _check_abaqus_node_ids(path: Path, lines: list[str]) -> None:
+    """Refuse a node id defined twice (meshio would keep the last and renumber the rest)."""
+    ids, where, keyword = [], [], ""
+    for k, line in enumerate(lines, 1):
+        if line.startswith("*"):
+            keyword = line.split(",")[0].strip().upper()
+        elif keyword == "*NODE" and line.strip() and not line.startswith("**"):
+            ids.append(line.split(",", 1)[0].strip())
+            where.append(k)
+    if len(set(ids)) == len(ids):
+        return
+    seen = {}
+    for node, k in zip(ids, where):
+        if node in seen:
+            raise MeshError(f"{path.name}, line {k}: node id {node} is defined twice (first on line {seen[node]});"
+                            f" expected each *NODE id once")
+        seen[node] = k
 
 
 # ------------------------------------------------------------------ time series

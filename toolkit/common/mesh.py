@@ -158,7 +158,8 @@ class Mesh:
         bad = ~np.isfinite(pts).all(axis=1)
         if bad.any():
             ids = np.flatnonzero(bad)
-            raise MeshError(f"{ids.size} points have NaN/inf coordinates (first: {ids[:5].tolist()})")
+            raise MeshError(f"{ids.size} points have NaN/inf coordinates (first point indices, from 0:"
+                            f" {ids[:5].tolist()}); expected finite coordinates (mm)")
         n = pts.shape[0]
         cells = {}
         for ctype, conn in dict(self.cells).items():
@@ -209,6 +210,12 @@ class Mesh:
         object.__setattr__(self, "element_sets", MappingProxyType(element_sets))
         object.__setattr__(self, "point_data", MappingProxyType(point_data))
         object.__setattr__(self, "cell_data", MappingProxyType(cell_data))
+
+    def __reduce__(self):
+        # the read-only mappings (mappingproxy) cannot be pickled: rebuild from plain dicts, which
+        # makes meshes picklable (process pools) and deep-copyable
+        return (type(self), (self.points, dict(self.cells), dict(self.node_sets), dict(self.element_sets),
+                             dict(self.point_data), dict(self.cell_data)))
 
     # ------------------------------------------------------------------ sizes
     @property

@@ -15,9 +15,10 @@ Units: mm, s, tonne, MPa.
 
 from __future__ import annotations
 
+import difflib
 import os
 import tomllib
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -226,10 +227,10 @@ class Scene:
 
     @classmethod
     def from_dict(cls, d: dict) -> Scene:
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise SceneError(f"unknown scene keys {sorted(unknown)}; expected {sorted(known)}")
+        """Inverse of :meth:`as_dict`. An unknown key or a value of the wrong type raises a
+        :class:`SceneError` naming the table and the key, e.g. ``[ball] velocity = 'fast':
+        expected a number (mm/s)``, with the closest known key for a typo."""
+        _check_table(d, cls, "")
         kw = dict(d)
 
         def mat(x):
@@ -260,8 +261,19 @@ class Scene:
         path = Path(path)
         if path.suffix.lower() != ".toml":
             raise SceneError(f"scenes are TOML files; got {str(path)!r}")
+        raw = path.read_bytes()
         try:
-            return cls.from_dict(tomllib.loads(path.read_text()))
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            line = raw.count(b"\n", 0, exc.start) + 1
+            raise SceneError(f"{path}, line {line}: byte 0x{raw[exc.start]:02x} is not text (UTF-8); expected a"
+                             f" TOML scene") from None
+        try:
+            d = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise SceneError(f"{path}: not valid TOML: {exc}") from None
+        try:
+            return cls.from_dict(d)
         except (TypeError, ValueError) as exc:
             raise SceneError(f"{path}: {exc}") from exc
 
@@ -289,6 +301,77 @@ class Scene:
         with atomic_path(path) as tmp:
             tmp.write_text("\n".join(lines))
         return Path(path)
+
+
+#: units of the scene's numeric keys, for messages
+_UNITS = {"radius": "mm", "velocity": "mm/s", "direction": "a direction", "target": "mm", "target_offset": "mm",
+          "gap": "mm", "driven_fraction": "a fraction of the radius", "E": "MPa", "nu": "Poisson's ratio",
+          "density": "tonne/mm^3",
+          "lower_fixed_fraction": "a fraction of the height", "friction": "Coulomb coefficient",
+          "dt_fraction": "a fraction of the stable step", "mass_scaling": "a factor >= 1",
+          "safety": "a factor in (0, 1]", "dt": "s", "tolerance": "relative residual", "duration": "s"}
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _is_vector(v) -> bool:
+    return isinstance(v, (list, tuple)) and len(v) == 3 and all(_is_number(x) for x in v)
+
+
+def _is_table(v) -> bool:
+    return isinstance(v, (list, tuple)) and all(
+        isinstance(r, (list, tuple)) and len(r) == 2 and all(_is_number(x) for x in r) for r in v)
+
+
+#: annotation of a scene field -> (what it accepts, predicate)
+_KINDS = {
+    "float": ("a number", _is_number),
+    "int": ("an integer", lambda v: _is_number(v) and float(v).is_integer()),
+    "bool": ("true or false", lambda v: isinstance(v, (bool, np.bool_))),
+    "str": ("a string", lambda v: isinstance(v, str)),
+    "tuple": ("3 numbers", _is_vector),
+}
+
+
+def _expected(annotation: str, key: str):
+    """(description, predicate) of the values a field with this annotation accepts."""
+    optional = annotation.endswith("| None")
+    kind = annotation.replace("| None", "").strip()
+    if key == "yield_table":
+        what, ok = "a list of [stress MPa, plastic strain] pairs", _is_table
+    else:
+        what, ok = _KINDS.get(kind, ("a table", lambda v: isinstance(v, (dict, MaterialSpec))))
+    unit = _UNITS.get(key)
+    what = f"{what} ({unit})" if unit else what
+    return what, (lambda v: v is None or ok(v)) if optional else ok
+
+
+def _check_table(d, spec, table: str) -> None:
+    """Refuse unknown keys and values of the wrong type in the scene table ``table`` (``""`` for the
+    top level) of the dataclass ``spec``, recursing into nested tables."""
+    where = f"[{table}] " if table else ""
+    if not isinstance(d, dict):
+        raise SceneError(f"{where or 'the scene '}is {d!r}; expected a table")
+    known = {f.name: f for f in fields(spec)}
+    required = [f.name for f in fields(spec) if f.default is MISSING and f.default_factory is MISSING]
+    missing = [k for k in required if k not in d]
+    if missing:
+        raise SceneError(f"{where or 'the scene '}lacks {missing}; expected the keys "
+                         f"{[f'{k} ({_UNITS[k]})' if k in _UNITS else k for k in required]}")
+    for key, value in d.items():
+        if key not in known:
+            close = difflib.get_close_matches(key, list(known), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise SceneError(f"{where or 'the scene '}has no key {key!r}; expected one of {sorted(known)}{hint}")
+        what, ok = _expected(str(known[key].type), key)
+        if not ok(value):
+            raise SceneError(f"{where}{key} = {value!r}: expected {what}")
+        if isinstance(value, dict):
+            nested = {"FaceSpec": FaceSpec, "BallSpec": BallSpec, "ContactSpec": ContactSpec, "Fidelity": Fidelity,
+                      "MaterialSpec": MaterialSpec}[str(known[key].type)]
+            _check_table(value, nested, f"{table}.{key}" if table else key)
 
 
 def _toml_value(v) -> str:

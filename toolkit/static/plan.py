@@ -33,6 +33,7 @@ bimaxillary plan (``toolkit/static/data/default_plan.toml``) on a phantom.
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import tomllib
@@ -127,7 +128,7 @@ def _vector(value, n: int, name: str) -> np.ndarray:
     try:
         a = np.array(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise PlanError(f"{name} = {value!r} is not {n} numbers: {exc}") from exc
+        raise PlanError(f"{name} = {value!r}: expected {n} numbers ({exc})") from exc
     if a.shape != (n,):
         raise PlanError(f"{name} has shape {a.shape}, expected ({n},)")
     if not np.all(np.isfinite(a)):
@@ -320,7 +321,8 @@ class RigidMotion:
         else required unless the motion does not rotate."""
         unknown = sorted(set(d) - set(_MOTION_KEYS))
         if unknown:
-            raise PlanError(f"unknown keys {unknown}; expected some of {list(_MOTION_KEYS)}")
+            raise PlanError(f"unknown keys {unknown}; expected some of {list(_MOTION_KEYS)}"
+                            f"{_did_you_mean(unknown[0], _MOTION_KEYS)}")
         given = [k for k in _ROTATION_KEYS if k in d]
         if len(given) > 1 and set(given) != {"rotation_quaternion", "rotation_vector_deg"}:
             raise PlanError(f"rotation given as {given}; give one of {list(_ROTATION_KEYS)}")
@@ -401,7 +403,8 @@ def proximal_reference_points(phantom: FacePhantom, fraction: float = 0.25) -> t
 def _check_names(names) -> None:
     unknown = sorted(set(names) - set(SEGMENTS))
     if unknown:
-        raise PlanError(f"unknown segments {unknown}; the known segments are {list(SEGMENTS)}")
+        raise PlanError(f"unknown segments {unknown}; the known segments are {list(SEGMENTS)}"
+                        f" (and the key 'force'){_did_you_mean(unknown[0], (*SEGMENTS, 'force'))}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -452,7 +455,8 @@ class SurgicalPlan:
                 )
                 if value > 2 * limit:
                     if not force:
-                        raise PlanError(f"{msg} by more than twice; build the plan with force=True to accept it")
+                        raise PlanError(f"{msg} by more than twice; build the plan with force=True "
+                                        "(command line: --force) to accept it")
                     msg += ", more than twice; accepted because force=True"
                 warnings.warn(msg, PlanRangeWarning, stacklevel=stacklevel)
 
@@ -564,12 +568,14 @@ class SurgicalPlan:
         return cls(motions, force=force)
 
     @classmethod
-    def read(cls, path, phantom: FacePhantom | None = None) -> SurgicalPlan:
-        """Read a ``.toml`` or ``.json`` plan (see the module docstring for the keys)."""
+    def read(cls, path, phantom: FacePhantom | None = None, *, force: bool = False) -> SurgicalPlan:
+        """Read a ``.toml`` or ``.json`` plan (see the module docstring for the keys); ``force``
+        accepts movements beyond twice the physiological range whatever the file says."""
         path = Path(path)
         fmt = _format(path)
-        with open(path, "rb") as f:
-            d = tomllib.load(f) if fmt == ".toml" else json.load(f)
+        d = _load(path, fmt)
+        if force and isinstance(d, dict):
+            d = {**d, "force": True}
         try:
             return cls.from_dict(d, phantom)
         except ValueError as exc:
@@ -589,6 +595,34 @@ class SurgicalPlan:
 
         rows = [(k, m.translation_mm, m.angle_deg) for k, m in self.motions.items()]
         return pd.DataFrame(rows, columns=["segment", "translation_mm", "rotation_deg"])
+
+
+def _load(path: Path, fmt: str) -> dict[str, Any]:
+    """The plan file's top-level table; syntax errors name the file and the line."""
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise PlanError(f"{path}, line {line}: byte 0x{raw[exc.start]:02x} is not text (UTF-8); expected a"
+                        f" {fmt[1:].upper()} plan") from None
+    try:
+        d = tomllib.loads(text) if fmt == ".toml" else json.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise PlanError(f"{path}: not valid TOML: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise PlanError(f"{path}, line {exc.lineno}, column {exc.colno}: not valid JSON: {exc.msg}") from None
+    if not isinstance(d, dict):
+        raise PlanError(f"{path} holds a JSON {type(d).__name__}; expected an object of segment tables")
+    if not d:
+        raise PlanError(f"{path} is empty; expected one table per moved segment, of {list(SEGMENTS)}"
+                        f" (see the packaged default_plan.toml)")
+    return d
+
+
+def _did_you_mean(name: str, known) -> str:
+    close = difflib.get_close_matches(str(name), list(known), n=1)
+    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 def _format(path: Path) -> str:
