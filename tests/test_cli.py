@@ -165,3 +165,166 @@ def test_static_dataset_on_a_local_dask_cluster(tmp_path, capsys):
     a, b = read_samples(tmp_path / "dask.h5"), read_samples(tmp_path / "local.h5")
     assert len(a) == 6 and (a.status == "ok").all()
     assert a[["key", "increment", "lefort_tx", "distal_ry"]].equals(b[["key", "increment", "lefort_tx", "distal_ry"]])
+
+
+OUT_COMMANDS = [
+    ["static", "simulate"], ["static", "train", "--data", "db.h5"], ["static", "evaluate", "--model", "m", "--data",
+                                                                        "db.h5"],
+    ["static", "predict", "--model", "m"], ["static", "dataset", "--plans", "2"], ["impact", "simulate"],
+    ["impact", "train", "--data", "db.h5"], ["impact", "evaluate", "--model", "m", "--data", "db.h5"],
+    ["impact", "predict", "--model", "m", "--velocity", "30"], ["impact", "dataset"], ["demo"],
+    ["phantom", "face-tet4"],
+]
+
+
+@pytest.mark.parametrize("command", OUT_COMMANDS, ids=" ".join)
+def test_an_unwritable_output_is_refused_before_any_computation(command, tmp_path, monkeypatch, capsys):
+    """``--out`` under ``/proc``, an existing file where a folder goes or an existing folder where
+    a file goes is refused at once (exit 2, the path and ``--out`` named), before the inputs are
+    even read: the inputs named here do not exist, and the library's simulate/train functions
+    fail the test if called."""
+    import importlib
+
+    def ran(*args, **kwargs):
+        raise AssertionError("the computation ran")
+
+    for module, name in [("static.simulate", "simulate"), ("impact.simulate", "simulate"),
+                         ("static.surrogate", "train_surrogate"), ("impact.surrogate", "train_surrogate"),
+                         ("static.dataset", "generate"), ("impact.dataset", "build_database")]:
+        monkeypatch.setattr(importlib.import_module(f"toolkit.{module}"), name, ran)
+    existing = tmp_path / "face.inp"
+    existing.write_text("results of an earlier run")
+    writes_a_file = command[0] == "phantom" or "dataset" in command
+    for out in ["/proc/x", str(tmp_path if writes_a_file else existing)]:
+        assert main([*command, "--out", out]) == 2, out
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and repr(out) in err and "--out" in err, err
+    assert existing.read_text() == "results of an earlier run"
+
+
+def test_the_library_refuses_an_unwritable_out_before_computing(tmp_path):
+    """The same check where ``out`` enters the library: toolkit.impact.simulate and both
+    train_surrogate functions refuse before building a model or opening a database."""
+    from toolkit.common.outputs import OutputError
+    from toolkit.impact import default_scene, simulate
+    from toolkit.impact.surrogate import train_surrogate as train_impact
+    from toolkit.static.surrogate import train_surrogate as train_static
+
+    (tmp_path / "face.inp").write_text("x")
+    with pytest.raises(OutputError, match="is an existing file"):
+        simulate(default_scene(), out=tmp_path / "face.inp")
+    with pytest.raises(OutputError, match="model directory '/proc/x'"):
+        train_impact(tmp_path / "missing.h5", out="/proc/x")
+    with pytest.raises(OutputError, match="model directory '/proc/x'"):
+        train_static(tmp_path / "missing.h5", "/proc/x")
+
+
+def _big_plan(path):
+    """The packaged plan with a 14 mm Le Fort I advance (more than twice the 6.3 mm range), force = false."""
+    path.write_text("force = false\n[lefort]\ntranslation_mm = [0.0, 14.0, 0.0]\n")
+    return path
+
+
+def _stop_simulation(monkeypatch, received):
+    from toolkit.static.case import StaticCase
+
+    def stop(case, **kwargs):
+        received["case"] = case
+        raise RuntimeError("stopped before simulating")
+
+    monkeypatch.setattr(StaticCase, "simulate", stop)
+
+
+def test_force_applies_to_a_plan_file(tmp_path, monkeypatch, capsys):
+    """``static simulate --plan big.toml --force`` accepts a plan file beyond twice the range
+    (the file says force = false); without --force the error names the option --force."""
+    plan = _big_plan(tmp_path / "big.toml")
+    received = {}
+    _stop_simulation(monkeypatch, received)
+    assert main(["static", "simulate", "--plan", str(plan), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert "more than twice" in err and "(command line: --force)" in err and "case" not in received
+    with pytest.warns(UserWarning, match="accepted because force=True"):
+        assert main(["static", "simulate", "--plan", str(plan), "--force", "--out", str(tmp_path / "run")]) == 2
+    assert "error: stopped before simulating" in capsys.readouterr().err
+    assert received["case"].plan.force and received["case"].plan.motions["lefort"].translation_mm == 14.0
+
+
+def test_units_option_reads_a_mesh_in_metres(tmp_path, monkeypatch, capsys):
+    """A face written in metres is refused with a remedy naming --units m, and read in mm with it."""
+    from toolkit.common import face_hex
+    from toolkit.static import default_plan
+
+    ph = face_hex("coarse")
+    io.write(tmp_path / "face_m.inp", ph.mesh.with_points(ph.mesh.points / 1000.0))
+    default_plan(ph).write(tmp_path / "plan.toml")
+    received = {}
+    _stop_simulation(monkeypatch, received)
+    args = ["static", "simulate", "--mesh", str(tmp_path / "face_m.inp"), "--plan", str(tmp_path / "plan.toml"),
+            "--out", str(tmp_path / "run")]
+    assert main(args) == 2
+    assert "--units m" in capsys.readouterr().err and "case" not in received
+    assert main([*args, "--units", "m"]) == 2
+    assert "error: stopped before simulating" in capsys.readouterr().err
+    assert received["case"].mesh.points == pytest.approx(ph.mesh.points)
+
+
+def test_defaults_are_the_best_measured_configurations(monkeypatch, capsys):
+    """static train: hard variant with the linear prior; impact train: the strong LSTM;
+    impact simulate: the quasi-static integrator (the scene's own with --scene)."""
+    parsers = dict(_subcommands(build_parser()))
+    args = parsers[("static", "train")].parse_args(["--data", "db.h5", "--out", "m"])
+    assert args.variant == "hard" and args.linear_prior is True
+    args = parsers[("static", "train")].parse_args(["--data", "db.h5", "--out", "m", "--variant", "explicit",
+                                                    "--no-linear-prior"])
+    assert args.variant == "explicit" and args.linear_prior is False
+    assert parsers[("impact", "train")].parse_args(["--data", "db.h5", "--out", "m"]).config == "strong"
+    import importlib
+
+    received = {}
+
+    def stop(scene, **kwargs):
+        received["scene"] = scene
+        raise RuntimeError("stopped before simulating")
+
+    monkeypatch.setattr(importlib.import_module("toolkit.impact.simulate"), "simulate", stop)
+    assert main(["impact", "simulate", "--out", "unused"]) == 2
+    assert received["scene"].fidelity.integrator == "implicit"
+    assert main(["impact", "simulate", "--integrator", "explicit", "--safety", "0.5", "--out", "unused"]) == 2
+    assert received["scene"].fidelity.integrator == "explicit" and received["scene"].fidelity.safety == 0.5
+
+
+def test_every_remedy_names_an_option_that_exists():
+    """Library messages give the command-line spelling of their remedy as ``(command line: --x)``
+    or ``(--x ...)``; every such option exists on some command."""
+    import re
+    from pathlib import Path
+
+    import toolkit
+
+    options = {o for _, p in _subcommands(build_parser()) for a in p._actions for o in a.option_strings}
+    named = set()
+    for source in Path(toolkit.__file__).parent.rglob("*.py"):
+        named |= set(re.findall(r"(?:command line: |\()(--[a-z][a-z-]*)", source.read_text()))
+    assert {"--force", "--units", "--safety", "--integrator"} <= named
+    assert named <= options, named - options
+
+
+def test_an_error_starts_its_own_line_after_a_progress_bar(monkeypatch, capsys):
+    """An error raised while a progress bar is open is printed on a fresh line, not at the end
+    of the bar's line."""
+    import sys
+
+    from tqdm import tqdm
+
+    def fail(args):
+        bar = tqdm(total=10, desc="increments", file=sys.stderr)
+        bar.update(3)
+        raise ValueError("the solve failed")
+
+    args = build_parser().parse_args(["static", "simulate", "--out", "unused"])
+    args.func = fail
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", lambda self, argv=None: args)
+    assert main([]) == 2
+    lines = capsys.readouterr().err.split("\n")
+    assert "error: the solve failed" in lines, lines

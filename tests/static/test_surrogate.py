@@ -134,7 +134,7 @@ def test_cli_dataset_train_evaluate_predict(tmp_path):
     assert main(["static", "dataset", "--resolution", "coarse", "--plans", "3", "--workers", "0",
                  "--out", str(db)]) == 0
     assert main(["static", "train", "--data", str(db), "--out", str(model), "--epochs", "2", "--network", "tiny",
-                 "--lr-schedule", "cosine"]) == 0
+                 "--lr-schedule", "cosine", "--variant", "explicit", "--no-linear-prior"]) == 0
     assert main(["static", "evaluate", "--model", str(model), "--data", str(db), "--out", str(ev),
                  "--no-render"]) == 0
     metrics = json.loads((ev / "metrics.json").read_text())

@@ -42,6 +42,12 @@ def add_common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
 
 
+def add_units(parser: argparse.ArgumentParser) -> None:
+    """``--units``: the length unit of a mesh file, converted to mm."""
+    parser.add_argument("--units", default="mm", choices=["mm", "m", "cm", "um"],
+                        help="length unit of the --mesh file, converted to mm")
+
+
 def torch_threads(args: argparse.Namespace) -> None:
     """torch picks its thread count at import: apply --threads (default 1) again once it is loaded."""
     import torch  # noqa: F401

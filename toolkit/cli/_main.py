@@ -48,8 +48,18 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
+        _close_progress_bars()
         print("interrupted; finished files are complete (all writes are atomic)", file=sys.stderr)
         return 130
     except (ToolkitError, ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
+        _close_progress_bars()
         print(f"error: {exc}", file=sys.stderr)
         return 2
+
+
+def _close_progress_bars() -> None:
+    """Close the progress bars an error left open, so that its message starts a line of its own
+    (not the end of the bar's line)."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ())):
+        bar.close()

@@ -20,7 +20,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    out: Path = args.out
+    from toolkit.common.outputs import check_output_dir
+
+    out: Path = check_output_dir(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
     rows = [_write_phantom(name, kind, args.resolution, out, render=not args.no_render) for name, kind in MESHES]

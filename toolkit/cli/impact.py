@@ -37,6 +37,9 @@ def _add_scene_options(parser: argparse.ArgumentParser, scene: str) -> None:
                         help="tetrahedron order (1: tet4, 2: tet10) (default: the scene's)")
     parser.add_argument("--mass-scaling", type=float,
                         help="density factor >= 1 (longer stable steps) (default: the scene's)")
+    parser.add_argument("--safety", type=float,
+                        help="explicit integrator: time-step safety factor in (0, 1] on the critical step "
+                             "(default: the scene's, 0.9)")
 
 
 def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,16 +47,22 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--velocity", type=float,
                         help="ball velocity, mm/s (the impact paper: 20-50) (default: the scene's, 30)")
     parser.add_argument("--integrator", choices=["explicit", "implicit"],
-                        help="explicit dynamics or quasi-static Newton load steps (default: the scene's, explicit)")
+                        help="quasi-static Newton load steps (implicit: the same answer as explicit dynamics at these "
+                             "ball speeds, in a fraction of the time) or explicit dynamics (the impact paper) "
+                             "(default: implicit; with --scene, the scene's)")
     parser.add_argument("--duration", type=float, help="simulated time, s (default: the scene's, 1.8)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
 
 
 def simulate(args: argparse.Namespace) -> int:
+    from toolkit.common.outputs import check_output_dir
     from toolkit.impact.scene import default_scene
     from toolkit.impact.simulate import simulate
 
+    check_output_dir(args.out)
+    if args.integrator is None and args.scene is None:
+        args.integrator = "implicit"
     result = simulate(scene(args, default_scene), out=args.out, progress=True, preview=not args.no_preview)
     s = result.summary()
     print(f"{s['face_nodes']} face nodes ({s['element']}), {s['ball']} ball at {s['velocity_mm_s']} mm/s: "
@@ -79,10 +88,12 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
 
 def dataset(args: argparse.Namespace) -> int:
     from toolkit.common.database import read_index
+    from toolkit.common.outputs import check_output_file
     from toolkit.common.papers import BALL_VELOCITIES
     from toolkit.impact.dataset import build_database
     from toolkit.impact.scene import yielding_scene
 
+    check_output_file(args.out, what="database file")
     velocities = args.velocities or list(BALL_VELOCITIES)
     with dask_client(args.dask, args.workers) as client:
         report = build_database(args.out, velocities, args.held_out, scene(args, yielding_scene), workers=args.workers,
@@ -102,9 +113,9 @@ def dataset(args: argparse.Namespace) -> int:
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, type=Path, help="database (.h5) from `toolkit impact dataset`")
     parser.add_argument("--out", required=True, type=Path, help="model directory")
-    parser.add_argument("--config", default="paper", choices=CONFIG_NAMES,
-                        help="the impact paper's per-output LSTM (paper), a stronger LSTM (strong) or the "
-                             "non-recurrent baseline (baseline)")
+    parser.add_argument("--config", default="strong", choices=CONFIG_NAMES,
+                        help="a stronger LSTM (strong, the best measured), the impact paper's per-output LSTM "
+                             "(paper) or the non-recurrent baseline (baseline)")
     parser.add_argument("--split", default="random", choices=["random", "velocity"],
                         help="random: 76%% of the items train (the impact paper); velocity: held-out velocities are "
                              "the test set")
@@ -117,6 +128,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def train(args: argparse.Namespace) -> int:
+    from toolkit.common.outputs import check_output_dir
+
+    check_output_dir(args.out, what="model directory")
     torch_threads(args)
     from toolkit.impact.surrogate import resolve_config, train_surrogate
 
@@ -133,7 +147,7 @@ def train(args: argparse.Namespace) -> int:
                             resume=args.resume, progress=True)
     e = model.bundle.extra
     print(f"{cfg.name} ({cfg.network}, hidden {cfg.hidden}, layers {cfg.layers}) on the {args.split} split: "
-          f"{e['epochs_run']} epochs ({e['stopped']}), best validation loss {e['best_val_loss']:.4g} at epoch "
+          f"{e['epochs_run']} epochs ({e['stop_reason']}), best validation loss {e['best_val_loss']:.4g} at epoch "
           f"{e['best_epoch']}, {e['train_seconds']:.1f} s -> {args.out}/ (model.pt, config.json)")
     return 0
 
@@ -152,6 +166,9 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def evaluate(args: argparse.Namespace) -> int:
+    from toolkit.common.outputs import check_output_dir
+
+    check_output_dir(args.out)
     torch_threads(args)
     from toolkit.impact.dataset import load_database
     from toolkit.impact.evaluation import evaluate_surrogate, write_evaluation
@@ -181,6 +198,9 @@ def add_predict_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def predict(args: argparse.Namespace) -> int:
+    from toolkit.common.outputs import check_output_dir
+
+    check_output_dir(args.out)
     torch_threads(args)
     from toolkit.impact.surrogate import ImpactSurrogate, predict_scene
 
@@ -211,6 +231,8 @@ def scene(args: argparse.Namespace, base):
         out = out.with_fidelity(order=args.order)
     if args.mass_scaling is not None:
         out = out.with_fidelity(mass_scaling=args.mass_scaling)
+    if args.safety is not None:
+        out = out.with_fidelity(safety=args.safety)
     if getattr(args, "integrator", None) is not None:
         out = out.with_fidelity(integrator=args.integrator)
     if args.duration is not None:
@@ -221,8 +243,8 @@ def scene(args: argparse.Namespace, base):
 COMMANDS = {
     "simulate": Command(
         help="run an impact scene",
-        description="Run the simulation (explicit or quasi-static) and write face.xdmf (displacement, von_mises), "
-                    "ball.xdmf (deformable ball), history.h5, summary.json and preview.png.",
+        description="Run the simulation (quasi-static by default, or explicit) and write face.xdmf (displacement, "
+                    "von_mises), ball.xdmf (deformable ball), history.h5, summary.json and preview.png.",
         add_arguments=add_simulate_arguments, run=simulate),
     "dataset": Command(
         help="build the learning database (one simulation per velocity)",

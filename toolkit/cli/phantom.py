@@ -24,7 +24,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from toolkit.common.io import write
+    from toolkit.common.outputs import check_output_file
 
+    check_output_file(args.out, what="mesh file")
+    if args.preview:
+        check_output_file(args.preview, what="preview image", option="preview")
     mesh = build(args.kind, args.resolution, face_shape(args.seed, args.mouth_open) if args.kind.startswith("face")
                  else None)
     mesh.check()

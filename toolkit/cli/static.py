@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from toolkit.cli._common import RESOLUTIONS, Command, add_database_run, dask_client
+from toolkit.cli._common import RESOLUTIONS, Command, add_database_run, add_units, dask_client
 
 HELP = "orthognathic-surgery workflow (the lip-sliding paper)"
 DESCRIPTION = "Static workflow: incremental FEM of the face after orthognathic surgery."
@@ -31,15 +31,20 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sliding model (mucosa+lip: the lip-sliding paper)")
     parser.add_argument("--solver", default="auto", choices=["auto", "superlu", "amg", "cholmod"],
                         help="linear solver (auto: chosen by the expected fill of the factor)")
-    parser.add_argument("--force", action="store_true", help="accept movements beyond twice the physiological range")
+    add_units(parser)
+    parser.add_argument("--force", action="store_true",
+                        help="accept movements beyond twice the physiological range (also for a --plan file)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
 
 
 def simulate(args: argparse.Namespace) -> int:
+    from toolkit.common.outputs import check_output_dir
     from toolkit.static import SimulationOptions, load_case
 
-    case = load_case(args.mesh, resolution=args.resolution, plan=args.plan, bones=bones(args.bone), force=args.force)
+    check_output_dir(args.out)
+    case = load_case(args.mesh, resolution=args.resolution, plan=args.plan, bones=bones(args.bone), force=args.force,
+                     units=args.units)
     result = case.simulate(increments=args.increments, material=args.material, sliding=args.sliding,
                            options=SimulationOptions(solver=args.solver, progress=True))
     result.write(args.out, preview=not args.no_preview)
@@ -58,7 +63,8 @@ def simulate(args: argparse.Namespace) -> int:
 def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolution", default="coarse", choices=RESOLUTIONS, help="phantom resolution")
     parser.add_argument("--subjects", type=int, default=1,
-                        help="phantom subjects (0: default shape; k: FaceShape.sample(k))")
+                        help="number of phantom subjects, >= 1: subject 0 is the default shape, subject k >= 1 "
+                             "FaceShape.sample(k)")
     parser.add_argument("--plans", type=int, required=True, help="plans per subject")
     parser.add_argument("--mode", default="sagittal", choices=["sagittal", "full"], help="plan directions")
     parser.add_argument("--increments", type=int, default=3, help="increments per simulation")
@@ -73,8 +79,10 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def dataset(args: argparse.Namespace) -> int:
+    from toolkit.common.outputs import check_output_file
     from toolkit.static.dataset import DatasetConfig, generate
 
+    check_output_file(args.out, what="database file")
     config = DatasetConfig(resolution=args.resolution, subjects=args.subjects, plans=args.plans, mode=args.mode,
                            increments=args.increments, material=args.material, sliding=args.sliding, seed=args.seed,
                            poisson_range=tuple(args.poisson_range) if args.poisson_range else None)
@@ -90,15 +98,16 @@ def dataset(args: argparse.Namespace) -> int:
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, type=Path, help="database (.h5) from `toolkit static dataset`")
     parser.add_argument("--out", required=True, type=Path, help="model directory")
-    parser.add_argument("--variant", default="explicit", choices=["explicit", "implicit", "hard"],
-                        help="boundary types as inputs (explicit, the PointNet++ paper), none (implicit), or explicit "
-                             "with exact boundary values (hard)")
+    parser.add_argument("--variant", default="hard", choices=["explicit", "implicit", "hard"],
+                        help="boundary types as inputs with exact boundary values (hard, the most accurate measured), "
+                             "boundary types as inputs (explicit, the PointNet++ paper) or none (implicit)")
     parser.add_argument("--extra-channels", action="store_true",
                         help="mucosa/lip one-hot, jaw side, mucosa bone motion")
     parser.add_argument("--material-channels", action="store_true", help="Poisson's ratio per node")
-    parser.add_argument("--linear-prior", action="store_true",
+    parser.add_argument("--linear-prior", action=argparse.BooleanOptionalAction, default=True,
                         help="learn the residual over the linear influence-matrix solution (given as input, added "
-                             "back)")
+                             "back); --no-linear-prior with --variant explicit is the PointNet++ paper's model "
+                             "(default: on)")
     parser.add_argument("--network", default="small", choices=["paper", "small", "tiny"], help="network size")
     parser.add_argument("--test-subjects", type=int, nargs="*", default=None,
                         help="hold these subjects out for testing (default: 70/10/20 split by simulation)")
@@ -114,9 +123,11 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def train(args: argparse.Namespace) -> int:
+    from toolkit.common.outputs import check_output_dir
     from toolkit.static.features import FeatureSpec
     from toolkit.static.surrogate import SurrogateConfig, train_surrogate
 
+    check_output_dir(args.out, what="model directory")
     config = SurrogateConfig(
         FeatureSpec(args.variant, args.extra_channels, args.material_channels, args.linear_prior),
         network=args.network,
@@ -127,7 +138,7 @@ def train(args: argparse.Namespace) -> int:
     model = train_surrogate(args.data, args.out, config, resume=args.resume)
     x = model.bundle.extra
     print(f"trained {config.features.variant} PointNet++ ({x['parameters']:,} parameters) on {x['split']['train']} "
-          f"samples in {x['train_seconds']:.0f} s: best epoch {x['best_epoch']} ({x['stopped']}) -> {args.out}")
+          f"samples in {x['train_seconds']:.0f} s: best epoch {x['best_epoch']} ({x['stop_reason']}) -> {args.out}")
     return 0
 
 
@@ -140,9 +151,11 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def evaluate(args: argparse.Namespace) -> int:
+    from toolkit.common.outputs import check_output_dir
     from toolkit.static.dataset import subject_phantom
     from toolkit.static.surrogate import Surrogate, evaluate_surrogate, write_evaluation
 
+    check_output_dir(args.out)
     model = Surrogate.load(args.model, device=args.device)
     result = evaluate_surrogate(model, args.data)
     mesh = None if args.no_render else subject_phantom(_database_resolution(args.data), 0).mesh
@@ -166,18 +179,24 @@ def add_predict_arguments(parser: argparse.ArgumentParser) -> None:
                         help="built-in phantom (default: the training database's)")
     parser.add_argument("--bone", action="append", default=[], metavar="SEGMENT=FILE",
                         help="as for simulate (default: the phantom's surfaces, or the mesh's bone-side faces)")
+    add_units(parser)
+    parser.add_argument("--force", action="store_true",
+                        help="accept movements beyond twice the physiological range (also for a --plan file)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
 
 
 def predict(args: argparse.Namespace) -> int:
+    from toolkit.common.outputs import check_output_dir
     from toolkit.static import load_case
     from toolkit.static.surrogate import Surrogate
 
+    check_output_dir(args.out)
     model = Surrogate.load(args.model, device=args.device)
     resolution = args.resolution or model.bundle.data["database"]["resolution"]
-    case = load_case(args.mesh, resolution=resolution, plan=args.plan, bones=bones(args.bone))
+    case = load_case(args.mesh, resolution=resolution, plan=args.plan, bones=bones(args.bone), force=args.force,
+                     units=args.units)
     result = model.predict_plan(case.subject, case.plan, segments=case.segments)
     result.write(args.out, preview=not args.no_preview)
     s = result.summary()

@@ -307,7 +307,9 @@ class _EnergyLedger(_WorkLedger):
         self.scale = max(self.scale, abs(e.external), e.internal)
         if e.kinetic > 100.0 * (self.scale + self.ke_start) + 1e-12:
             raise InstabilityError(f"kinetic energy {e.kinetic:.3g} mJ exceeds 100x the work done",
-                                   t, None, None, "the time step is unstable: lower the safety factor")
+                                   t, None, None, "the time step is unstable: lower the time-step safety factor "
+                                   "(Fidelity.safety; command line: --safety) or use the quasi-static integrator "
+                                   "(--integrator implicit)")
 
 
 def _frame(model: ExplicitModel, t: float, u: np.ndarray, internal: _InternalForces, energies: Energies,
@@ -373,13 +375,16 @@ def run_explicit(model: ExplicitModel, duration: float, n_frames: int, on_frame:
         t += dt
         if not np.isfinite(u_new).all():
             raise InstabilityError("displacements became NaN/inf", t, None, None,
-                                   "lower the time-step safety factor or the mass scaling")
+                                   "lower the time-step safety factor (--safety) or the mass scaling (--mass-scaling), "
+                                   "or use the quasi-static integrator (--integrator implicit)")
         try:
             internal_new = _internal_forces(model, u_new, internal.states)
         except _Inverted as exc:
             raise InstabilityError(f"{exc.body} element {exc.element} inverted (det F <= 0)", t, exc.body,
-                                   exc.element, "lower the time-step safety factor, the ball velocity or the mass "
-                                   "scaling; or refine the mesh where it inverted") from None
+                                   exc.element, "lower the time-step safety factor (Fidelity.safety; command line: "
+                                   "--safety), the ball velocity (--velocity) or the mass scaling (--mass-scaling); "
+                                   "or use the quasi-static integrator (--integrator implicit); or refine the mesh "
+                                   "where it inverted") from None
         contact_new = _contact(model, u_new, v_new, t, dt)
         ledger.record(t, dt, du, v_new, internal, internal_new, contact_new)
         stats["max_contact_force_n"] = max(stats["max_contact_force_n"],

@@ -79,6 +79,7 @@ def load_case(
     bones: Mapping[str, str | Path | Mesh] | None = None,
     shape: FaceShape | None = None,
     force: bool = False,
+    units: str = "mm",
 ) -> StaticCase:
     """The face, plan and bony segments of a static simulation.
 
@@ -96,7 +97,9 @@ def load_case(
         ``skull``) -> bone surface file (STL, OBJ, PLY, VTK, VTU, OFF) or tri3 Mesh, mm;
         replaces that segment's surface
     shape : FaceShape of the phantom (default the nominal subject); phantom only
-    force : accept movements beyond twice the physiological range (they warn)
+    force : accept movements beyond twice the physiological range (they warn), also when a
+        plan file does not say ``force = true``
+    units : length unit of a mesh file (``mm``, ``m``, ``cm``, ``um``), converted to mm
 
     Returns
     -------
@@ -118,7 +121,7 @@ def load_case(
         if plan is None:
             plan = default_plan(phantom, force=force)
         else:
-            plan = plan if isinstance(plan, SurgicalPlan) else SurgicalPlan.read(plan, phantom=phantom)
+            plan = plan if isinstance(plan, SurgicalPlan) else SurgicalPlan.read(plan, phantom=phantom, force=force)
             if force:
                 plan = SurgicalPlan(plan.motions, force=True)
         segments = dict(phantom.segments)
@@ -134,8 +137,8 @@ def load_case(
     from toolkit.common.io import read
     from toolkit.static.boundary import BoundaryError, segments_from_mesh
 
-    face = mesh if isinstance(mesh, Mesh) else read(mesh, require_node_sets=["fixed"])
-    plan = plan if isinstance(plan, SurgicalPlan) else SurgicalPlan.read(plan)
+    face = mesh if isinstance(mesh, Mesh) else read(mesh, units=units, require_node_sets=["fixed"])
+    plan = plan if isinstance(plan, SurgicalPlan) else SurgicalPlan.read(plan, force=force)
     if force:
         plan = SurgicalPlan(plan.motions, force=True)
     pivots = {k: m.pivot for k, m in plan.motions.items()}
