@@ -229,3 +229,55 @@ def test_the_default_scene_is_mirror_symmetric_about_the_midsagittal_plane(resol
     assert mirror_index(face.points[skin], lips, tol=1e-9) is not None
     assert mirror_index(face.points[skin], tol=1e-9) is None  # the lips' coincident nodes need the labels
     assert abs(built.ball_centre[0]) < 1e-9 and default_scene().ball.direction[0] == 0.0
+
+
+def test_default_scenes_fit_their_support():
+    """The impact paper's band-held scene never meets a support (limit inf); the skull-held
+    yielding scene at every paper velocity (20-50 mm/s over 0.36 s, at most 18 mm of travel) fits
+    the ~19 mm the skull leaves on the coarse and the paper face (tet10)."""
+    from toolkit.impact import yielding_scene
+    from toolkit.impact.simulate import check_travel, face_mesh, travel_limit
+
+    assert travel_limit(default_scene().with_face(resolution="coarse")) == np.inf
+    for resolution in ("coarse", "paper"):
+        scene = yielding_scene(50.0).with_face(resolution=resolution)
+        face = face_mesh(scene)
+        assert 18.0 < travel_limit(scene, face) < 21.0
+        for v in (20.0, 30.0, 40.0, 50.0):
+            check_travel(scene.with_ball(velocity=v), face)
+
+
+def test_a_ball_driven_through_the_skull_is_refused_before_any_step(tmp_path, monkeypatch):
+    """0.9 s at 50 mm/s (45 mm) on the skull-held face would crush the ~21 mm of tissue against the
+    bone (an element inverts after ~27 mm): simulate and build_database refuse it with a SceneError
+    before any step is computed or any file written, naming the longest duration that fits
+    (--duration); that duration passes the check and one millisecond more does not."""
+    import importlib
+    import re
+    from dataclasses import replace
+
+    from toolkit.impact import SceneError, yielding_scene
+    from toolkit.impact.dataset import build_database
+    from toolkit.impact.simulate import check_travel
+
+    sim = importlib.import_module("toolkit.impact.simulate")
+
+    def no_step(*args, **kwargs):
+        raise AssertionError("a step was computed")
+
+    monkeypatch.setattr(sim, "run_explicit", no_step)
+    scene = replace(yielding_scene(50.0).with_face(resolution="coarse").with_ball(rigid=True).with_fidelity(order=1),
+                    duration=0.9)
+    with pytest.raises(SceneError, match=r"45\.0 mm .* --duration (\d\.\d+)") as info:
+        simulate(scene, out=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(SceneError, match="--duration"):
+        build_database(tmp_path / "db.h5", [30.0, 50.0], [], scene, workers=0, progress=False)
+    assert not (tmp_path / "db.h5").exists()
+    longest = float(re.search(r"--duration (\d\.\d+)", str(info.value)).group(1))
+    assert 0.36 <= longest < 0.42
+    check_travel(replace(scene, duration=longest))
+    with pytest.raises(SceneError):
+        check_travel(replace(scene, duration=longest + 0.001))
+    with pytest.raises(SceneError, match="at 30 mm/s"):
+        check_travel(replace(scene, duration=0.9).with_ball(velocity=30.0))

@@ -452,15 +452,19 @@ class TimeSeriesWriter:
         (ctype, conn), = self.mesh.cells.items()
         h5 = self.h5_path.name
         n, ne = self.mesh.n_points, conn.shape[0]
-        parts = ['<?xml version="1.0"?>', '<Xdmf Version="3.0"><Domain>',
-                 '<Grid Name="TimeSeries" GridType="Collection" CollectionType="Temporal">']
+        topology = (f'<Topology TopologyType="{_XDMF_TOPOLOGY[ctype]}" NumberOfElements="{ne}">'
+                    f'<DataItem DataType="Int" Precision="8" Dimensions="{ne} {conn.shape[1]}" Format="HDF">'
+                    f'{h5}:/mesh/cells</DataItem></Topology>')
+        geometry = (f'<Geometry GeometryType="XYZ"><DataItem DataType="Float" Precision="8" Dimensions="{n} 3"'
+                    f' Format="HDF">{h5}:/mesh/points</DataItem></Geometry>')
+        parts = ['<?xml version="1.0"?>', '<Xdmf Version="3.0"><Domain>']
+        if not self.times:  # the mesh alone, so that a series stopped before its first frame still opens
+            parts.append(f'<Grid Name="mesh" GridType="Uniform">{topology}{geometry}</Grid>')
+        parts.append('<Grid Name="TimeSeries" GridType="Collection" CollectionType="Temporal">')
         for k, t in enumerate(self.times):
             parts.append(f'<Grid Name="frame_{k}" GridType="Uniform"><Time Value="{t!r}"/>')
-            parts.append(f'<Topology TopologyType="{_XDMF_TOPOLOGY[ctype]}" NumberOfElements="{ne}">'
-                         f'<DataItem DataType="Int" Precision="8" Dimensions="{ne} {conn.shape[1]}" Format="HDF">'
-                         f'{h5}:/mesh/cells</DataItem></Topology>')
-            parts.append(f'<Geometry GeometryType="XYZ"><DataItem DataType="Float" Precision="8" Dimensions="{n} 3"'
-                         f' Format="HDF">{h5}:/mesh/points</DataItem></Geometry>')
+            parts.append(topology)
+            parts.append(geometry)
             for name, shape in self.fields.items():
                 kind = {(): "Scalar", (3,): "Vector"}.get(shape, "Tensor" if shape == (3, 3) else "Matrix")
                 dims = " ".join(str(d) for d in (n,) + shape)

@@ -122,7 +122,7 @@ def build_database(out: str | os.PathLike, velocities=PAPER_VELOCITIES, held_out
     -------
     RunReport (done, failed with reasons, skipped)
     """
-    from toolkit.impact.simulate import face_mesh, fixed_nodes
+    from toolkit.impact.simulate import check_travel, face_mesh, fixed_nodes
 
     scene = scene or yielding_scene()
     train_v = [float(v) for v in velocities]
@@ -133,6 +133,7 @@ def build_database(out: str | os.PathLike, velocities=PAPER_VELOCITIES, held_out
     if len(set(everything)) != len(everything):
         raise ValueError(f"velocities {train_v} and held-out {held} repeat a value")
     face = face_mesh(scene)
+    check_travel(scene.with_ball(velocity=max(everything)), face)  # the fastest ball travels farthest
     masks = {}
     for name in ("skin", "bone"):
         if name in face.node_sets:

@@ -4,11 +4,15 @@ Only what the scene needs is built: a rigid ball has no mesh (contact against th
 analytic sphere), an elastic material (no yield table) skips the return mapping, and
 contact is searched only once the ball is near the skin.
 
-Outputs (:meth:`ImpactResult.write`): ``face.xdmf`` (+ ``.h5``; point data
+Outputs (:func:`simulate` with ``out``): ``face.xdmf`` (+ ``.h5``; point data
 ``displacement`` mm and ``von_mises`` MPa per frame), ``ball.xdmf`` for a deformable ball,
-``history.h5`` (times, energies, contact force, penetration), ``summary.json`` and
-``preview.png``. Frames are appended to the files as the run goes (an interrupted run
-keeps its finished frames).
+``history.h5`` (times, energies, contact force, penetration), ``summary.json`` (``"status"``:
+``"finished"``, ``"failed"`` or ``"interrupted"``) and ``preview.png``. Frames are appended to
+the files as the run goes, so a failed or interrupted run keeps its finished frames, readable,
+and says so in its ``summary.json``.
+
+A skull-held scene whose ball would crush the tissue against the skull is refused before
+anything is computed (:func:`check_travel`).
 """
 
 from __future__ import annotations
@@ -30,10 +34,11 @@ from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceC
 from toolkit.impact.elements import critical_time_step, tet_kinematics
 from toolkit.impact.explicit import Body, ContactResponse, ExplicitModel, moving_sphere_contact, run_explicit
 from toolkit.impact.plasticity import HardeningTable, J2Plasticity
-from toolkit.impact.scene import MaterialSpec, Scene
+from toolkit.impact.scene import MaterialSpec, Scene, SceneError
 
 __all__ = ["simulate", "ImpactResult", "build_model", "UnstableTimeStepError", "SceneGeometryWarning", "sweep_travel",
-           "face_mesh", "fixed_nodes", "ball_start"]
+           "face_mesh", "fixed_nodes", "ball_start", "travel_limit", "check_travel", "write_preview",
+           "COMPRESSED_TISSUE_FRACTION"]
 
 
 class UnstableTimeStepError(ToolkitError, ValueError):
@@ -75,6 +80,7 @@ def build_model(scene: Scene) -> BuiltScene:
     face = face_mesh(scene)
     fixed = fixed_nodes(scene, face)
     centre0 = ball_start(scene, face.points[face.node_set("skin")])
+    check_travel(scene, face)
     clearance = _path_clearance(scene, face.points[fixed], centre0)
     face_body, face_mass, (dt_crit, dt_elem) = _face_body(scene, face, fixed)
     bodies, masses, ball = [face_body], [face_mass], None
@@ -107,6 +113,57 @@ def _path_clearance(scene: Scene, fixed_points: np.ndarray, centre0: np.ndarray)
                       "(ball.target_offset), shorten the duration or fix less of the face",
                       SceneGeometryWarning, stacklevel=3)
     return clearance
+
+
+#: share of the tissue between the ball's first touch and the skull that stays between them at the
+#: longest travel :func:`travel_limit` allows. On the coarse skull-held face the ball's path meets the
+#: bone after 21.2 mm and a 50 mm/s ball inverts an element after 26.6 mm (explicit, tet4, mass
+#: scaling 100); a tenth of the 20.7 mm of tissue keeps the limit (19.1 mm) short of both.
+COMPRESSED_TISSUE_FRACTION = 0.1
+
+
+def travel_limit(scene: Scene, face: Mesh | None = None) -> float:
+    """Longest travel (mm) of the ball from its start that a skull-held face (``face.support =
+    "skull"``) can take: the travel after which the ball's path meets a fixed (bone) node, less
+    :data:`COMPRESSED_TISSUE_FRACTION` of the tissue between the first touch and that node.
+    ``inf`` for a face held only at its band (its path is checked by :func:`build_model`'s
+    warning) or a path that never meets the support. ``face``: the scene's face
+    (:func:`face_mesh`, built when omitted). Depends on the geometry only, not the velocity."""
+    return _support_travel(scene, face)[1]
+
+
+def _support_travel(scene: Scene, face: Mesh | None) -> tuple[float, float]:
+    """(travel after which the ball's path meets the support, :func:`travel_limit`), mm."""
+    if scene.face.support != "skull":
+        return float("inf"), float("inf")
+    face = face_mesh(scene) if face is None else face
+    centre0 = ball_start(scene, face.points[face.node_set("skin")])
+    d = np.asarray(scene.ball.direction, dtype=float)
+    support = float(sweep_travel(face.points[fixed_nodes(scene, face)], centre0, d, scene.ball.radius)
+                    .min(initial=np.inf))
+    if not np.isfinite(support):
+        return support, support
+    tissue = max(support - scene.ball.gap, 0.0)  # the ball first touches the skin after `gap` mm
+    return support, support - COMPRESSED_TISSUE_FRACTION * tissue
+
+
+def check_travel(scene: Scene, face: Mesh | None = None) -> None:
+    """Refuse (:class:`~toolkit.impact.scene.SceneError`) a skull-held scene whose ball travels
+    (velocity x duration) farther than :func:`travel_limit`: the tissue would be crushed against
+    the skull and an element would invert mid-run. The message names the longest duration that
+    fits at the scene's velocity. ``face``: the scene's face (built when omitted)."""
+    support, limit = _support_travel(scene, face)
+    v = scene.ball.velocity
+    travel = v * scene.duration
+    if travel <= limit:
+        return
+    longest = np.floor(1000.0 * limit / v) / 1000.0
+    raise SceneError(
+        f"the ball travels {travel:.1f} mm ({v:g} mm/s x {scene.duration:g} s) into a face held by the skull, "
+        f"and its path meets the fixed bone nodes after {support:.1f} mm: past {limit:.1f} mm the tissue is "
+        f"crushed against the skull and elements invert. The longest duration that fits at {v:g} mm/s is "
+        f"{longest:.3f} s: pass --duration {longest:.3f} (Python: Scene.duration), a lower velocity, or hold "
+        f"the face by its band (support = \"band\")")
 
 
 def _face_body(scene: Scene, face: Mesh, fixed: np.ndarray) -> tuple[Body, np.ndarray, tuple]:
@@ -325,14 +382,23 @@ def _run(scene: Scene, built: BuiltScene, on_frame, progress: bool) -> tuple[lis
 def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False, preview: bool = True) -> ImpactResult:
     """Run ``scene``; with ``out``, stream frames to ``out/face.xdmf`` (and ``ball.xdmf``) and write
     ``history.h5``, ``summary.json`` and ``preview.png``.
+
+    ``summary.json`` has ``"status"``: ``"finished"``, or, when the run raises or is interrupted
+    (``KeyboardInterrupt``), ``"failed"`` or ``"interrupted"`` with the ``reason``, the ``error``
+    class, the last finished frame (``last_frame_time_s``, ``frames_written`` of
+    ``frames_planned``) and, when the error knows it, the simulated time it stopped at
+    (``stopped_at_time_s``); the frames
+    written so far stay readable (:func:`toolkit.common.io.read_time_series`, meshio, ParaView)
+    and ``history.h5`` holds them. The error is then raised again.
     """
-    import pandas as pd
+    from toolkit.common.io import TimeSeriesWriter
+    from toolkit.common.outputs import check_output_dir
 
-    from toolkit.common.io import TimeSeriesWriter, atomic_path
-
+    if out is not None:
+        check_output_dir(out)
     t0 = time.perf_counter()
     built = build_model(scene)
-    writers = []
+    writers, done = [], []
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -343,45 +409,102 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
     def on_frame(frame, fields):
         for w, f in zip(writers, fields):
             w.append(frame.time, displacement=f["displacement"], von_mises=f["von_mises"])
+        done.append(frame)
 
     try:
         frames, stats = _run(scene, built, on_frame, progress)
-    finally:
+    except BaseException as exc:
         for w in writers:
             w.close()
+        if out is not None:
+            _write_partial(out, scene, done, exc, time.perf_counter() - t0)
+        raise
+    for w in writers:
+        w.close()
     stats["dt_critical_s"] = built.dt_critical
     stats["added_mass_fraction"] = built.added_mass_fraction
     stats["fixed_clearance_mm"] = built.fixed_clearance_mm
     stats["wall_time_s"] = time.perf_counter() - t0
-    energies = pd.DataFrame([{"time_s": f.time, **f.energies.__dict__, "balance_error": f.energies.balance_error}
-                             for f in frames])
+    energies = _energies(frames)
     result = ImpactResult(scene, built.face, built.ball, np.array([f.time for f in frames]),
                           np.stack([f.displacement for f in frames]), np.stack([f.von_mises for f in frames]),
                           np.stack([f.equivalent_plastic_strain for f in frames]), energies,
                           np.stack([f.contact_force for f in frames]), stats,
                           np.array([f.plastic_volume_fraction for f in frames]))
     if out is not None:
-        import h5py
-
-        with atomic_path(out / "history.h5") as tmp:
-            with h5py.File(tmp, "w") as h5:
-                h5["time_s"] = result.times
-                for col in energies.columns:
-                    h5[f"energies/{col}"] = energies[col].to_numpy()
-                h5["contact_force_n"] = result.contact_force
-                h5["max_displacement_mm"] = np.linalg.norm(result.displacement, axis=2).max(axis=1)
-                h5["max_von_mises_mpa"] = result.von_mises.max(axis=1)
-                h5["plastic_volume_fraction"] = result.plastic_volume_fraction
-        with atomic_path(out / "summary.json") as tmp:
-            tmp.write_text(json.dumps(result.summary(), indent=2))
+        _write_history(out / "history.h5", frames)
+        _write_summary(out / "summary.json", {"status": "finished", **result.summary()})
         if preview:
-            from toolkit.common.phantom import ball as ball_mesh
-            from toolkit.common.plotting import render
-
             centre = built.ball_centre + scene.ball.velocity * np.asarray(scene.ball.direction) * result.times[-1]
-            shown_ball = ball_mesh(scene.ball.radius, "coarse", 1, centre=centre) if built.ball is None else None
-            render(built.face.with_point_data(von_mises=result.von_mises[-1]), out / "preview.png",
-                   scalars="von_mises", displacement=result.displacement[-1], camera="left", cmap="inferno",
-                   scalar_label="von Mises (MPa)", title=f"t = {result.times[-1]:.2f} s",
-                   extra=[(shown_ball, {"opacity": 0.35, "show_edges": False})] if shown_ball is not None else ())
+            write_preview(out / "preview.png", built.face, result.displacement[-1], result.von_mises[-1],
+                          result.times[-1], None if built.ball is not None else (centre, scene.ball.radius))
     return result
+
+
+def _energies(frames: list):
+    """Energies per frame (mJ) with the balance error, a DataFrame."""
+    import pandas as pd
+
+    return pd.DataFrame([{"time_s": f.time, **f.energies.__dict__, "balance_error": f.energies.balance_error}
+                         for f in frames])
+
+
+def _write_history(path: Path, frames: list) -> None:
+    """``history.h5`` of ``frames``: times s, energies mJ, contact force N, per-frame maxima."""
+    import h5py
+
+    from toolkit.common.io import atomic_path
+
+    energies = _energies(frames)
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as h5:
+            h5["time_s"] = np.array([f.time for f in frames], dtype=float)
+            for col in energies.columns:
+                h5[f"energies/{col}"] = energies[col].to_numpy()
+            h5["contact_force_n"] = np.array([f.contact_force for f in frames], dtype=float).reshape(-1, 3)
+            h5["max_displacement_mm"] = np.array([np.linalg.norm(f.displacement, axis=1).max() for f in frames])
+            h5["max_von_mises_mpa"] = np.array([f.von_mises.max() for f in frames])
+            h5["plastic_volume_fraction"] = np.array([f.plastic_volume_fraction for f in frames], dtype=float)
+
+
+def _write_summary(path: Path, summary: dict) -> None:
+    from toolkit.common.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(summary, indent=2))
+
+
+def _write_partial(out: Path, scene: Scene, frames: list, exc: BaseException, wall_time_s: float) -> None:
+    """The ``summary.json`` (and ``history.h5`` of the ``frames`` finished) of a run stopped by
+    ``exc``: status ``interrupted`` for a ``KeyboardInterrupt``, else ``failed``."""
+    interrupted = isinstance(exc, KeyboardInterrupt)
+    summary = {
+        "status": "interrupted" if interrupted else "failed",
+        "reason": "interrupted (KeyboardInterrupt)" if interrupted else str(exc),
+        "error": type(exc).__name__,
+        "velocity_mm_s": scene.ball.velocity,
+        "duration_s": scene.duration,
+        "frames_written": len(frames),
+        "frames_planned": int(scene.n_frames),
+        "last_frame_time_s": float(frames[-1].time) if frames else None,
+        "stopped_at_time_s": None if getattr(exc, "time", None) is None else float(exc.time),
+        "wall_time_s": wall_time_s,
+    }
+    if frames:
+        _write_history(out / "history.h5", frames)
+    _write_summary(out / "summary.json", summary)
+
+
+def write_preview(path: str | Path, face: Mesh, displacement: np.ndarray, von_mises: np.ndarray, time_s: float,
+                  rigid_ball: tuple | None = None) -> Path:
+    """``preview.png`` of one frame: the deformed face (``displacement (n, 3)`` mm) coloured by
+    ``von_mises (n,)`` MPa, seen from the left, titled with ``time_s``; ``rigid_ball`` =
+    ``(centre (3,) mm, radius mm)`` draws a rigid ball there, translucent."""
+    from toolkit.common.phantom import ball as ball_mesh
+    from toolkit.common.plotting import render
+
+    shown = None if rigid_ball is None else ball_mesh(rigid_ball[1], "coarse", 1, centre=rigid_ball[0])
+    render(face.with_point_data(von_mises=von_mises), path, scalars="von_mises", displacement=displacement,
+           camera="left", cmap="inferno", scalar_label="von Mises (MPa)", title=f"t = {time_s:.2f} s",
+           extra=[(shown, {"opacity": 0.35, "show_edges": False})] if shown is not None else ())
+    return Path(path)
