@@ -81,7 +81,9 @@ class FaceSpec:
     - ``"skull"``: the bone-side surface (node set ``bone``) is fixed too, as the skull and
       teeth hold the soft tissue. The ball then crushes the 17-21 mm of tissue in front of the
       maxilla; it yields once the ball has travelled ~12-13 mm past the first touch and the
-      ball's path meets the skull after ~21 mm (see :func:`yielding_scene`).
+      ball's path meets the skull after ~21 mm (see :func:`yielding_scene`). A scene whose
+      ball would travel farther than the tissue allows is refused before it runs
+      (:func:`toolkit.impact.simulate.check_travel`).
     """
 
     resolution: str = "paper"
