@@ -130,6 +130,22 @@ def test_early_stopping_stops_when_validation_stalls():
     result = train(_mlp(), torch.nn.functional.mse_loss, (x[:300], y[:300]), (x[300:], noise), cfg)
     assert result.stopped == "early_stopping"
     assert len(result.history) == result.best_epoch + 5 < 500
+    assert result.stop_reason == "early stopping: no validation improvement in 5 epochs"
+
+
+def test_the_stop_reason_is_said_in_words():
+    """Why training stopped reads as a sentence with its limit, never the code word twice
+    ("2 epochs (epochs)"); an unknown code is refused naming the known ones."""
+    from toolkit.common.training import stop_reason
+
+    x, y = _regression(200)
+    cfg = TrainConfig(epochs=2, batch_size=50, progress=False)
+    result = train(_mlp(), torch.nn.functional.mse_loss, (x[:150], y[:150]), (x[150:], y[150:]), cfg)
+    assert result.stopped == "epochs" and result.stop_reason == "epoch limit (2) reached"
+    assert stop_reason("time_limit", TrainConfig(max_seconds=45.0)) == "time limit (45 s) reached"
+    assert stop_reason("epochs") == "epoch limit reached"
+    with pytest.raises(ValueError, match="stopped = 'done'; expected one of"):
+        stop_reason("done")
 
 
 def test_resume_continues_exactly_and_refuses_another_configuration(tmp_path):

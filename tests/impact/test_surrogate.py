@@ -190,3 +190,25 @@ def test_train_resume_evaluate_predict_commands(tiny_db_path, tmp_path, capsys):
     assert main(["impact", "simulate", "--scene", str(pred / "scene.toml"), "--no-preview", "--out", str(fe)]) == 0
     fe_summary = json.loads((fe / "summary.json").read_text())
     assert set(fe_summary) <= set(summary) and fe_summary["face_nodes"] == summary["face_nodes"]
+
+
+def test_a_prediction_records_how_far_it_extrapolates(tiny_db, tmp_path):
+    """A velocity inside the training velocities is recorded as such; 5000 mm/s is recorded in the
+    prediction's summary and summary.json (value, training range, distance outside) and warns
+    once at the caller's line, not the toolkit's; a model without its training velocities says
+    "unknown"."""
+    from toolkit.impact.surrogate import ExtrapolationWarning, predict_scene
+
+    model = train_surrogate(tiny_db, CONFIGS["paper"].with_(epochs=1), "random", out=tmp_path / "m", progress=False)
+    lo, hi = model.velocity_range
+    assert predict_scene(model, (lo + hi) / 2).summary()["extrapolation"] == {"outside": False, "parameters": {}}
+    with pytest.warns(ExtrapolationWarning) as record:
+        far = predict_scene(model, 5000.0)
+    assert len(record) == 1 and record[0].filename == __file__
+    ex = far.summary()["extrapolation"]
+    assert ex == {"outside": True, "parameters": {"velocity_mm_s": {"value": 5000.0, "train_range": [lo, hi],
+                                                                    "outside_by": 5000.0 - hi}}}
+    far.write(tmp_path / "pred")
+    assert json.loads((tmp_path / "pred" / "summary.json").read_text())["extrapolation"] == ex
+    model.bundle.extra["split"].pop("train_velocities")
+    assert model.extrapolation(5000.0)["outside"] == "unknown"

@@ -257,8 +257,11 @@ def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateCon
     """
     import torch
 
+    from toolkit.common.outputs import check_output_dir
     from toolkit.impact.networks import build_network
 
+    if out is not None:
+        check_output_dir(out, what="model directory")
     db = load_database(db) if not isinstance(db, ImpactDatabase) else db
     cfg = resolve_config(config)
     idx = split_items(db, split, seed)
@@ -288,7 +291,8 @@ def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateCon
                    checkpoint=checkpoint, resume=resume, identity=identity)
     net.to("cpu")
     extra = {"train_seconds": result.seconds, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
-             "best_val_loss": result.best_val_loss, "stopped": result.stopped, "split": split_spec,
+             "best_val_loss": result.best_val_loss, "stopped": result.stopped, "stop_reason": result.stop_reason,
+             "split": split_spec,
              "n_train_items": int(idx["train"].size), "n_val_items": int(idx["val"].size),
              "history": result.history.to_dict(orient="list"), "torch_threads": torch.get_num_threads(),
              "device": device}
@@ -343,6 +347,21 @@ class ImpactSurrogate:
         v = self.bundle.extra["split"]["train_velocities"]
         return float(min(v)), float(max(v))
 
+    def extrapolation(self, velocity: float) -> dict:
+        """Whether ``velocity`` mm/s lies outside the training velocities: ``{"outside": bool,
+        "parameters": {"velocity_mm_s": {"value", "train_range", "outside_by"}}}`` (the
+        parameter listed only when outside, ``outside_by`` in mm/s); ``"outside": "unknown"``
+        for a model that does not record its training velocities."""
+        if not self.bundle.extra.get("split", {}).get("train_velocities"):
+            return {"outside": "unknown", "parameters": {},
+                    "note": "the model does not record its training velocities (retrain it to get them)"}
+        lo, hi = self.velocity_range
+        by = max(lo - float(velocity), float(velocity) - hi, 0.0)
+        if by == 0.0:
+            return {"outside": False, "parameters": {}}
+        return {"outside": True, "parameters": {"velocity_mm_s": {"value": float(velocity), "train_range": [lo, hi],
+                                                                  "outside_by": by}}}
+
     # ------------------------------------------------------------------ prediction
     def predict_items(self, x: np.ndarray, batch_size: int = 20_000):
         """Outputs ``(B, F, 4)`` (mm, MPa) of item inputs ``x (B, F, k)`` in the model's input order
@@ -365,10 +384,10 @@ class ImpactSurrogate:
         """Whole-face prediction at ``velocity`` mm/s for the scene's ``inputs``
         (:class:`~toolkit.impact.dataset.SceneInputs`): ``(displacement (F, N, 3) mm,
         von_mises (F, N) MPa)``; warns :class:`ExtrapolationWarning` outside the trained range."""
-        lo, hi = self.velocity_range
-        if not lo <= velocity <= hi:
+        if self.extrapolation(velocity)["outside"] is True:
+            lo, hi = self.velocity_range
             warnings.warn(f"velocity {velocity} mm/s is outside the trained range [{lo}, {hi}] mm/s: the "
-                          "surrogate extrapolates", ExtrapolationWarning, stacklevel=2)
+                          "surrogate extrapolates", ExtrapolationWarning, stacklevel=_outside_toolkit())
         y = self.predict_items(item_features(inputs, [velocity], self.config.features))
         return np.moveaxis(y[..., :3], 0, 1), np.moveaxis(y[..., 3], 0, 1)
 
@@ -388,7 +407,8 @@ class Prediction:
     """A surrogate's whole-face prediction of the database's scene at one velocity.
 
     Attributes: ``scene`` (the Scene predicted for), ``face`` (Mesh), ``times`` (F,) s,
-    ``displacement`` (F, N, 3) mm, ``von_mises`` (F, N) MPa, ``wall_time_s``.
+    ``displacement`` (F, N, 3) mm, ``von_mises`` (F, N) MPa, ``wall_time_s``, ``extrapolation``
+    (:meth:`ImpactSurrogate.extrapolation` of the velocity; also in the summary).
     """
 
     scene: object
@@ -398,6 +418,7 @@ class Prediction:
     von_mises: np.ndarray
     wall_time_s: float
     config: str
+    extrapolation: dict | None = None
 
     def summary(self) -> dict:
         """The keys of :meth:`toolkit.impact.simulate.ImpactResult.summary`; what only an FE run
@@ -411,7 +432,8 @@ class Prediction:
                 "max_von_mises_mpa": float(self.von_mises.max()), "max_equivalent_plastic_strain": None,
                 "plastic_volume_fraction": None, "energy_error": None, "max_energy_error": None,
                 "added_mass_fraction": None, "max_contact_force_n": None, "max_penetration_mm": None,
-                "fixed_clearance_mm": None, "predicted_by": f"{MODEL_KIND} ({self.config})"}
+                "fixed_clearance_mm": None, "predicted_by": f"{MODEL_KIND} ({self.config})",
+                "extrapolation": self.extrapolation}
 
     def write(self, out: str | os.PathLike) -> Path:
         """``face.xdmf`` (+ .h5; point data ``displacement`` mm, ``von_mises`` MPa per frame),
@@ -427,7 +449,7 @@ class Prediction:
             for k, t in enumerate(self.times):
                 w.append(float(t), displacement=self.displacement[k], von_mises=self.von_mises[k])
         with atomic_path(out / "summary.json") as tmp:
-            tmp.write_text(json.dumps(self.summary(), indent=2))
+            tmp.write_text(json.dumps({"status": "finished", **self.summary()}, indent=2))
         self.scene.write(out / "scene.toml")
         return out
 
@@ -448,4 +470,17 @@ def predict_scene(surrogate: ImpactSurrogate, velocity: float) -> Prediction:
                          f"({sig['n_nodes']} nodes, checksum {sig['mesh_checksum']})")
     times = np.asarray(sig["times_s"], dtype=float)
     u, vm = surrogate.predict(float(velocity), SceneInputs.from_scene(scene, face, times))
-    return Prediction(scene, face, times, u, vm, time.perf_counter() - t0, surrogate.config.name)
+    return Prediction(scene, face, times, u, vm, time.perf_counter() - t0, surrogate.config.name,
+                      surrogate.extrapolation(float(velocity)))
+
+
+def _outside_toolkit() -> int:
+    """The ``stacklevel`` of the first caller outside the toolkit package (a warning then names
+    the user's line, not an internal one)."""
+    import sys
+
+    root = str(Path(__file__).resolve().parents[1])
+    frame, level = sys._getframe(1), 1
+    while frame is not None and str(Path(frame.f_code.co_filename).resolve()).startswith(root):
+        frame, level = frame.f_back, level + 1
+    return level

@@ -57,6 +57,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+import warnings
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -73,7 +74,7 @@ from toolkit.common.surface_distance import barycentric, beyond_rim_onto_plane, 
 from toolkit.common.topology import rim_edges
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
 from toolkit.static.constraints import Constraints
-from toolkit.static.plan import SurgicalPlan
+from toolkit.static.plan import PlanRangeWarning, SurgicalPlan
 from toolkit.static.problem import ConvergenceError, StaticProblem, solve_with_lip_contact
 from toolkit.static.regulation import element_quality, regulate
 from toolkit.static.stiffness import MaterialAssignment
@@ -586,7 +587,11 @@ def simulate(
         model = _build_model(face, material, sliding, segments,
                              replace(options, release_width=width, wider_release=()), freed)
         try:
-            displacements, reports = _increments(model, plan, int(increments))
+            with warnings.catch_warnings():
+                # the plan warned of a movement beyond the physiological range where it was built;
+                # its increments (fractions of it) do not repeat that once per increment
+                warnings.simplefilter("ignore", PlanRangeWarning)
+                displacements, reports = _increments(model, plan, int(increments))
             break
         except SimulationError as exc:
             cut = _cut_near(model, exc.element)

@@ -34,6 +34,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -51,6 +52,7 @@ from toolkit.common.training import (
 )
 from toolkit.common.training import train as train_loop
 from toolkit.static.features import FeatureSpec, channel_names, encode
+from toolkit.static.plan import PlanRangeWarning
 from toolkit.static.simulate import SimulationResult
 
 __all__ = ["SurrogateConfig", "Surrogate", "train_surrogate", "evaluate_surrogate", "network_config",
@@ -378,7 +380,10 @@ class Surrogate:
         mask = np.isin(bc.types, (1, 2))
         im = self.prior(mesh, bc.types) if self.config.features.linear_prior else None
         U, previous, quality = [np.zeros_like(X)], None, []
-        for p in plan.increments(data.increments):
+        with warnings.catch_warnings():  # the plan warned of its range where it was built
+            warnings.simplefilter("ignore", PlanRangeWarning)
+            steps = plan.increments(data.increments)
+        for p in steps:
             x = X + U[-1]
             bone = np.zeros_like(X)
             for s, name in enumerate(bc.segment_names):
@@ -529,8 +534,8 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
     seen_keys = set(data.keys[np.concatenate([train_idx, val_idx])].tolist())  # trained or validated on
     seen = sorted({identities[str(k)] for k in seen_keys})
     extra = {"out_scale_mm": out_scale, "train_seconds": result.seconds, "prior_seconds": t_prior,
-             "best_epoch": result.best_epoch,
-             "stopped": result.stopped, "history": result.history.to_dict(orient="list"),
+             "best_epoch": result.best_epoch, "stopped": result.stopped, "stop_reason": result.stop_reason,
+             "history": result.history.to_dict(orient="list"),
              "split": {"train": int(train_idx.size), "validation": int(val_idx.size), "test": int(test_idx.size)},
              "test_keys": test_keys, "parameters": int(sum(p.numel() for p in module.net.parameters())),
              "seen_simulations": seen, "train_plan_ranges": _plan_ranges(db, seen_keys),

@@ -15,7 +15,7 @@ Importing this package imports torch lazily (only the functions that need it do)
 from toolkit.common.config_diff import IncompatibleError
 from toolkit.common.training.bundle import BUNDLE_FORMAT, ModelBundle
 from toolkit.common.training.device import resolve_device
-from toolkit.common.training.loop import LR_SCHEDULES, TrainConfig, TrainResult, evaluate_loss, train
+from toolkit.common.training.loop import LR_SCHEDULES, TrainConfig, TrainResult, evaluate_loss, stop_reason, train
 from toolkit.common.training.scaling import MinMaxScaler
 from toolkit.common.training.seeding import check_seed, generators, torch_seeded
 from toolkit.common.training.splits import group_counts, split_groups
@@ -31,6 +31,7 @@ __all__ = [
     "TrainConfig",
     "LR_SCHEDULES",
     "TrainResult",
+    "stop_reason",
     "train",
     "evaluate_loss",
     "ModelBundle",

@@ -26,7 +26,7 @@ from toolkit.common.config_diff import jsonable, require_same
 from toolkit.common.training.device import resolve_device
 from toolkit.common.training.seeding import check_seed, generators
 
-__all__ = ["TrainConfig", "TrainResult", "train", "learning_rate", "CHECKPOINT_FORMAT", "LR_SCHEDULES"]
+__all__ = ["TrainConfig", "TrainResult", "train", "learning_rate", "stop_reason", "CHECKPOINT_FORMAT", "LR_SCHEDULES"]
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ class TrainResult:
     best_epoch : epoch (1-based) whose weights the model now holds
     best_val_loss : its validation loss
     seconds : training time, s, summed over resumed sessions
-    stopped : ``"epochs"``, ``"early_stopping"`` or ``"time_limit"``
+    stopped : ``"epochs"``, ``"early_stopping"`` or ``"time_limit"`` (in words: :attr:`stop_reason`)
     resumed_from : the epoch a resumed run started after, or None
     """
 
@@ -112,6 +112,27 @@ class TrainResult:
     stopped: str
     resumed_from: int | None = None
     extra: dict = field(default_factory=dict)
+    config: TrainConfig | None = None
+
+    @property
+    def stop_reason(self) -> str:
+        """Why training stopped, in words (e.g. ``"epoch limit (200) reached"``)."""
+        return stop_reason(self.stopped, self.config)
+
+
+def stop_reason(stopped: str, config: TrainConfig | None = None) -> str:
+    """``stopped`` (``"epochs"``, ``"early_stopping"``, ``"time_limit"``) in words, with the limit
+    from ``config`` when given."""
+    c = config
+    words = {
+        "epochs": f"epoch limit ({c.epochs}) reached" if c else "epoch limit reached",
+        "early_stopping": (f"early stopping: no validation improvement in {c.patience} epochs" if c
+                           else "early stopping: no validation improvement"),
+        "time_limit": f"time limit ({c.max_seconds:.0f} s) reached" if c and c.max_seconds else "time limit reached",
+    }
+    if stopped not in words:
+        raise ValueError(f"stopped = {stopped!r}; expected one of {list(words)}")
+    return words[stopped]
 
 
 def learning_rate(config: TrainConfig, epochs_done: int, seconds: float) -> float:
@@ -249,7 +270,7 @@ def train(model, loss: Callable, train_data, val_data, config: TrainConfig = Tra
     if best_state is not None:
         model.load_state_dict(best_state)
     return TrainResult(pd.DataFrame(history, columns=["epoch", "train_loss", "val_loss", "seconds", "lr"]),
-                       int(best_epoch), float(best_val), float(elapsed), stopped, resumed_from)
+                       int(best_epoch), float(best_val), float(elapsed), stopped, resumed_from, config=config)
 
 
 def evaluate_loss(model, loss: Callable, inputs, targets, batch_size: int) -> float:
