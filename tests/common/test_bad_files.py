@@ -184,6 +184,18 @@ SCENE_CASES = {
                          ["yield_table = [1, 2]", "pairs"]),
     "syntax": ("[ball]\nvelocity = [1, 2\n", ["not valid TOML"]),
     "bytes": (b"\xff\xfe\x00", ["line 1", "is not text"]),
+    # values of the right type outside their range
+    "zero radius": ("[ball]\nradius = 0.0\n", ["ball radius 0.0 mm must be positive"]),
+    "negative gap": ("[ball]\ngap = -5.0\n", ["ball gap -5.0 mm must be >= 0"]),
+    "driven fraction": ("[ball]\ndriven_fraction = 2.0\n", ["driven_fraction 2.0 must be in [0, 1)"]),
+    "ball resolution": ("[ball]\nresolution = 'medium'\n", ["ball resolution 'medium'", "'coarse', 'paper'"]),
+    "face resolution": ("[face]\nresolution = 'medium'\n", ["face resolution 'medium'", "'coarse', 'paper'"]),
+    "fixed fraction": ("[face]\nlower_fixed_fraction = 1.5\n", ["lower_fixed_fraction 1.5 must be in (0, 1)"]),
+    "negative friction": ("[contact]\nfriction = -0.2\n", ["contact friction -0.2 must be >= 0"]),
+    "zero dt fraction": ("[contact]\ndt_fraction = 0.0\n", ["dt_fraction 0.0 must be in (0, 1]"]),
+    "negative dt": ("[fidelity]\ndt = -1e-4\n", ["dt must be a positive time step (s)", "-0.0001"]),
+    "negative yield stress": ("[face.material]\nE = 0.015\nnu = 0.49\ndensity = 1e-9\n"
+                              "yield_table = [[-1, 0], [0.02, 0.1]]\n", ["yield_table", "-1.0 MPa must be positive"]),
 }
 
 

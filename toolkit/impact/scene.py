@@ -26,6 +26,7 @@ import numpy as np
 from toolkit.common import papers
 from toolkit.common.errors import ToolkitError
 from toolkit.common.papers import BALL_YIELD, FACE_YIELD
+from toolkit.common.phantom import BALL_RESOLUTIONS, TET_RESOLUTIONS
 
 __all__ = ["SceneError", "MaterialSpec", "FaceSpec", "BallSpec", "ContactSpec", "Fidelity", "Scene", "default_scene",
            "yielding_scene", "FACE_YIELD", "BALL_YIELD", "SUPPORTS", "YIELDING_DURATION", "INTEGRATORS"]
@@ -54,6 +55,13 @@ class MaterialSpec:
                              f"(1000 kg/m^3 = 1e-9)")
         if self.yield_table is not None:
             object.__setattr__(self, "yield_table", tuple(tuple(float(x) for x in row) for row in self.yield_table))
+            from toolkit.impact.plasticity import HardeningTable
+
+            try:
+                HardeningTable.from_pairs(self.yield_table)
+            except ValueError as exc:
+                raise SceneError(f"yield_table {[list(r) for r in self.yield_table]}: "
+                                 f"{str(exc).removeprefix('HardeningTable: ')}") from exc
 
 
 #: time integration of :class:`Fidelity`: explicit dynamics or quasi-static equilibrium
@@ -96,6 +104,11 @@ class FaceSpec:
     def __post_init__(self):
         if self.support not in SUPPORTS:
             raise SceneError(f"face support {self.support!r} is not one of {sorted(SUPPORTS)}")
+        if isinstance(self.resolution, str) and self.mesh is None and self.resolution not in TET_RESOLUTIONS:
+            raise SceneError(f"face resolution {self.resolution!r} is not one of {list(TET_RESOLUTIONS)}")
+        if not 0 < self.lower_fixed_fraction < 1:
+            raise SceneError(f"face lower_fixed_fraction {self.lower_fixed_fraction} must be in (0, 1): the fraction"
+                             " of the face's height fixed at the bottom")
 
 
 @dataclass(frozen=True)
@@ -148,6 +161,14 @@ class BallSpec:
             if a.shape != (3,) or not np.isfinite(a).all():
                 raise SceneError(f"ball {name} {v} must be a finite 3-vector (mm)")
             object.__setattr__(self, name, tuple(a.tolist()))
+        if not 0 < self.radius < np.inf:
+            raise SceneError(f"ball radius {self.radius} mm must be positive and finite (a football: 110 mm)")
+        if not 0 <= self.gap < np.inf:
+            raise SceneError(f"ball gap {self.gap} mm must be >= 0 (the ball starts clear of the face)")
+        if not 0 <= self.driven_fraction < 1:
+            raise SceneError(f"ball driven_fraction {self.driven_fraction} must be in [0, 1) (of the radius)")
+        if isinstance(self.resolution, str) and self.resolution not in BALL_RESOLUTIONS:
+            raise SceneError(f"ball resolution {self.resolution!r} is not one of {list(BALL_RESOLUTIONS)}")
         if not self.velocity > 0:
             raise SceneError(f"ball velocity {self.velocity} mm/s must be positive")
         if self.velocity > 1e4 or self.velocity < 1.0:
@@ -162,6 +183,13 @@ class ContactSpec:
 
     friction: float = papers.FRICTION
     dt_fraction: float = 0.9
+
+    def __post_init__(self):
+        if not 0 <= self.friction < np.inf:
+            raise SceneError(f"contact friction {self.friction} must be >= 0 (Coulomb coefficient; the impact paper: "
+                             f"{papers.FRICTION})")
+        if not 0 < self.dt_fraction <= 1:
+            raise SceneError(f"contact dt_fraction {self.dt_fraction} must be in (0, 1]")
 
 
 @dataclass(frozen=True)
@@ -198,6 +226,8 @@ class Fidelity:
             raise SceneError(f"mass_scaling must be >= 1, got {self.mass_scaling}")
         if not 0 < self.safety <= 1.0:
             raise SceneError(f"safety must be in (0, 1], got {self.safety}")
+        if self.dt is not None and not 0 < self.dt < np.inf:
+            raise SceneError(f"dt must be a positive time step (s) or None for the stable one, got {self.dt}")
 
 
 @dataclass(frozen=True)
