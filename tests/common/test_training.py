@@ -256,3 +256,24 @@ def test_model_bundle_round_trip_and_refusals(tmp_path):
 def test_differences_name_nested_keys():
     assert differences({"a": {"b": 1, "c": [1, 2]}, "d": 1.0}, {"a": {"b": 2, "c": [1, 2]}, "e": 3}) == [
         ("a.b", 1, 2), ("d", 1.0, "<missing>"), ("e", "<missing>", 3)]
+
+
+def test_extrapolation_lists_each_parameter_outside_its_training_range():
+    """Only the parameters outside their range are listed, with the distance in their unit; a
+    value on the range's edge is inside; a model without ranges says "unknown"; the line the CLI
+    prints names each parameter, its value and its training range."""
+    from toolkit.common.training import describe_extrapolation, extrapolation
+
+    ranges = {"a_mm": [2.0, 11.0], "b_deg": [-5.0, 5.0]}
+    ex = extrapolation({"a_mm": 20.0, "b_deg": 5.0}, ranges)
+    assert ex == {"outside": True, "parameters": {"a_mm": {"value": 20.0, "train_range": [2.0, 11.0],
+                                                           "outside_by": 9.0}}}
+    assert describe_extrapolation(ex) == ("OUTSIDE the training data, the model extrapolates: a_mm = 20 "
+                                          "(trained 2 to 11, 9 outside)")
+    inside = extrapolation({"a_mm": 2.0, "b_deg": -1.0}, ranges)
+    assert inside == {"outside": False, "parameters": {}}
+    assert describe_extrapolation(inside) == "inside the training data"
+    unknown = extrapolation({"a_mm": 20.0}, None, "plans")
+    assert unknown["outside"] == "unknown" and "training plans" in describe_extrapolation(unknown)
+    with pytest.raises(KeyError, match="no training range for 'c'"):
+        extrapolation({"c": 1.0}, ranges)

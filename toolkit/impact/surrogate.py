@@ -47,6 +47,7 @@ from toolkit.common.training import (
     MinMaxScaler,
     ModelBundle,
     TrainConfig,
+    extrapolation,
     split_groups,
     torch_seeded,
     train,
@@ -349,18 +350,12 @@ class ImpactSurrogate:
 
     def extrapolation(self, velocity: float) -> dict:
         """Whether ``velocity`` mm/s lies outside the training velocities: ``{"outside": bool,
-        "parameters": {"velocity_mm_s": {"value", "train_range", "outside_by"}}}`` (the
-        parameter listed only when outside, ``outside_by`` in mm/s); ``"outside": "unknown"``
-        for a model that does not record its training velocities."""
-        if not self.bundle.extra.get("split", {}).get("train_velocities"):
-            return {"outside": "unknown", "parameters": {},
-                    "note": "the model does not record its training velocities (retrain it to get them)"}
-        lo, hi = self.velocity_range
-        by = max(lo - float(velocity), float(velocity) - hi, 0.0)
-        if by == 0.0:
-            return {"outside": False, "parameters": {}}
-        return {"outside": True, "parameters": {"velocity_mm_s": {"value": float(velocity), "train_range": [lo, hi],
-                                                                  "outside_by": by}}}
+        "parameters": {"velocity_mm_s": {"value", "train_range", "outside_by"}}}`` (listed only
+        when outside, ``outside_by`` in mm/s; :func:`toolkit.common.training.extrapolation`);
+        ``"outside": "unknown"`` for a model that does not record its training velocities."""
+        v = self.bundle.extra.get("split", {}).get("train_velocities")
+        return extrapolation({"velocity_mm_s": float(velocity)},
+                             {"velocity_mm_s": [min(v), max(v)]} if v else None, "velocities")
 
     # ------------------------------------------------------------------ prediction
     def predict_items(self, x: np.ndarray, batch_size: int = 20_000):

@@ -46,6 +46,7 @@ from toolkit.common.training import (
     MinMaxScaler,
     ModelBundle,
     TrainConfig,
+    extrapolation,
     resolve_device,
     split_groups,
     torch_seeded,
@@ -178,25 +179,13 @@ def _plan_ranges(db, keys) -> dict:
 
 
 def plan_extrapolation(plan, ranges: dict | None) -> dict:
-    """How far each parameter of ``plan`` lies outside the training ``ranges`` (name -> [min, max]).
-
-    Returns ``{"outside": bool or "unknown", "parameters": {name: {"value", "train_range",
-    "outside_by"}}}`` with only the parameters outside their range (``outside_by`` in the
-    parameter's unit, > 0); ``"outside": "unknown"`` when the model holds no ranges.
-    """
+    """How far each parameter of ``plan`` (:data:`PLAN_PARAMETERS`) lies outside the training
+    ``ranges`` (name -> [min, max]): :func:`toolkit.common.training.extrapolation`
+    (``"outside": "unknown"`` when the model holds no ranges)."""
     from toolkit.static.dataset import plan_features
 
-    if not ranges:
-        return {"outside": "unknown", "parameters": {},
-                "note": "the model does not record its training plans' ranges (retrain it to get them)"}
-    values = plan_features(plan, 1)[0, :len(PLAN_PARAMETERS)]
-    out = {}
-    for name, value in zip(PLAN_PARAMETERS, values.tolist()):
-        lo, hi = ranges[name]
-        by = max(lo - value, value - hi, 0.0)
-        if by > 1e-9 * max(1.0, abs(lo), abs(hi)):
-            out[name] = {"value": round(value, 6), "train_range": [lo, hi], "outside_by": round(by, 6)}
-    return {"outside": bool(out), "parameters": out}
+    values = dict(zip(PLAN_PARAMETERS, plan_features(plan, 1)[0, :len(PLAN_PARAMETERS)].tolist()))
+    return extrapolation(values, ranges, "plans")
 
 
 def _points_key(points: np.ndarray) -> str:

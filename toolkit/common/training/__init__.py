@@ -7,7 +7,9 @@
 - :func:`train`, :class:`TrainConfig`, :class:`TrainResult` (``loop``): Adam, any loss, early
   stopping, atomic checkpoints, resume, tqdm;
 - :class:`ModelBundle` (``bundle``): ``model.pt`` + ``config.json`` model directories that refuse
-  data or configurations they were not built for.
+  data or configurations they were not built for;
+- :func:`extrapolation`, :func:`describe_extrapolation` (``extrapolation``): whether an input lies
+  outside the training data's range, per parameter.
 
 Importing this package imports torch lazily (only the functions that need it do).
 """
@@ -15,6 +17,7 @@ Importing this package imports torch lazily (only the functions that need it do)
 from toolkit.common.config_diff import IncompatibleError
 from toolkit.common.training.bundle import BUNDLE_FORMAT, ModelBundle
 from toolkit.common.training.device import resolve_device
+from toolkit.common.training.extrapolation import describe_extrapolation, extrapolation
 from toolkit.common.training.loop import LR_SCHEDULES, TrainConfig, TrainResult, evaluate_loss, stop_reason, train
 from toolkit.common.training.scaling import MinMaxScaler
 from toolkit.common.training.seeding import check_seed, generators, torch_seeded
@@ -37,4 +40,6 @@ __all__ = [
     "ModelBundle",
     "BUNDLE_FORMAT",
     "IncompatibleError",
+    "extrapolation",
+    "describe_extrapolation",
 ]
