@@ -328,3 +328,13 @@ def test_an_error_starts_its_own_line_after_a_progress_bar(monkeypatch, capsys):
     assert main([]) == 2
     lines = capsys.readouterr().err.split("\n")
     assert "error: the solve failed" in lines, lines
+
+
+@pytest.mark.parametrize("workflow", ["static", "impact"])
+def test_train_refuses_to_overwrite_an_interrupted_training(workflow, tmp_path, capsys):
+    """``train`` without --resume on a model directory holding only checkpoint.pt (an interrupted
+    training) is refused before the database is read, naming --resume; the checkpoint is kept."""
+    (tmp_path / "checkpoint.pt").write_bytes(b"finished epochs")
+    assert main([workflow, "train", "--data", str(tmp_path / "missing.h5"), "--out", str(tmp_path)]) == 2
+    assert "interrupted training" in capsys.readouterr().err
+    assert (tmp_path / "checkpoint.pt").read_bytes() == b"finished epochs"

@@ -52,3 +52,16 @@ def test_a_read_only_folder(tmp_path):
 
 def test_output_error_is_a_toolkit_value_error():
     assert issubclass(OutputError, ToolkitError) and issubclass(OutputError, ValueError)
+
+
+def test_an_interrupted_training_is_not_overwritten_without_resume(tmp_path):
+    """checkpoint.pt without model.pt is an interrupted training: refused unless resuming; a
+    finished one (model.pt) may be trained over."""
+    from toolkit.common.outputs import check_model_dir
+
+    (tmp_path / "checkpoint.pt").write_bytes(b"x")
+    with pytest.raises(OutputError, match=r"interrupted training .*\(command line: --resume\)"):
+        check_model_dir(tmp_path, resume=False)
+    assert check_model_dir(tmp_path, resume=True) == tmp_path
+    (tmp_path / "model.pt").write_bytes(b"x")
+    assert check_model_dir(tmp_path, resume=False) == tmp_path

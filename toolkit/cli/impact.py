@@ -128,9 +128,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def train(args: argparse.Namespace) -> int:
-    from toolkit.common.outputs import check_output_dir
+    from toolkit.common.outputs import check_model_dir
 
-    check_output_dir(args.out, what="model directory")
+    check_model_dir(args.out, resume=args.resume)
     torch_threads(args)
     from toolkit.impact.surrogate import resolve_config, train_surrogate
 
@@ -210,6 +210,9 @@ def predict(args: argparse.Namespace) -> int:
     print(f"{s['face_nodes']} face nodes at {s['velocity_mm_s']} mm/s, {pred.times.size} frames in "
           f"{s['wall_time_s']:.2f} s: max displacement {s['max_displacement_mm']:.2f} mm, max von Mises "
           f"{s['max_von_mises_mpa']:.4f} MPa")
+    from toolkit.common.training import describe_extrapolation
+
+    print(f"velocity: {describe_extrapolation(s['extrapolation'])}")
     print(f"wrote {args.out}/ (face.xdmf, summary.json, scene.toml)")
     return 0
 

@@ -123,11 +123,11 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def train(args: argparse.Namespace) -> int:
-    from toolkit.common.outputs import check_output_dir
+    from toolkit.common.outputs import check_model_dir
     from toolkit.static.features import FeatureSpec
     from toolkit.static.surrogate import SurrogateConfig, train_surrogate
 
-    check_output_dir(args.out, what="model directory")
+    check_model_dir(args.out, resume=args.resume)
     config = SurrogateConfig(
         FeatureSpec(args.variant, args.extra_channels, args.material_channels, args.linear_prior),
         network=args.network,
@@ -161,6 +161,7 @@ def evaluate(args: argparse.Namespace) -> int:
     mesh = None if args.no_render else subject_phantom(_database_resolution(args.data), 0).mesh
     write_evaluation(result, args.out, mesh)
     m = result["metrics"]
+    print(f"scored: {m['scored']}")
     print(f"{m['samples']} samples: mean error {m['mean_error_mm']:.3f} mm (median {m['median_error_mm']:.3f}, p95 "
           f"{m['p95_error_mm']:.3f}, max {m['max_error_mm']:.3f}); free nodes {m['free_mean_error_mm']:.3f}, lips "
           f"{m['lips_mean_error_mm']:.3f}; {m['inference_ms']:.1f} ms per prediction vs {m['fe_ms']:.0f} ms FE per "
@@ -203,6 +204,9 @@ def predict(args: argparse.Namespace) -> int:
     print(f"{s['nodes']} nodes, {s['increments']} increments predicted in {s['wall_time_s'] * 1e3:.0f} ms: max "
           f"displacement {s['max_displacement_mm']:.2f} mm, min scaled Jacobian {s['min_scaled_jacobian']:.3f} -> "
           f"{args.out}/ (result.vtu, postop.vtu, increments.xdmf, summary.json)")
+    from toolkit.common.training import describe_extrapolation
+
+    print(f"plan: {describe_extrapolation(s['extrapolation'])}")
     return 0
 
 

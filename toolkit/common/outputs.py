@@ -19,7 +19,7 @@ from pathlib import Path
 
 from toolkit.common.errors import ToolkitError
 
-__all__ = ["OutputError", "check_output_dir", "check_output_file"]
+__all__ = ["OutputError", "check_output_dir", "check_output_file", "check_model_dir"]
 
 
 class OutputError(ToolkitError, ValueError):
@@ -54,6 +54,18 @@ def check_output_file(path: str | os.PathLike, *, what: str = "output file", opt
         raise OutputError(f"{what} {str(path)!r} is an existing folder; expected a file name: give another "
                           f"{_remedy(option)}, e.g. {str(path / 'out')!r} with its suffix")
     _check_writable(path.parent if str(path.parent) else Path("."), what, option, target=path)
+    return path
+
+
+def check_model_dir(path: str | os.PathLike, *, resume: bool) -> Path:
+    """:func:`check_output_dir` for a training's model directory, which also refuses to start
+    afresh over an interrupted training (``checkpoint.pt`` without ``model.pt``) unless
+    ``resume``: a new run would overwrite the finished epochs of that checkpoint."""
+    path = check_output_dir(path, what="model directory")
+    if not resume and (path / "checkpoint.pt").is_file() and not (path / "model.pt").exists():
+        raise OutputError(f"model directory {str(path)!r} holds an interrupted training (checkpoint.pt, no "
+                          "model.pt); continue it with resume=True (command line: --resume), or give another "
+                          f"{_remedy('out')} to start afresh")
     return path
 
 
