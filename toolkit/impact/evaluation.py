@@ -3,7 +3,8 @@
 The impact paper's metrics: RMSE and Pearson correlation between the FE and predicted
 displacement (mm) and von Mises stress (MPa) over every test item and frame; here also
 normalised by the test set's peak (NRMSE: displacement RMSE over the largest displacement
-magnitude, stress RMSE over the largest von Mises stress), the displacement magnitude's
+magnitude, stress RMSE over the largest von Mises stress; the ``*_nrmse`` keys are fractions,
+0.01 = 1 % of the peak), the displacement magnitude's
 RMSE/Pearson (the impact paper predicts one output, likely the magnitude), the training time, the
 inference time per whole-face frame and the FE time per frame from the database.
 
@@ -46,7 +47,10 @@ class Evaluation:
 
 
 def field_metrics(predicted: np.ndarray, truth: np.ndarray) -> dict:
-    """The impact paper's metrics (and NRMSE) of ``(..., 4)`` arrays of ux, uy, uz (mm) and von Mises (MPa)."""
+    """The impact paper's metrics (and NRMSE) of ``(..., 4)`` arrays of ux, uy, uz (mm) and von Mises (MPa).
+
+    ``*_rmse_mm``/``*_rmse_mpa`` in mm/MPa; ``*_pearson`` in [-1, 1]; ``displacement_nrmse`` and
+    ``von_mises_nrmse`` are fractions of the test set's peak (0.01 = 1 %; print them with ``:.2%``)."""
     up, ut = predicted[..., :3], truth[..., :3]
     vp, vt = predicted[..., 3], truth[..., 3]
     mag_p, mag_t = np.linalg.norm(up, axis=-1), np.linalg.norm(ut, axis=-1)
@@ -149,7 +153,8 @@ def plot_time_series(db: ImpactDatabase, ev: Evaluation, path, nodes=None):
 def plot_fields(db: ImpactDatabase, surrogate: ImpactSurrogate, path, sim: int | None = None, frames=None):
     """Front-view maps (x-z, mm) of FE, predicted and |error| displacement magnitude and von Mises
     stress of the whole face at ``frames`` (default: the middle and the last) of simulation
-    ``sim`` (default: the fastest held-out one, else the fastest). Returns the Figure."""
+    ``sim`` (default: the fastest held-out one, else the fastest); each panel is titled with that
+    simulation's velocity and whether it is held out or a training velocity. Returns the Figure."""
     from matplotlib.figure import Figure
 
     if sim is None:
@@ -159,6 +164,7 @@ def plot_fields(db: ImpactDatabase, surrogate: ImpactSurrogate, path, sim: int |
     u, vm = surrogate.predict(float(db.velocities[sim]), db.inputs)
     front = db.points[:, 1] > np.percentile(db.points[:, 1], 40)  # the anterior part, seen from the front
     x, z = db.points[front, 0], db.points[front, 2]
+    speed = f"{db.velocities[sim]:g} mm/s ({'held out' if db.held_out[sim] else 'training velocity'})"
     fig = Figure(figsize=(11.0, 3.2 * 2 * len(frames)), layout="constrained")
     axes = fig.subplots(2 * len(frames), 3, squeeze=False)
     for k, f in enumerate(frames):
@@ -173,7 +179,7 @@ def plot_fields(db: ImpactDatabase, surrogate: ImpactSurrogate, path, sim: int |
                 sc = ax.scatter(x, z, c=values[front], s=4, cmap="inferno" if col < 2 else "viridis",
                                 vmin=None if vlim is None else vlim[0], vmax=None if vlim is None else vlim[1])
                 fig.colorbar(sc, ax=ax, shrink=0.8, label=name)
-                ax.set_title(f"{title}, {db.velocities[sim]:g} mm/s, t = {db.times[f]:.3f} s", fontsize=9)
+                ax.set_title(f"{title}, {speed}, t = {db.times[f]:.3f} s", fontsize=9)
                 ax.set_aspect("equal")
                 ax.set_xlabel("x (mm)")
                 ax.set_ylabel("z (mm)")
@@ -183,7 +189,8 @@ def plot_fields(db: ImpactDatabase, surrogate: ImpactSurrogate, path, sim: int |
 
 def write_evaluation(ev: Evaluation, db: ImpactDatabase, surrogate: ImpactSurrogate, out: str | os.PathLike,
                      nodes=None, frames=None) -> Path:
-    """Write ``metrics.json``, ``timeseries.png`` and ``fields.png`` to ``out``."""
+    """Write ``metrics.json``, ``timeseries.png`` and ``fields.png`` to ``out``; both figures show
+    the fastest simulation with test items of ``ev`` (one of ``test_velocities_mm_s``)."""
     from toolkit.common.io import atomic_path
 
     out = Path(out)
@@ -191,7 +198,7 @@ def write_evaluation(ev: Evaluation, db: ImpactDatabase, surrogate: ImpactSurrog
     with atomic_path(out / "metrics.json") as tmp:
         tmp.write_text(json.dumps(ev.metrics, indent=2))
     plot_time_series(db, ev, out / "timeseries.png", nodes=nodes)
-    plot_fields(db, surrogate, out / "fields.png", frames=frames)
+    plot_fields(db, surrogate, out / "fields.png", sim=_chosen_sim(db, ev), frames=frames)
     return out
 
 
