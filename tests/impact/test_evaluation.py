@@ -33,3 +33,18 @@ def test_fields_figure_shows_a_test_velocity(tiny_db, tmp_path, monkeypatch, spl
     assert shown["velocity"] == max(ev.metrics["test_velocities_mm_s"])
     assert shown["titles"] and all(f"{shown['velocity']:g} mm/s ({role})" in t for t in shown["titles"])
     assert (tmp_path / "fields.png").stat().st_size > 0
+
+
+def test_a_prediction_writes_a_preview_unless_told_not_to(tiny_db, tmp_path):
+    """Prediction.write draws preview.png of the last frame (with the rigid ball where it is then),
+    as simulate does; preview=False skips it."""
+    from toolkit.impact.surrogate import predict_scene
+
+    model = train_surrogate(tiny_db, CONFIGS["baseline"].with_(epochs=1, patience=None), "random", seed=0,
+                            progress=False)
+    pred = predict_scene(model, 41.0)
+    pred.write(tmp_path / "with")
+    assert (tmp_path / "with" / "preview.png").stat().st_size > 0
+    pred.write(tmp_path / "without", preview=False)
+    assert not (tmp_path / "without" / "preview.png").exists()
+    assert (tmp_path / "without" / "face.xdmf").exists()

@@ -430,13 +430,15 @@ class Prediction:
                 "fixed_clearance_mm": None, "predicted_by": f"{MODEL_KIND} ({self.config})",
                 "extrapolation": self.extrapolation}
 
-    def write(self, out: str | os.PathLike) -> Path:
+    def write(self, out: str | os.PathLike, preview: bool = True) -> Path:
         """``face.xdmf`` (+ .h5; point data ``displacement`` mm, ``von_mises`` MPa per frame),
-        ``summary.json`` and ``scene.toml`` (run the FE of the same case with
-        ``toolkit impact simulate --scene scene.toml``)."""
+        ``summary.json``, ``scene.toml`` (run the FE of the same case with
+        ``toolkit impact simulate --scene scene.toml``) and, with ``preview``, ``preview.png`` of
+        the last frame (as :func:`toolkit.impact.simulate.simulate` draws it)."""
         import json
 
         from toolkit.common.io import TimeSeriesWriter, atomic_path
+        from toolkit.impact.simulate import ball_start, write_preview
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -446,6 +448,14 @@ class Prediction:
         with atomic_path(out / "summary.json") as tmp:
             tmp.write_text(json.dumps({"status": "finished", **self.summary()}, indent=2))
         self.scene.write(out / "scene.toml")
+        if preview:
+            ball = None
+            if self.scene.ball.rigid:
+                d = np.asarray(self.scene.ball.direction, dtype=float)
+                centre = ball_start(self.scene, self.face.points[self.face.node_set("skin")])
+                ball = (centre + self.scene.ball.velocity * d * float(self.times[-1]), self.scene.ball.radius)
+            write_preview(out / "preview.png", self.face, self.displacement[-1], self.von_mises[-1],
+                          float(self.times[-1]), ball)
         return out
 
 
