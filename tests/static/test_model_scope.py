@@ -120,7 +120,10 @@ def test_a_plan_beyond_the_training_ranges_is_recorded(model, tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PlanRangeWarning)
         plan = SurgicalPlan.from_dict({"distal": {"translation_mm": [0.0, -20.0, 0.0]}}, phantom=phantom)
+    with warnings.catch_warnings(record=True) as predicted:  # warned where the plan was built, not again
+        warnings.simplefilter("always")
         result = model.predict_plan(phantom, plan)
+    assert [str(w.message) for w in predicted if issubclass(w.category, PlanRangeWarning)] == []
     ex = result.summary()["extrapolation"]
     assert ex["outside"] is True
     ty = ex["parameters"]["distal.translation_y_mm"]

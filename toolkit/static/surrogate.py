@@ -184,7 +184,10 @@ def plan_extrapolation(plan, ranges: dict | None) -> dict:
     (``"outside": "unknown"`` when the model holds no ranges)."""
     from toolkit.static.dataset import plan_features
 
-    values = dict(zip(PLAN_PARAMETERS, plan_features(plan, 1)[0, :len(PLAN_PARAMETERS)].tolist()))
+    with warnings.catch_warnings():  # the plan warned of its range where it was built
+        warnings.simplefilter("ignore", PlanRangeWarning)
+        features = plan_features(plan, 1)[0]
+    values = dict(zip(PLAN_PARAMETERS, features[:len(PLAN_PARAMETERS)].tolist()))
     return extrapolation(values, ranges, "plans")
 
 
