@@ -579,7 +579,7 @@ def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=No
             if fut.done() and not fut.cancelled():  # finished before the interrupt: keep it
                 try:
                     status, payload, extra = fut.result()
-                except Exception:  # noqa: BLE001 - the worker died; it reruns next time
+                except BaseException:  # noqa: BLE001 - the worker died or was interrupted; it reruns next time
                     continue
                 db.write_shard(job, status, payload, extra)
             else:
