@@ -338,3 +338,30 @@ def test_train_refuses_to_overwrite_an_interrupted_training(workflow, tmp_path, 
     assert main([workflow, "train", "--data", str(tmp_path / "missing.h5"), "--out", str(tmp_path)]) == 2
     assert "interrupted training" in capsys.readouterr().err
     assert (tmp_path / "checkpoint.pt").read_bytes() == b"finished epochs"
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["static", "simulate", "--threads", "0"], "argument --threads: expected an integer >= 1, got '0'"),
+    (["static", "train", "--data", "db.h5", "--epochs", "0"], "argument --epochs: expected an integer >= 1"),
+    (["static", "train", "--data", "db.h5", "--batch-size", "2.5"], "argument --batch-size: expected an integer"),
+    (["static", "train", "--data", "db.h5", "--lr", "nan"], "argument --lr: expected a number > 0, got 'nan'"),
+    (["impact", "train", "--data", "db.h5", "--max-minutes", "-1"], "argument --max-minutes: expected a number > 0"),
+])
+def test_counts_and_rates_are_checked_as_the_options_are_read(argv, expected, capsys):
+    """Thread, epoch and batch counts, the learning rate and time limits are refused by the parser
+    (usage error, exit 2), not deep in a run or as a traceback."""
+    with pytest.raises(SystemExit) as done:
+        main([*argv, "--out", "unused"])
+    assert done.value.code == 2 and expected in capsys.readouterr().err
+
+
+def test_an_empty_velocity_list_is_refused_not_replaced_by_the_default(monkeypatch, capsys):
+    """``impact dataset --velocities ''`` is refused: it does not start the default nine runs."""
+    import importlib
+
+    def ran(*args, **kwargs):
+        raise AssertionError("the database build ran")
+
+    monkeypatch.setattr(importlib.import_module("toolkit.impact.dataset"), "build_database", ran)
+    assert main(["impact", "dataset", "--velocities", "", "--out", "unused.h5"]) == 2
+    assert "--velocities gives no velocity" in capsys.readouterr().err

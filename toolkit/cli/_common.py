@@ -37,7 +37,7 @@ class HelpFormatter(argparse.HelpFormatter):
 
 def add_common(parser: argparse.ArgumentParser) -> None:
     """``--threads`` and ``--verbose``, on every subcommand."""
-    parser.add_argument("--threads", type=int, default=None,
+    parser.add_argument("--threads", type=positive_int, default=None,
                         help="BLAS/torch threads (default: TOOLKIT_NUM_THREADS or 1; 1 is fastest on 2 cores)")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
 
@@ -55,6 +55,28 @@ def torch_threads(args: argparse.Namespace) -> None:
     from toolkit.common.runtime import set_threads
 
     set_threads(args.threads)
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1 (an argparse type)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1 or str(value) != text.strip().lstrip("+"):
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0 (an argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
 
 
 def floats(text: str) -> list[float]:

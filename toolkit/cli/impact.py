@@ -7,7 +7,16 @@ import sys
 import warnings
 from pathlib import Path
 
-from toolkit.cli._common import Command, add_database_run, dask_client, floats, ints, torch_threads
+from toolkit.cli._common import (
+    Command,
+    add_database_run,
+    dask_client,
+    floats,
+    ints,
+    positive_float,
+    positive_int,
+    torch_threads,
+)
 
 HELP = "ball-impact workflow (the impact paper)"
 DESCRIPTION = "Impact workflow: explicit elastoplastic simulation of a ball pressed into the face."
@@ -94,7 +103,10 @@ def dataset(args: argparse.Namespace) -> int:
     from toolkit.impact.scene import yielding_scene
 
     check_output_file(args.out, what="database file")
-    velocities = args.velocities or list(BALL_VELOCITIES)
+    velocities = list(BALL_VELOCITIES) if args.velocities is None else args.velocities
+    if not velocities:
+        raise ValueError("--velocities gives no velocity; expected comma-separated mm/s, e.g. --velocities 20,35,50 "
+                         "(or leave it out for the impact paper's)")
     with dask_client(args.dask, args.workers) as client:
         report = build_database(args.out, velocities, args.held_out, scene(args, yielding_scene), workers=args.workers,
                                 executor=client, retry_failed=args.retry_failed, progress=True)
@@ -121,8 +133,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                              "the test set")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto")
     parser.add_argument("--seed", type=int, default=0, help="weights, batch order and split")
-    parser.add_argument("--epochs", type=int, default=None, help="maximum epochs (default: the configuration's)")
-    parser.add_argument("--max-minutes", type=float, default=None,
+    parser.add_argument("--epochs", type=positive_int, default=None,
+                        help="maximum epochs (default: the configuration's)")
+    parser.add_argument("--max-minutes", type=positive_float, default=None,
                         help="training time limit (default: the configuration's, 15)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
 

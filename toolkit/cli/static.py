@@ -6,7 +6,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from toolkit.cli._common import RESOLUTIONS, Command, add_database_run, add_units, dask_client
+from toolkit.cli._common import (
+    RESOLUTIONS,
+    Command,
+    add_database_run,
+    add_units,
+    dask_client,
+    positive_float,
+    positive_int,
+)
 
 HELP = "orthognathic-surgery workflow (the lip-sliding paper)"
 DESCRIPTION = "Static workflow: incremental FEM of the face after orthognathic surgery."
@@ -111,12 +119,12 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--network", default="small", choices=["paper", "small", "tiny"], help="network size")
     parser.add_argument("--test-subjects", type=int, nargs="*", default=None,
                         help="hold these subjects out for testing (default: 70/10/20 split by simulation)")
-    parser.add_argument("--epochs", type=int, default=100, help="maximum epochs")
-    parser.add_argument("--batch-size", type=int, default=8, help="samples per batch")
-    parser.add_argument("--lr", type=float, default=1e-3, help="learning rate")
+    parser.add_argument("--epochs", type=positive_int, default=100, help="maximum epochs")
+    parser.add_argument("--batch-size", type=positive_int, default=8, help="samples per batch")
+    parser.add_argument("--lr", type=positive_float, default=1e-3, help="learning rate")
     parser.add_argument("--lr-schedule", default="constant", choices=["constant", "cosine"],
                         help="cosine: decay to 1%% of --lr over the epochs (or over --max-minutes when given)")
-    parser.add_argument("--max-minutes", type=float, default=None, help="training time limit (default: none)")
+    parser.add_argument("--max-minutes", type=positive_float, default=None, help="training time limit (default: none)")
     parser.add_argument("--seed", type=int, default=0, help="weights, batch order and split")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
