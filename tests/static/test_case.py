@@ -103,6 +103,23 @@ def test_mesh_needs_a_plan_and_no_shape(files):
         load_case(mesh, plan=plan, shape=FaceShape())
 
 
+def test_plan_remedies_name_the_command_line(files, tmp_path):
+    """A mesh without a plan and a plan file that does not exist say so, naming --plan; a plan
+    file beyond twice the physiological range is read with ``force`` applied (``--force``)."""
+    mesh, _, _ = files
+    with pytest.raises(ValueError, match=r"give plan= \(command line: --plan FILE\)"):
+        load_case(mesh)
+    with pytest.raises(FileNotFoundError, match=r"plan file '.*missing.toml' does not exist.*--plan"):
+        load_case(resolution="coarse", plan=tmp_path / "missing.toml")
+    big = tmp_path / "big.toml"
+    big.write_text("force = false\n[lefort]\ntranslation_mm = [0.0, 14.0, 0.0]\n")
+    with pytest.raises(ValueError, match=r"force=True \(command line: --force\)"):
+        load_case(resolution="coarse", plan=big)
+    with pytest.warns(UserWarning, match="accepted because force=True"):
+        case = load_case(resolution="coarse", plan=big, force=True)
+    assert case.plan.force and case.plan.motions["lefort"].translation_mm == pytest.approx(14.0)
+
+
 def test_case_checks_its_fields(phantom):
     with pytest.raises(TypeError, match="subject is a str; expected a FacePhantom or a Mesh"):
         StaticCase("face.inp", default_plan(phantom), {})

@@ -113,6 +113,9 @@ def load_case(
     from toolkit.static.bones import segments_from_files
 
     bones = dict(bones or {})
+    if isinstance(plan, str | Path) and not Path(plan).is_file():
+        raise FileNotFoundError(f"plan file {str(plan)!r} does not exist; expected a .toml or .json plan "
+                                "(command line: --plan FILE)")
     if mesh is None:
         from toolkit.common.phantom import face_hex
         from toolkit.static.plan import default_plan
@@ -133,7 +136,7 @@ def load_case(
                          "(mesh=None)")
     if plan is None:
         raise ValueError(f"mesh {_name(mesh)} needs a plan (with pivot_mm for every rotating segment); got plan=None, "
-                         "and only the phantom has a default plan")
+                         "and only the phantom has a default plan: give plan= (command line: --plan FILE)")
     from toolkit.common.io import read
     from toolkit.static.boundary import BoundaryError, segments_from_mesh
 
