@@ -204,3 +204,20 @@ def test_string_columns_of_the_index_read_as_str(tmp_path):
         index = pd.DataFrame(f["index"][()])
     index = index.apply(lambda c: c.str.decode("utf-8") if c.dtype == object else c)
     assert sorted(index["key"]) == ["x1", "x2"] and sorted(index["label"]) == ["x1", "x2"]
+
+
+def test_a_sigterm_stops_the_run_like_a_ctrl_c_and_keeps_the_finished_jobs(tmp_path):
+    """A SIGTERM (a cluster's time limit) during the third job: KeyboardInterrupt, and the two
+    finished records are merged into the .h5; the SIGTERM handler is restored afterwards."""
+    db = _db(tmp_path)
+    before = signal.getsignal(signal.SIGTERM)
+
+    def terminated(params):
+        if params["x"] == 5:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return square(params)
+
+    with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
+        run_jobs(db, _jobs([1, 2, 5, 6]), terminated, workers=0, progress=False)
+    assert not db.shards.exists() and sorted(read_index(db.path)["key"]) == ["x1", "x2"]
+    assert signal.getsignal(signal.SIGTERM) is before

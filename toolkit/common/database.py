@@ -12,8 +12,9 @@ Safety:
   *shard* file (``<db>.shards/<key>.h5``, atomically renamed into place), so a crash or
   Ctrl-C loses at most the jobs still running;
 - shards are merged into the main file copy-on-write (a copy is extended and renamed
-  over the original), every ``merge_every`` seconds, at the end, on Ctrl-C or a failure
-  (a second Ctrl-C waits for that merge) and at the next start: the main file is always a
+  over the original), every ``merge_every`` seconds, at the end, on Ctrl-C, SIGTERM or
+  SIGHUP (a cluster's time limit, a closed terminal) or a failure (a second Ctrl-C waits
+  for that merge) and at the next start: the main file is always a
   consistent database, and after an interrupt it alone holds every finished job;
 - the keys of the last run's jobs are stored (root attribute ``planned``), so a reader
   tells a finished database from an interrupted one (:func:`database_status`: "N of M
@@ -454,6 +455,25 @@ def read_failures(path: str | os.PathLike):
     return pd.DataFrame(rows, columns=["key", "reason", "params"])
 
 
+def _terminate_as_interrupt() -> Callable[[], None]:
+    """From now on a SIGTERM or SIGHUP (a cluster's time limit, a closed terminal) stops the run
+    like a Ctrl-C (KeyboardInterrupt), so finished jobs are merged; returns the function that
+    restores the previous handlers. Only in the main thread (elsewhere nothing changes)."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+    names = [n for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
+    previous = {n: signal.signal(getattr(signal, n), interrupt) for n in names}
+
+    def restore():
+        for n, handler in previous.items():
+            signal.signal(getattr(signal, n), handler)
+    return restore
+
+
 def database_status(path: str | os.PathLike) -> DatabaseStatus:
     """How complete the database at ``path`` is (:class:`DatabaseStatus`)."""
     import h5py
@@ -551,6 +571,7 @@ def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=No
     pending, futures = list(reversed(todo)), {}
     bar = tqdm(total=len(todo), desc="simulations", disable=not progress)
     last_merge = time.perf_counter()
+    restore_signals = _terminate_as_interrupt()
     try:
         while pending or futures:
             while pending and len(futures) < window:
@@ -589,6 +610,7 @@ def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=No
                 proc.terminate()
         raise
     finally:
+        restore_signals()
         bar.close()
         if owned:
             pool.shutdown(wait=False, cancel_futures=True)
