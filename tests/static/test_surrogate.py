@@ -100,12 +100,12 @@ def test_a_linear_prior_model_learns_what_the_influence_matrix_misses(db100, tmp
 
 
 def test_a_model_refuses_what_it_was_not_built_for(db100, hard_model, tmp_path):
-    """Another mesh (the paper face: other node count and topology), another model kind, and
+    """A database of another resolution (the paper face) named as such, another model kind, and
     material channels on a database that does not vary the material are refused with errors
     that name the difference."""
     paper = tmp_path / "paper.h5"
     generate(paper, DatasetConfig(resolution="paper", plans=1), workers=0, progress=False)
-    with pytest.raises(IncompatibleError, match="nodes"):
+    with pytest.raises(IncompatibleError, match="resolution: stored 'coarse', asked 'paper'.*--resolution coarse"):
         evaluate_surrogate(hard_model, paper)
     with pytest.raises(IncompatibleError, match="toolkit.impact"):
         _load_as(hard_model, tmp_path, "toolkit.impact.surrogate")

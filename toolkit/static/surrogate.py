@@ -488,7 +488,8 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
     out.mkdir(parents=True, exist_ok=True)
     if config.features.material_channels and db.config.poisson_range is None:
         raise ValueError("material_channels needs a database whose simulations vary Poisson's ratio "
-                         f"(DatasetConfig.poisson_range); this one uses {TISSUE_NU} throughout")
+                         "(DatasetConfig.poisson_range; command line: toolkit static dataset --poisson-range LO HI); "
+                         f"this one uses {TISSUE_NU} throughout")
     t_prior = time.perf_counter()
     priors = _subject_priors(db, db.points) if config.features.linear_prior else None
     t_prior = time.perf_counter() - t_prior
@@ -563,13 +564,13 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
     from toolkit.static.dataset import StaticDatabase
 
     db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
-    model.check_mesh(db.points[0], db.cells)
     trained_on = model.bundle.data["database"]
     asked = db.config.as_dict()
     require_same({k: trained_on.get(k) for k in MUST_MATCH}, {k: asked[k] for k in MUST_MATCH},
                  f"database {db.path}: the model's training database",
                  hint="Score the model on a database generated with its settings (`toolkit static dataset "
                       + " ".join(f"--{k} {trained_on.get(k)}" for k in MUST_MATCH) + "`)")
+    model.check_mesh(db.points[0], db.cells)
     same = asked == trained_on
     seen = model.bundle.extra.get("seen_simulations")
     identities = _simulation_identities(db) if seen is not None else {}
