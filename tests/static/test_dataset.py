@@ -117,10 +117,11 @@ def test_an_interrupt_before_any_simulation_leaves_a_database_that_says_so(tmp_p
         StaticDatabase.open(path)
 
 
-def test_more_plans_grow_the_database_with_the_same_first_plans(small_db, tmp_path):
+def test_more_plans_and_subjects_grow_the_database_with_the_same_first_ones(small_db, tmp_path):
     """3 plans on the 2-plan database: the 4 finished simulations are kept (arrays unchanged) and
     only the third plan of each subject runs; its plan is the one a fresh 3-plan database draws
-    (plan p depends only on seed, subject and p), and the file records 3 plans."""
+    (plan p depends only on seed, subject and p), and the file records 3 plans. A third subject
+    then adds its face and plans."""
     grown = tmp_path / "grown.h5"
     shutil.copyfile(small_db, grown)
     bigger = DatasetConfig(resolution="coarse", subjects=2, plans=3, seed=3)
@@ -137,6 +138,14 @@ def test_more_plans_grow_the_database_with_the_same_first_plans(small_db, tmp_pa
     # a smaller run afterwards keeps everything and the record of 3 plans
     assert len(generate(grown, CONFIG, workers=0, progress=False).skipped) == 4
     assert StaticDatabase.open(grown).config.plans == 3
+    # a third subject: its face and its 3 plans are added, the rest kept
+    more = DatasetConfig(resolution="coarse", subjects=3, plans=3, seed=3)
+    report = generate(grown, more, workers=0, progress=False)
+    assert sorted(report.done) == [f"s002-p{p:05d}" for p in range(3)] and len(report.skipped) == 6
+    c = StaticDatabase.open(grown)
+    assert c.config == more and len(c) == 27 and sorted(c.points) == [0, 1, 2]
+    np.testing.assert_array_equal(c.points[2], dataset_module.subject_phantom("coarse", 2).mesh.points)
+    np.testing.assert_array_equal(c.points[1], b.points[1])
 
 
 def test_samples_are_rebuilt_from_the_records_when_the_table_is_missing_or_stale(small_db, tmp_path):

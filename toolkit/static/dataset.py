@@ -31,8 +31,9 @@ simulations; after an interrupt the file already holds every finished one (and i
 ``/samples``), and :meth:`StaticDatabase.open` warns "interrupted database FILE: N of M
 simulations done". A larger ``plans`` grows the database: plan ``p`` of subject ``k`` depends
 only on ``seed``, ``k`` and ``p``, so 30 then 32 plans hold the same 32 simulations as 32 at
-once; the stored configuration records the largest number of plans asked. The other settings
-(and ``subjects``) must match the file's.
+once; likewise a larger ``subjects`` adds subjects (subject ``k`` draws from ``[seed, k]``).
+The stored configuration records the largest numbers asked; the other settings must match
+the file's.
 """
 
 from __future__ import annotations
@@ -230,16 +231,18 @@ def simulate_job(params: dict) -> Record:
                    "features": plan_features(plan, cfg.increments)}, attrs)
 
 
-def _shared(config: DatasetConfig) -> dict:
-    """Arrays common to the database: topology, node sets, each subject's points and types."""
+def _shared(config: DatasetConfig, first_subject: int = 0) -> dict:
+    """Arrays common to the database: topology, node sets, each subject's points and types
+    (only the subjects from ``first_subject`` on, without topology and sets, when > 0)."""
     out = {}
     first = subject_phantom(config.resolution, 0)
-    for ctype, cells in first.mesh.cells.items():
-        out[f"cells/{ctype}"] = cells
-    for name in ("skin", "lip_sliding", "upper_lip_face", "lower_lip_face", "mucosa_sliding", "bone"):
-        if name in first.mesh.node_sets:
-            out[f"sets/{name}"] = first.mesh.node_sets[name]
-    for subject in range(config.subjects):
+    if first_subject == 0:
+        for ctype, cells in first.mesh.cells.items():
+            out[f"cells/{ctype}"] = cells
+        for name in ("skin", "lip_sliding", "upper_lip_face", "lower_lip_face", "mucosa_sliding", "bone"):
+            if name in first.mesh.node_sets:
+                out[f"sets/{name}"] = first.mesh.node_sets[name]
+    for subject in range(first_subject, config.subjects):
         ph = subject_phantom(config.resolution, subject)
         bc = _boundary(ph, config.sliding)
         out[f"subject_{subject:03d}/points"] = ph.mesh.points
@@ -247,6 +250,22 @@ def _shared(config: DatasetConfig) -> dict:
         out[f"subject_{subject:03d}/segment"] = bc.segment
         out[f"subject_{subject:03d}/shape"] = np.array([getattr(ph.shape, f) for f in _SHAPE_FIELDS])
     return out
+
+
+def _add_subjects(path: Path, config: DatasetConfig, first_subject: int) -> None:
+    """Add the shared arrays of subjects ``first_subject`` .. ``config.subjects - 1`` (copy-on-write)."""
+    import shutil
+
+    import h5py
+
+    from toolkit.common.io import atomic_path
+
+    arrays = _shared(config, first_subject)
+    with atomic_path(path) as tmp:
+        shutil.copyfile(path, tmp)
+        with h5py.File(tmp, "a") as f:
+            for name, arr in arrays.items():
+                f["shared"].create_dataset(name, data=np.asarray(arr))
 
 
 _SHAPE_FIELDS = ("face_width", "face_height", "tissue_thickness", "lip_protrusion", "mouth_open", "nose_height")
@@ -272,7 +291,10 @@ def generate(path: str | os.PathLike, config: DatasetConfig, *, executor=None, w
     if Path(path).exists():
         Database(path, DATABASE_KIND, DATABASE_VERSION, stored, grows=_GROWS).check()
         before = json.loads(Database.open_attrs(Path(path)).get("config", "{}"))
-        stored["plans"] = max(int(before.get("plans", 0)), config.plans)
+        for name in _GROWS:
+            stored[name] = max(int(before.get(name, 0)), getattr(config, name))
+        if config.subjects > int(before.get("subjects", 0)):
+            _add_subjects(Path(path), config, int(before.get("subjects", 0)))
     db = Database(path, DATABASE_KIND, DATABASE_VERSION, stored, grows=_GROWS)
     if not Path(path).exists():
         db.create(_shared(config))
@@ -285,8 +307,8 @@ def generate(path: str | os.PathLike, config: DatasetConfig, *, executor=None, w
     return report
 
 
-#: configuration keys a static database grows along (more plans from the same random streams)
-_GROWS = ("plans",)
+#: configuration keys a static database grows along (more plans and subjects from the same random streams)
+_GROWS = ("plans", "subjects")
 _REMEDY = "`toolkit static dataset` with the same options"
 
 
