@@ -133,3 +133,22 @@ def test_a_plan_beyond_the_training_ranges_is_recorded(model, tmp_path):
     result.write(tmp_path / "pred", preview=False)
     assert json.loads((tmp_path / "pred" / "summary.json").read_text())["extrapolation"] == json.loads(
         json.dumps(ex))
+
+
+def test_the_commands_print_what_was_scored_and_the_extrapolation(db6, model, tmp_path, capsys):
+    """`toolkit static evaluate` says which samples it scored; `toolkit static predict` of a plan
+    beyond the training plans says so, naming the parameter and its training range."""
+    from toolkit.cli import main
+
+    saved = model.bundle.save(tmp_path / "m")
+    assert main(["static", "evaluate", "--model", str(saved), "--data", str(db6), "--out", str(tmp_path / "ev"),
+                 "--no-render"]) == 0
+    assert "scored: test split of the training database" in capsys.readouterr().out
+    plan = tmp_path / "plan.toml"
+    plan.write_text("[distal]\ntranslation_mm = [0.0, -20.0, 0.0]\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PlanRangeWarning)
+        assert main(["static", "predict", "--model", str(saved), "--plan", str(plan), "--out", str(tmp_path / "p"),
+                     "--no-preview"]) == 0
+    out = capsys.readouterr().out
+    assert "plan: OUTSIDE the training data" in out and "distal.translation_y_mm = -20 (trained" in out
