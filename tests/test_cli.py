@@ -365,3 +365,14 @@ def test_an_empty_velocity_list_is_refused_not_replaced_by_the_default(monkeypat
     monkeypatch.setattr(importlib.import_module("toolkit.impact.dataset"), "build_database", ran)
     assert main(["impact", "dataset", "--velocities", "", "--out", "unused.h5"]) == 2
     assert "--velocities gives no velocity" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["static", "simulate", "--plan", "missing.toml"], "plan file 'missing.toml' does not exist"),
+    (["impact", "simulate", "--scene", "missing.toml"], "scene file 'missing.toml' does not exist"),
+    (["static", "simulate", "--mesh", "missing.inp", "--plan", "missing.toml"], "does not exist"),
+])
+def test_a_missing_input_file_is_named_with_its_option(argv, expected, tmp_path, capsys):
+    assert main([*argv, "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert expected in err and "[Errno" not in err, err

@@ -293,6 +293,9 @@ class Scene:
         path = Path(path)
         if path.suffix.lower() != ".toml":
             raise SceneError(f"scenes are TOML files; got {str(path)!r}")
+        if not path.is_file():
+            raise FileNotFoundError(f"scene file {str(path)!r} does not exist; expected a TOML scene (command line: "
+                                    "--scene FILE; Scene.write or `toolkit impact predict` writes one)")
         raw = path.read_bytes()
         try:
             text = raw.decode("utf-8")

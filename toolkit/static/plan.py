@@ -573,6 +573,9 @@ class SurgicalPlan:
         accepts movements beyond twice the physiological range whatever the file says."""
         path = Path(path)
         fmt = _format(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"plan file {str(path)!r} does not exist; expected a .toml or .json plan "
+                                    "(command line: --plan FILE)")
         d = _load(path, fmt)
         if force and isinstance(d, dict):
             d = {**d, "force": True}
