@@ -141,8 +141,8 @@ def test_the_stop_reason_is_said_in_words():
     x, y = _regression(200)
     cfg = TrainConfig(epochs=2, batch_size=50, progress=False)
     result = train(_mlp(), torch.nn.functional.mse_loss, (x[:150], y[:150]), (x[150:], y[150:]), cfg)
-    assert result.stopped == "epochs" and result.stop_reason == "epoch limit (2) reached"
-    assert stop_reason("time_limit", TrainConfig(max_seconds=45.0)) == "time limit (45 s) reached"
+    assert result.stopped == "epochs" and result.stop_reason == "epoch limit of 2 reached"
+    assert stop_reason("time_limit", TrainConfig(max_seconds=45.0)) == "time limit of 45 s reached"
     assert stop_reason("epochs") == "epoch limit reached"
     with pytest.raises(ValueError, match="stopped = 'done'; expected one of"):
         stop_reason("done")

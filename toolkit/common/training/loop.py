@@ -116,7 +116,7 @@ class TrainResult:
 
     @property
     def stop_reason(self) -> str:
-        """Why training stopped, in words (e.g. ``"epoch limit (200) reached"``)."""
+        """Why training stopped, in words (e.g. ``"epoch limit of 200 reached"``)."""
         return stop_reason(self.stopped, self.config)
 
 
@@ -125,10 +125,10 @@ def stop_reason(stopped: str, config: TrainConfig | None = None) -> str:
     from ``config`` when given."""
     c = config
     words = {
-        "epochs": f"epoch limit ({c.epochs}) reached" if c else "epoch limit reached",
+        "epochs": f"epoch limit of {c.epochs} reached" if c else "epoch limit reached",
         "early_stopping": (f"early stopping: no validation improvement in {c.patience} epochs" if c
                            else "early stopping: no validation improvement"),
-        "time_limit": f"time limit ({c.max_seconds:.0f} s) reached" if c and c.max_seconds else "time limit reached",
+        "time_limit": f"time limit of {c.max_seconds:.0f} s reached" if c and c.max_seconds else "time limit reached",
     }
     if stopped not in words:
         raise ValueError(f"stopped = {stopped!r}; expected one of {list(words)}")
