@@ -120,6 +120,31 @@ def test_inp_node_id_defined_twice_is_refused(inp):
             "line 5")
 
 
+def test_inp_node_with_two_coordinates_names_the_line(inp):
+    _raises(MeshError, inp(INP.replace("2, 10.0, 0.0, 0.0", "2, 10.0, 0.0")), "line 5", "holds 2 coordinates",
+            "line 4 holds 3")
+
+
+def test_inp_comments_inside_the_node_block_are_read(inp):
+    """``**`` comment lines do not end a keyword block: the checks still see every node line."""
+    text = INP.replace("*NODE\n", "*NODE\n** nodes in mm\n")
+    assert io.read(inp(text)).n_points == 4
+    _raises(MeshError, inp(text.replace("3, 0.0, 10.0", "2, 0.0, 10.0")), "node id 2 is defined twice")
+
+
+def test_folder_for_a_mesh_file_is_refused(tmp_path):
+    folder = tmp_path / "face.vtu"
+    folder.mkdir()
+    _raises(MeshError, folder, "is a folder")
+
+
+def test_xdmf_without_its_h5_names_the_missing_file(tmp_path):
+    """An XDMF copied without its HDF5 data file: the message names the .h5 it needs."""
+    io.write(tmp_path / "face.xdmf", Mesh(TET, {"tet4": [[0, 1, 2, 3]]}))
+    (tmp_path / "face.h5").unlink()
+    _raises(MeshError, tmp_path / "face.xdmf", "face.h5", "beside the .xdmf")
+
+
 def test_inp_with_nan_coordinates_is_refused(inp):
     _raises(MeshError, inp(INP.replace("2, 10.0, 0.0", "2, nan, 0.0")), "NaN/inf", "[1]")
 

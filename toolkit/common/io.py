@@ -27,6 +27,7 @@ import re
 import tempfile
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from io import StringIO
 from pathlib import Path
 
 import numpy as np
@@ -247,6 +248,8 @@ def _read_meshio(path: Path, fmt: str) -> Mesh:
     """``meshio`` reading with every failure turned into a :class:`MeshError` that names the file
     (and the line of an Abaqus file where it can be found)."""
     expected = _FORMAT_NAMES[fmt]
+    if path.is_dir():
+        raise MeshError(f"{path} is a folder; expected {expected}")
     if path.stat().st_size == 0:
         raise MeshError(f"{path.name} is empty (0 bytes); expected {expected}")
     lines = None
@@ -265,7 +268,16 @@ def _read_meshio(path: Path, fmt: str) -> Mesh:
     from meshio._helpers import reader_map
 
     try:
-        m = reader_map[fmt](str(path))
+        if lines is None:
+            m = reader_map[fmt](str(path))
+        else:
+            # meshio ends a *NODE/*ELEMENT/*NSET block at a ``**`` comment line and skips blank ones:
+            # blank the comments (line numbers stay)
+            from meshio.abaqus._abaqus import read_buffer
+
+            if text.startswith("**") or "\n**" in text:
+                text = "\n".join("" if ln.startswith("**") else ln for ln in lines) + "\n"
+            m = read_buffer(StringIO(text))
     except (MemoryError, KeyboardInterrupt):
         raise
     except Exception as exc:  # noqa: BLE001 - any parse failure of a third-party reader
@@ -284,6 +296,9 @@ def _parse_failure(path: Path, fmt: str, exc: Exception, lines: list[str] | None
     while str(cause) in ("", type(cause).__name__) and (cause.__cause__ or cause.__context__) is not None:
         cause = cause.__cause__ or cause.__context__  # meshio's ReadError() wraps the parser's message
     reason = f"{type(cause).__name__}: {cause}" if str(cause) else type(cause).__name__
+    if fmt == "xdmf" and isinstance(cause, FileNotFoundError):
+        return (f"{path.name} keeps its data in {path.with_suffix('.h5').name}, which cannot be opened"
+                f" ({reason}); expected the .h5 file beside the .xdmf")
     if lines is None:
         return f"{path.name} cannot be read as {expected} ({reason}); is it truncated or of another format?"
     token = None
@@ -310,6 +325,8 @@ def _abaqus_line(lines: list[str], token: str, data_only: tuple[str, ...] | None
     """1-based number of the first data line holding the field ``token`` (in the given keyword blocks)."""
     keyword = ""
     for k, line in enumerate(lines, 1):
+        if line.startswith("**"):  # a comment
+            continue
         if line.startswith("*"):
             keyword = line.split(",")[0].strip().upper()
             continue
@@ -324,13 +341,21 @@ def _abaqus_line(lines: list[str], token: str, data_only: tuple[str, ...] | None
 
 
 def _check_abaqus_node_ids(path: Path, lines: list[str]) -> None:
-    """Refuse a node id defined twice (meshio would keep the last and renumber the rest)."""
-    ids, where, keyword = [], [], ""
+    """Refuse a node line with another number of values than the first one, and a node id defined
+    twice (meshio would keep the last and renumber the rest)."""
+    ids, where, keyword, width = [], [], "", None
     for k, line in enumerate(lines, 1):
+        if line.startswith("**"):  # a comment
+            continue
         if line.startswith("*"):
             keyword = line.split(",")[0].strip().upper()
-        elif keyword == "*NODE" and line.strip() and not line.startswith("**"):
-            ids.append(line.split(",", 1)[0].strip())
+        elif keyword == "*NODE" and line.strip():
+            values = line.rstrip().rstrip(",").split(",")
+            width = width or (len(values), k)
+            if len(values) != width[0]:
+                raise MeshError(f"{path.name}, line {k}: node line holds {len(values) - 1} coordinates where line"
+                                f" {width[1]} holds {width[0] - 1}; expected an id and x, y, z on every *NODE line")
+            ids.append(values[0].strip())
             where.append(k)
     if len(set(ids)) == len(ids):
         return
