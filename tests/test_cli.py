@@ -376,3 +376,16 @@ def test_a_missing_input_file_is_named_with_its_option(argv, expected, tmp_path,
     assert main([*argv, "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err
     assert expected in err and "[Errno" not in err, err
+
+
+def test_a_full_disk_is_an_error_line_not_a_traceback(monkeypatch, capsys):
+    """An OSError while writing (no space left, a folder made read-only mid-run) prints the file
+    and the reason on one ``error:`` line, exit code 2."""
+    def full(args):
+        raise OSError(28, "No space left on device", "run/face.h5")
+
+    args = build_parser().parse_args(["static", "simulate", "--out", "unused"])
+    args.func = full
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", lambda self, argv=None: args)
+    assert main([]) == 2
+    assert capsys.readouterr().err.startswith("error: run/face.h5: No space left on device")

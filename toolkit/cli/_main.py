@@ -1,6 +1,7 @@
 """``toolkit``: wires the subcommands, sets the threads, and turns the toolkit's errors (any
 :class:`~toolkit.common.errors.ToolkitError`, bad input, a missing file, a failed solve) into
-``error: ...`` on stderr with exit code 2."""
+``error: ...`` on stderr with exit code 2; so is a full disk or another failed write
+(``OSError``)."""
 
 from __future__ import annotations
 
@@ -54,6 +55,11 @@ def main(argv: list[str] | None = None) -> int:
     except (ToolkitError, ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
         _close_progress_bars()
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a full disk, a folder made read-only during the run
+        _close_progress_bars()
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: {where}{exc.strerror or exc} (the files finished before it are complete)", file=sys.stderr)
         return 2
 
 
