@@ -230,3 +230,16 @@ def test_bad_scene_files_name_file_table_key_and_expectation(tmp_path, case):
     path = tmp_path / "scene.toml"
     path.write_bytes(text if isinstance(text, bytes) else text.encode())
     _raises(SceneError, path, *fragments, read=Scene.read)
+
+
+def test_missing_set_is_a_toolkit_error_and_a_key_error(inp):
+    """A node set the caller needs and the file lacks: the message lists the sets it has, unquoted,
+    and the error is caught as a ToolkitError, a ValueError or (for lookups) a KeyError."""
+    from toolkit.common.mesh import MissingSetError
+
+    with pytest.raises(MissingSetError) as info:
+        io.read(inp(INP), require_node_sets=["skin"])
+    assert isinstance(info.value, ToolkitError) and isinstance(info.value, KeyError)
+    assert str(info.value).startswith("face.inp lacks the sets ['skin']; it has node sets ['fixed']")
+    with pytest.raises(MissingSetError, match="^no node set 'skin'; the mesh has \\['fixed'\\]$"):
+        io.read(inp(INP)).node_set("skin")

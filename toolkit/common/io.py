@@ -34,7 +34,7 @@ import numpy as np
 
 from toolkit.common.abaqus import write_abaqus
 from toolkit.common.convert import ELSET_PREFIX, NODESET_PREFIX, from_meshio, to_meshio
-from toolkit.common.mesh import VOLUME_TYPES, Mesh, MeshError
+from toolkit.common.mesh import VOLUME_TYPES, Mesh, MeshError, MissingSetError
 
 __all__ = [
     "read",
@@ -227,7 +227,7 @@ def read(
     missing = [n for n in require_node_sets if n not in mesh.node_sets]
     missing += [n for n in require_element_sets if n not in mesh.element_sets]
     if missing:
-        raise KeyError(
+        raise MissingSetError(
             f"{path.name} lacks the sets {missing}; it has node sets {sorted(mesh.node_sets)} and element sets"
             f" {sorted(mesh.element_sets)}"
         )

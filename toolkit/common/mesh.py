@@ -48,6 +48,7 @@ __all__ = [
     "VOLUME_TYPES",
     "SURFACE_TYPES",
     "MeshError",
+    "MissingSetError",
     "InvertedElementError",
     "DegenerateElementError",
 ]
@@ -91,6 +92,13 @@ class CellBlock(NamedTuple):
 
 class MeshError(ToolkitError, ValueError):
     """A mesh is malformed: bad shapes, indices out of range, NaN coordinates."""
+
+
+class MissingSetError(MeshError, KeyError):
+    """A node or element set a caller needs is not in the mesh (a ``KeyError`` too, for lookups)."""
+
+    def __str__(self) -> str:  # KeyError's would quote the message
+        return str(self.args[0]) if self.args else ""
 
 
 class InvertedElementError(MeshError):
@@ -286,18 +294,18 @@ class Mesh:
         return self.bounds[1] - self.bounds[0]
 
     def node_set(self, name: str) -> np.ndarray:
-        """Node indices of set ``name``; a clear KeyError lists the sets present."""
+        """Node indices of set ``name``; a :class:`MissingSetError` (a ``KeyError``) lists the sets present."""
         try:
             return self.node_sets[name]
         except KeyError:
-            raise KeyError(f"no node set {name!r}; the mesh has {sorted(self.node_sets)}") from None
+            raise MissingSetError(f"no node set {name!r}; the mesh has {sorted(self.node_sets)}") from None
 
     def element_set(self, name: str) -> np.ndarray:
         """Global element indices of set ``name``."""
         try:
             return self.element_sets[name]
         except KeyError:
-            raise KeyError(f"no element set {name!r}; the mesh has {sorted(self.element_sets)}") from None
+            raise MissingSetError(f"no element set {name!r}; the mesh has {sorted(self.element_sets)}") from None
 
     # ------------------------------------------------------------ transforms
     def with_points(self, points: np.ndarray) -> Mesh:
