@@ -292,6 +292,8 @@ def test_defaults_are_the_best_measured_configurations(monkeypatch, capsys):
     assert received["scene"].fidelity.integrator == "implicit"
     assert main(["impact", "simulate", "--integrator", "explicit", "--safety", "0.5", "--out", "unused"]) == 2
     assert received["scene"].fidelity.integrator == "explicit" and received["scene"].fidelity.safety == 0.5
+    assert main(["impact", "simulate", "--mass-scaling", "100", "--out", "unused"]) == 2  # explicit-only option
+    assert received["scene"].fidelity.integrator == "explicit"
 
 
 def test_every_remedy_names_an_option_that_exists():

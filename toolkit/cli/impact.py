@@ -58,7 +58,8 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--integrator", choices=["explicit", "implicit"],
                         help="quasi-static Newton load steps (implicit: the same answer as explicit dynamics at these "
                              "ball speeds, in a fraction of the time) or explicit dynamics (the impact paper) "
-                             "(default: implicit; with --scene, the scene's)")
+                             "(default: implicit; explicit when --mass-scaling or --safety is given; with --scene, "
+                             "the scene's)")
     parser.add_argument("--duration", type=float, help="simulated time, s (default: the scene's, 1.8)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
@@ -71,7 +72,8 @@ def simulate(args: argparse.Namespace) -> int:
 
     check_output_dir(args.out)
     if args.integrator is None and args.scene is None:
-        args.integrator = "implicit"
+        explicit_only = args.mass_scaling is not None or args.safety is not None
+        args.integrator = "explicit" if explicit_only else "implicit"
     result = simulate(scene(args, default_scene), out=args.out, progress=True, preview=not args.no_preview)
     s = result.summary()
     print(f"{s['face_nodes']} face nodes ({s['element']}), {s['ball']} ball at {s['velocity_mm_s']} mm/s: "
