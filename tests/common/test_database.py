@@ -221,3 +221,34 @@ def test_a_sigterm_stops_the_run_like_a_ctrl_c_and_keeps_the_finished_jobs(tmp_p
         run_jobs(db, _jobs([1, 2, 5, 6]), terminated, workers=0, progress=False)
     assert not db.shards.exists() and sorted(read_index(db.path)["key"]) == ["x1", "x2"]
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_a_second_run_on_the_same_database_is_refused_while_the_first_runs(tmp_path):
+    """While a run holds the database (here: the first run's worker starts a second run on it),
+    the second is refused naming the file, and the status reads "being filled by another
+    process" rather than "interrupted"; the lock is gone afterwards. A database in a folder that
+    does not exist is refused naming the folder's problem."""
+    db = _db(tmp_path)
+    seen = {}
+
+    def nested(params):
+        if params["x"] == 2:
+            import subprocess
+            import sys
+
+            code = ("import sys; from toolkit.common.database import Database, Job, Record, database_status, run_jobs\n"
+                    f"db = Database({str(db.path)!r}, {KIND!r}, 1, {{'grid': 2}})\n"
+                    "print(database_status(db.path).message())\n"
+                    "try:\n    run_jobs(db, [Job('x9', {'x': 9})], print, workers=0, progress=False)\n"
+                    "except Exception as exc:\n    print(type(exc).__name__, exc)\n")
+            seen["out"] = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout
+        return square(params)
+
+    run_jobs(db, _jobs([1, 2]), nested, workers=0, progress=False)
+    assert re.search(r"database .*db\.h5 is being filled by another process: \d of 2 simulations done so far",
+                     seen["out"])
+    assert re.search(r"DatabaseError database .*db\.h5 is being filled by another process", seen["out"])
+    assert not (tmp_path / "db.h5.lock").exists() and database_status(db.path).complete
+    with pytest.raises(DatabaseError, match=r"cannot write next to the database .*nowhere"):
+        run_jobs(Database(tmp_path / "nowhere" / "db.h5", KIND, 1, {}), _jobs([1]), square, workers=0,
+                 progress=False)

@@ -19,6 +19,8 @@ Safety:
 - the keys of the last run's jobs are stored (root attribute ``planned``), so a reader
   tells a finished database from an interrupted one (:func:`database_status`: "N of M
   done; rerun the same command to finish it");
+- one run at a time: a run holds ``<db>.lock`` (``flock``), and a second command on the
+  same file is refused ("being filled by another process") instead of racing its merges;
 - a job that raised is recorded with its reason and traceback under ``/failures`` and
   skipped on the next run unless ``retry_failed``.
 
@@ -80,7 +82,8 @@ class IncompleteDatabaseWarning(UserWarning):
 class DatabaseStatus:
     """How far the last run of a database got: ``done`` records and ``failed`` jobs among the
     ``planned`` ones (``planned`` is None for a file that does not record it), ``records`` held in
-    all, and ``pending`` finished jobs still in ``<db>.shards/`` (merged by the next run)."""
+    all, ``pending`` finished jobs still in ``<db>.shards/`` (merged by the next run), and whether
+    a run is filling it now (``running``: another process holds its lock)."""
 
     path: Path
     done: int
@@ -88,6 +91,7 @@ class DatabaseStatus:
     planned: int | None
     records: int
     pending: int
+    running: bool = False
 
     @property
     def complete(self) -> bool:
@@ -95,9 +99,13 @@ class DatabaseStatus:
         return self.pending == 0 and (self.planned is None or self.done + self.failed >= self.planned)
 
     def message(self, command: str = "the same command") -> str:
-        """``interrupted database FILE: N of M simulations done; rerun ... to finish it``."""
+        """``interrupted database FILE: N of M simulations done; rerun ... to finish it`` (or, while
+        a run fills it, ``database FILE is being filled by another process: N of M ...``)."""
         total = self.records if self.planned is None else self.planned
         finished = self.records if self.planned is None else self.done
+        if self.running:
+            return (f"database {self.path} is being filled by another process: {finished} of {total} simulations "
+                    f"done so far; wait for it to finish")
         text = f"interrupted database {self.path}: {finished} of {total} simulations done"
         if self.failed:
             text += f", {self.failed} failed"
@@ -277,6 +285,17 @@ class Database:
             with h5py.File(tmp, "a") as f:
                 f.attrs["planned"] = planned
                 f.attrs["config"] = config
+
+    @contextmanager
+    def locked(self):
+        """Hold the run lock ``<db>.lock`` inside the block: another process's run (or a second
+        command on the same file) is refused with a :class:`DatabaseError` instead of racing this
+        one's merges; :func:`run_jobs` takes it, and a caller may take it around more writes."""
+        release = _acquire_lock(self)
+        try:
+            yield self
+        finally:
+            release()
 
     # ------------------------------------------------------------------ contents
     def keys(self) -> list[str]:
@@ -486,11 +505,81 @@ def database_status(path: str | os.PathLike) -> DatabaseStatus:
         failures = set(f["failures"].keys()) if "failures" in f else set()
     shards = path.with_name(path.name + ".shards")
     pending = len([p for p in shards.glob("*.h5") if not p.name.startswith(".")]) if shards.is_dir() else 0
+    running = _locked_elsewhere(path)
     if planned is None:
-        return DatabaseStatus(path, len(records), len(failures), None, len(records), pending)
+        return DatabaseStatus(path, len(records), len(failures), None, len(records), pending, running)
     planned = set(planned)
     return DatabaseStatus(path, len(planned & records), len(planned & failures - records), len(planned),
-                          len(records), pending)
+                          len(records), pending, running)
+
+
+def _lock_path(path: Path) -> Path:
+    return path.with_name(path.name + ".lock")
+
+
+def _locked_elsewhere(path: Path) -> bool:
+    """Whether another process holds the run lock of the database at ``path``."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        return False
+    try:
+        fd = os.open(_lock_path(path), os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return False
+    except OSError:
+        return True
+    finally:
+        os.close(fd)
+
+
+#: run locks this process holds: database path -> nesting depth
+_HELD: dict[Path, int] = {}
+
+
+def _acquire_lock(db: Database):
+    """Take the run lock ``<db>.lock`` (one run per database at a time; this process may take it
+    again), or refuse with a :class:`DatabaseError`; returns the function that releases it (and
+    removes the file)."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        return lambda: None
+    key = db.path.resolve()
+    if key in _HELD:
+        _HELD[key] += 1
+
+        def release_nested():
+            _HELD[key] -= 1
+        return release_nested
+    lock = _lock_path(db.path)
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise DatabaseError(f"cannot write next to the database {db.path} ({exc.strerror}: {lock}); choose an "
+                            f"output file in an existing, writable folder") from exc
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise DatabaseError(f"database {db.path} is being filled by another process (it holds {lock}); wait for "
+                            f"it to finish, or write to another output file") from None
+
+    _HELD[key] = 1
+
+    def release():
+        _HELD[key] -= 1
+        if _HELD[key] == 0:
+            del _HELD[key]
+            try:
+                lock.unlink()
+            except OSError:
+                pass
+            os.close(fd)
+    return release
 
 
 def check_complete(path: str | os.PathLike, command: str) -> DatabaseStatus:
@@ -544,9 +633,11 @@ def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=No
     Returns
     -------
     RunReport
-    """
-    from tqdm.auto import tqdm
 
+    Raises
+    ------
+    DatabaseError : another process is running jobs on the same database
+    """
     t0 = time.perf_counter()
     jobs = list(jobs)
     keys = [j.key for j in jobs]
@@ -555,6 +646,13 @@ def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=No
         raise ValueError(f"job keys must be unique; repeated: {dup}")
     if int(workers) < 0:
         raise ValueError(f"workers must be >= 0 (0: in this process), got {workers}")
+    with db.locked():
+        return _run_locked(db, jobs, keys, worker, executor, workers, retry_failed, progress, merge_every, t0)
+
+
+def _run_locked(db, jobs, keys, worker, executor, workers, retry_failed, progress, merge_every, t0) -> RunReport:
+    from tqdm.auto import tqdm
+
     db.merge()  # shards left by a crashed run
     db.begin(keys)
     done_before, failed_before = set(db.keys()), db.failures()

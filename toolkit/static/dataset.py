@@ -288,6 +288,11 @@ def generate(path: str | os.PathLike, config: DatasetConfig, *, executor=None, w
     RunReport (``done``, ``failed`` with reasons, ``skipped``, ``seconds``)
     """
     stored = dict(config.as_dict())
+    with Database(path, DATABASE_KIND, DATABASE_VERSION, stored).locked():
+        return _generate(Path(path), config, stored, executor, workers, retry_failed, progress)
+
+
+def _generate(path: Path, config: DatasetConfig, stored: dict, executor, workers, retry_failed, progress) -> RunReport:
     if Path(path).exists():
         Database(path, DATABASE_KIND, DATABASE_VERSION, stored, grows=_GROWS).check()
         before = json.loads(Database.open_attrs(Path(path)).get("config", "{}"))
