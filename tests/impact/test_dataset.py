@@ -176,3 +176,15 @@ def test_an_interrupted_database_is_usable_at_once_and_the_rerun_finishes_it(tmp
         warnings.simplefilter("error")
         db = load_database(path)
     assert db.velocities.tolist() == [30.0, 40.0] and isinstance(db.index["key"][0], str)
+
+
+def test_a_database_in_a_missing_folder_is_refused_before_any_simulation(tmp_path, monkeypatch):
+    from toolkit.common.database import DatabaseError
+    from toolkit.impact import dataset
+
+    def never(self, params):
+        raise AssertionError("simulated although the output cannot be written")
+
+    monkeypatch.setattr(dataset.SimulationWorker, "__call__", never)
+    with pytest.raises(DatabaseError, match=r"cannot write next to the database .*nowhere.*db\.h5"):
+        build_database(tmp_path / "nowhere" / "db.h5", [30.0], [], tiny_scene(), workers=0, progress=False)

@@ -143,12 +143,13 @@ def build_database(out: str | os.PathLike, velocities=PAPER_VELOCITIES, held_out
     fixed = np.zeros(face.n_points, dtype=bool)
     fixed[fixed_nodes(scene, face)] = True
     db = Database(out, DATABASE_KIND, DATABASE_VERSION, {"scene": _scene_config(scene)})
-    db.create(shared={"points": face.points, "cells": face.volume_cells, "fixed": fixed, **masks},
-              shared_attrs={"cell_type": face.volume_type, "scene_toml": _scene_toml(scene),
-                            "mesh_checksum": mesh_checksum(face.points)})
     jobs = [Job(velocity_key(v), {"velocity": v, "held_out": v in held}) for v in everything]
-    return run_jobs(db, jobs, SimulationWorker(scene.as_dict()), workers=workers, executor=executor,
-                    retry_failed=retry_failed, progress=progress)
+    with db.locked():  # another command filling the same file is refused before anything is written
+        db.create(shared={"points": face.points, "cells": face.volume_cells, "fixed": fixed, **masks},
+                  shared_attrs={"cell_type": face.volume_type, "scene_toml": _scene_toml(scene),
+                                "mesh_checksum": mesh_checksum(face.points)})
+        return run_jobs(db, jobs, SimulationWorker(scene.as_dict()), workers=workers, executor=executor,
+                        retry_failed=retry_failed, progress=progress)
 
 
 def _scene_toml(scene: Scene) -> str:
