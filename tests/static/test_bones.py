@@ -120,3 +120,16 @@ def test_cli_runs_a_mesh_with_bone_files(phantom, tmp_path):
     np.testing.assert_allclose(post.points, ref.points + ref.point_data["displacement"], atol=1e-12)
     assert main(["static", "simulate", "--mesh", str(tmp_path / "face.inp"), "--bone", "lefort",
                  "--plan", str(tmp_path / "plan.toml"), "--out", str(out)]) == 2
+
+
+@pytest.mark.parametrize("suffix", [".stl", ".obj", ".ply", ".off", ".vtu"])
+def test_a_corrupt_bone_surface_is_a_mesh_error_naming_the_file(tmp_path, suffix):
+    """Random bytes or an empty file as a bone surface: a MeshError naming the file and the format
+    expected (meshio's own ``read`` would exit the process on some of them)."""
+    bad = tmp_path / f"maxilla{suffix}"
+    bad.write_bytes(np.random.default_rng(0).bytes(2000))
+    with pytest.raises(MeshError, match=f"maxilla{suffix}"):
+        read_surface(bad)
+    bad.write_bytes(b"")
+    with pytest.raises(MeshError, match="empty"):
+        read_surface(bad)

@@ -57,8 +57,6 @@ def read_surface(path, units: str = "mm", merge_tolerance: float = 1e-6) -> Mesh
     Mesh with one ``tri3`` block, points ``(n, 3)`` mm; degenerate triangles dropped.
     Not oriented: see :func:`orient_surface`.
     """
-    import meshio
-
     from toolkit.common.io import UNIT_SCALES, check_units
 
     path = Path(path)
@@ -68,9 +66,23 @@ def read_surface(path, units: str = "mm", merge_tolerance: float = 1e-6) -> Mesh
         raise ValueError(f"units = {units!r}; expected one of {sorted(UNIT_SCALES)}")
     if not path.exists():
         raise FileNotFoundError(f"bone surface {str(path)!r} does not exist")
-    with np.errstate(over="ignore"):  # meshio's binary-STL size probe overflows on ASCII files
-        m = meshio.read(path)
-    pts = np.asarray(m.points, dtype=float)[:, :3] * UNIT_SCALES[units]
+    if path.is_dir() or path.stat().st_size == 0:
+        raise MeshError(f"bone surface {path.name} is {'a folder' if path.is_dir() else 'empty (0 bytes)'}; "
+                        f"expected a triangulated surface ({path.suffix.lower()[1:].upper()})")
+    # meshio's own ``read`` prints and exits the process on a file it cannot parse; its
+    # per-format readers raise
+    from meshio._helpers import reader_map
+
+    fmt = path.suffix.lower()[1:]
+    try:
+        with np.errstate(over="ignore"):  # meshio's binary-STL size probe overflows on ASCII files
+            m = reader_map[fmt](str(path))
+        pts = np.asarray(m.points, dtype=float).reshape(len(m.points), -1)[:, :3] * UNIT_SCALES[units]
+    except (Exception, SystemExit) as exc:
+        raise MeshError(f"bone surface {path.name} could not be read as {fmt.upper()} "
+                        f"({type(exc).__name__}: {exc}); expected a triangulated surface in mm") from None
+    if len(pts) == 0:
+        raise MeshError(f"bone surface {path.name} holds no points; expected a triangulated surface")
     tris = _triangles(m)
     # merge coincident vertices on a grid of the tolerance
     tol = merge_tolerance * max(float(np.ptp(pts, axis=0).max()), 1e-12)
