@@ -15,8 +15,9 @@ from toolkit.common.errors import ConvergenceError, ToolkitError
 from toolkit.common.fem.pardiso import PardisoError
 from toolkit.common.fem.solvers import SolverError
 from toolkit.common.io import UnitsError
-from toolkit.common.mesh import DegenerateElementError, InvertedElementError, Mesh, MeshError
+from toolkit.common.mesh import DegenerateElementError, InvertedElementError, Mesh, MeshError, MissingSetError
 from toolkit.common.mixed_bar import mixed_bar
+from toolkit.common.outputs import OutputError
 from toolkit.impact.explicit import InstabilityError
 from toolkit.impact.plasticity import InvertedPointError
 from toolkit.impact.scene import BallSpec, SceneError
@@ -31,6 +32,8 @@ BUILTIN_BASES = {
     InvertedElementError: ValueError,
     DegenerateElementError: ValueError,
     UnitsError: ValueError,
+    MissingSetError: KeyError,
+    OutputError: ValueError,
     DatabaseError: ValueError,
     IncompatibleError: ValueError,
     PlanError: ValueError,
