@@ -176,6 +176,10 @@ def test_train_resume_evaluate_predict_commands(tiny_db_path, tmp_path, capsys):
     for key in ("displacement_rmse_mm", "displacement_pearson", "von_mises_rmse_mpa", "von_mises_pearson",
                 "train_seconds", "inference_ms", "displacement_nrmse", "von_mises_nrmse"):
         assert np.isfinite(metrics[key]), key
+    printed = capsys.readouterr().out
+    # the printed NRMSE is the stored quantity (a fraction of the peak), not a percentage of it
+    assert f"NRMSE {metrics['displacement_nrmse']:.4f} of the peak" in printed
+    assert f"NRMSE {metrics['von_mises_nrmse']:.4f} of the peak" in printed
     assert (out / "timeseries.png").stat().st_size > 0 and (out / "fields.png").stat().st_size > 0
     pred = tmp_path / "pred"
     assert main(["impact", "predict", "--model", str(model), "--velocity", "41", "--out", str(pred)]) == 0

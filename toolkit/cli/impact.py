@@ -197,9 +197,9 @@ def evaluate(args: argparse.Namespace) -> int:
     print(f"{m['config']} on the {m['split']} split ({m['n_test_items']} test node series, velocities "
           f"{m['test_velocities_mm_s']} mm/s):")
     print(f"  displacement RMSE {m['displacement_rmse_mm']:.3g} mm, Pearson {m['displacement_pearson']:.4f}, "
-          f"NRMSE {m['displacement_nrmse']:.3%}")
+          f"NRMSE {m['displacement_nrmse']:.4f} of the peak (metrics.json: displacement_nrmse)")
     print(f"  von Mises    RMSE {m['von_mises_rmse_mpa']:.3g} MPa, Pearson {m['von_mises_pearson']:.4f}, "
-          f"NRMSE {m['von_mises_nrmse']:.3%}")
+          f"NRMSE {m['von_mises_nrmse']:.4f} of the peak (von_mises_nrmse)")
     print(f"  trained {m['train_seconds']:.1f} s; {m['inference_ms']:.2f} ms per whole-face frame "
           f"(FE {m['fe_ms_per_frame']:.0f} ms per frame)")
     print(f"wrote {args.out}/ (metrics.json, timeseries.png, fields.png)")
