@@ -381,6 +381,55 @@ def _surrogate_impact(data):
     return "\n\n".join(parts)
 
 
+def _of(flags: pd.Series) -> str:
+    """'N of M': the true values among the recorded ones (empty cells: not applicable)."""
+    known = flags.dropna().astype(str).str.lower() == "true"
+    return f"{int(known.sum())} of {len(known)}"
+
+
+def _bad_inputs(data):
+    df = data["bad_inputs"][0]
+    side = data["bad_inputs"][1]
+    order = list(dict.fromkeys(df["command"]))
+    g = df.groupby("command", sort=False)
+    out = pd.DataFrame({
+        "command": [f"`toolkit {c}`" for c in order],
+        "cases": g.size().reindex(order).to_numpy(),
+        "clear": g["clear"].sum().reindex(order).astype(int).to_numpy(),
+        "option": [_of(d["names_option"]) for _, d in g],
+        "left": g["left_files"].sum().reindex(order).astype(int).to_numpy(),
+        "median_s": g["seconds"].median().reindex(order).to_numpy(),
+        "max_s": g["seconds"].max().reindex(order).to_numpy(),
+        "import_s": g["import_s"].first().reindex(order).to_numpy(),
+        "slow": g["slow"].sum().reindex(order).astype(int).to_numpy(),
+    })
+    total = (f"{int(df['clear'].sum())} of {len(df)} bad inputs give a clear error (exit code 2, one `error:` "
+             f"line, no traceback, naming the file, key, value or option); the time to the error is flagged slow "
+             f"above {side.get('extra', {}).get('slow_factor', 3)}x the command's import time.")
+    unclear = df[~df["clear"].astype(bool)]
+    lines = [table(out, [("command", "command"), ("cases", "bad inputs"), ("clear", "clear errors"),
+                         ("option", "option named as typed"), ("left", "left files behind"),
+                         ("median_s", "median time to error (s)", "{:.2f}"), ("max_s", "max (s)", "{:.2f}"),
+                         ("import_s", "import time (s)", "{:.2f}"), ("slow", "slow (> 3x import)")]), "", total]
+    if len(unclear):
+        lines += ["", "Not clear:", ""] + [f"- `toolkit {r.command}`, {r.case}: {r.not_clear_because} "
+                                           f"(`{_number(r.error)}`)" for r in unclear.itertuples()]
+    return "\n".join(lines)
+
+
+def _interrupts(data):
+    df = data["bad_inputs_interrupts"][0]
+    unit = df["command"].map(lambda c: "simulations" if c.endswith("dataset") else "epochs")
+    out = df.assign(command=[f"`toolkit {c}`" for c in df["command"]], unit=unit,
+                    before=[f"{b} of {f}" for b, f in zip(df["done_before"], df["full"])],
+                    after=[f"{a} of {f}" for a, f in zip(df["done_after_rerun"], df["full"])])
+    return table(out, [("command", "command"), ("unit", "work"), ("full_run_s", "uninterrupted run (s)"),
+                       ("interrupt_s", "Ctrl-C at (s)"), ("interrupted", "stopped by it"),
+                       ("exit_code", "exit code"), ("before", "finished at the interrupt"),
+                       ("after", "finished after the rerun"), ("nothing_lost", "nothing lost"),
+                       ("rerun_completes", "rerun completes"), ("rerun", "rerun options")])
+
+
 def _source(stem: str) -> Source:
     return SOURCES[stem]
 
@@ -401,6 +450,8 @@ SOURCES = {s.stem: s for s in (
     Source("impact_surrogate_coarse", "python benchmarks/impact_surrogate.py --resolution coarse --order 1 "
            "--ball rigid --mass-scaling 100 --max-minutes 1 --suffix _coarse", 8),
     Source("phantoms", "python benchmarks/phantoms.py", 2),
+    Source("bad_inputs", "python benchmarks/bad_inputs.py", 4),
+    Source("bad_inputs_interrupts", "python benchmarks/bad_inputs.py --interrupts", 5),
     Source("mixed_elements", "python benchmarks/mixed_elements.py", 1),
     Source("static_solvers", "python benchmarks/static_solvers.py --meshes coarse paper paper-tet4 bulk-tet4 "
            "--methods superlu pardiso amg auto", 1),
@@ -463,6 +514,18 @@ BLOCKS = {b.name: b for b in (
           "random split and on held-out velocities: RMSE and Pearson correlation of displacement and von Mises "
           "stress, training time and inference per face frame.",
           (SOURCES["impact_surrogate"], SOURCES["impact_surrogate_coarse"]), _surrogate_impact),
+    Block("bad_inputs", "Bad input on the command line",
+          "A catalogue of mistakes per command (bad output locations, missing, garbage, empty, binary and metres "
+          "meshes, bad plans and scenes, bad option values, a database or model of the other workflow or of "
+          "another configuration), each run as `python -m toolkit ...` on the coarse sizes in a fresh folder: "
+          "how many give a clear error, whether the error names the option as typed, whether the failed command "
+          "left files behind, and the wall time to the error against the command's import time.",
+          (SOURCES["bad_inputs"],), _bad_inputs),
+    Block("interrupts", "Ctrl-C in the long commands",
+          "Each long command, tiny, run once to its end, then afresh and interrupted (SIGINT to its process "
+          "group, as Ctrl-C) at several times, and rerun: the finished simulations or epochs on disk at the "
+          "interrupt and after the rerun, whether any was lost, and whether the rerun completes the job.",
+          (SOURCES["bad_inputs_interrupts"],), _interrupts),
 )}
 #: blocks whose table needs every source (the others render what is present, the rest as one line)
 _PARTIAL = {"headline", "static_surrogate", "impact_surrogate", "static_convergence"}
