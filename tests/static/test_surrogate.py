@@ -107,6 +107,12 @@ def test_a_model_refuses_what_it_was_not_built_for(db100, hard_model, tmp_path):
     generate(paper, DatasetConfig(resolution="paper", plans=1), workers=0, progress=False)
     with pytest.raises(IncompatibleError, match="resolution: stored 'coarse', asked 'paper'.*--resolution coarse"):
         evaluate_surrogate(hard_model, paper)
+    from toolkit.common import face_hex
+    from toolkit.static import default_plan
+
+    face = face_hex("paper")
+    with pytest.raises(IncompatibleError, match="trained on the 'coarse' phantom.*--resolution coarse"):
+        hard_model.predict_plan(face, default_plan(face))
     with pytest.raises(IncompatibleError, match="toolkit.impact"):
         _load_as(hard_model, tmp_path, "toolkit.impact.surrogate")
     with pytest.raises(ValueError, match="Poisson"):

@@ -289,7 +289,11 @@ class Surrogate:
 
     def check_mesh(self, points: np.ndarray, cells: dict) -> None:
         """Refuse a mesh of another node count or topology than the training meshes."""
-        self.bundle.check_data({**self.bundle.data, "mesh": _mesh_signature(points, cells)}, "this mesh")
+        trained = self.bundle.data.get("database", {}).get("resolution")
+        hint = None if trained is None else (
+            f"the model was trained on the {trained!r} phantom: predict on it (resolution={trained!r}; command "
+            f"line: --resolution {trained}), or train a model on a database of this mesh")
+        self.bundle.check_data({**self.bundle.data, "mesh": _mesh_signature(points, cells)}, "this mesh", hint=hint)
 
     def hierarchy(self, points: np.ndarray, subject: int | None = None):
         """The point hierarchy of a training subject, or one built for ``points`` (cached)."""

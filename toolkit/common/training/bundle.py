@@ -90,10 +90,11 @@ class ModelBundle:
         scalers = {k: MinMaxScaler.from_dict(v) for k, v in doc.get("scalers", {}).items()}
         return cls(doc["kind"], doc["config"], doc["data"], scalers, state, doc.get("extra", {}))
 
-    def check_data(self, signature: dict, what: str = "the data") -> None:
-        """Refuse ``signature`` unless it equals the stored training-data signature."""
+    def check_data(self, signature: dict, what: str = "the data", hint: str | None = None) -> None:
+        """Refuse ``signature`` unless it equals the stored training-data signature; ``hint``
+        replaces the default remedy of the message."""
         require_same(self.data, signature, f"this {self.kind} model",
-                     hint=f"{what} differs from what it was trained on; train a model on it")
+                     hint=hint or f"{what} differs from what it was trained on; train a model on it")
 
     def check_config(self, config: dict, ignore: tuple[str, ...] = ()) -> None:
         """Refuse a configuration other than the stored one (e.g. loading the ``paper`` model's weights as ``strong``);
