@@ -484,6 +484,16 @@ def start(args: list[str], cwd: Path) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
 
 
+def _noise(stderr: str) -> str:
+    """The first line of stderr that is neither a progress bar nor the command's own message: a
+    warning or a traceback printed on the way out ('' when there is none)."""
+    for line in stderr.splitlines():
+        text = line.strip()
+        if any(word in text for word in ("Traceback", "Warning", "warn(", "leaked")):
+            return text
+    return ""
+
+
 def interrupt_rows(command: str, fractions=(0.3, 0.6, 0.9), early: float = 0.5) -> list[dict]:
     """One uninterrupted run (the full count and its time T), then a fresh run per interrupt time
     (``early`` s, and each fraction of T): Ctrl-C at that time, count, rerun the same command
@@ -509,6 +519,7 @@ def interrupt_rows(command: str, fractions=(0.3, 0.6, 0.9), early: float = 0.5) 
             _, err = proc.communicate()
             before, _ = finished(command, cwd)
             lines = [ln.strip() for ln in err.splitlines() if ln.strip()]
+            said = [ln for ln in lines if "interrupted" in ln.lower()]
             rerun_args = [*args, "--resume"] if command.endswith("train") and (cwd / "m").exists() else args
             t1 = time.perf_counter()
             again = start(rerun_args, cwd)
@@ -518,7 +529,8 @@ def interrupt_rows(command: str, fractions=(0.3, 0.6, 0.9), early: float = 0.5) 
             lines2 = [ln.strip() for ln in err2.splitlines() if ln.strip()]
             rows.append({"command": command, "interrupt_s": round(at, 2), "full_run_s": round(total_s, 1),
                          "interrupted": running, "exit_code": proc.returncode,
-                         "message": (lines[-1] if lines else "")[:300], "done_before": before,
+                         "message": (said or lines or [""])[-1][:300], "traceback": "Traceback" in err,
+                         "other_output": _noise(err)[:300], "done_before": before,
                          "done_after_rerun": after, "full": full, "planned": planned,
                          "nothing_lost": after >= before, "rerun_exit_code": again.returncode,
                          "rerun_completes": again.returncode == 0 and after == full,

@@ -422,12 +422,24 @@ def _interrupts(data):
     unit = df["command"].map(lambda c: "simulations" if c.endswith("dataset") else "epochs")
     out = df.assign(command=[f"`toolkit {c}`" for c in df["command"]], unit=unit,
                     before=[f"{b} of {f}" for b, f in zip(df["done_before"], df["full"])],
-                    after=[f"{a} of {f}" for a, f in zip(df["done_after_rerun"], df["full"])])
-    return table(out, [("command", "command"), ("unit", "work"), ("full_run_s", "uninterrupted run (s)"),
+                    after=[f"{a} of {f}" for a, f in zip(df["done_after_rerun"], df["full"])],
+                    rerun=["same command + `--resume`" if "--resume" in r.split() else "same command"
+                           for r in df["rerun"]])
+    text = table(out, [("command", "command"), ("unit", "work"), ("full_run_s", "uninterrupted run (s)"),
                        ("interrupt_s", "Ctrl-C at (s)"), ("interrupted", "stopped by it"),
-                       ("exit_code", "exit code"), ("before", "finished at the interrupt"),
+                       ("exit_code", "exit code"), ("traceback", "traceback"),
+                       ("before", "finished at the interrupt"),
                        ("after", "finished after the rerun"), ("nothing_lost", "nothing lost"),
-                       ("rerun_completes", "rerun completes"), ("rerun", "rerun options")])
+                       ("rerun_completes", "rerun completes"), ("rerun", "rerun")])
+    said = df[df["interrupted"].astype(bool)].drop_duplicates("command")
+    lines = [text, "", "The interrupted command's own last line (at its earliest interrupt):", ""]
+    lines += [f"- `toolkit {r.command}`: `{_number(r.message)}`" for r in said.itertuples()]
+    if "other_output" in df and df["other_output"].notna().any():
+        other = df[df["other_output"].notna()]
+        lines += ["", "Other output on the way out (warnings, tracebacks):", ""]
+        lines += [f"- `toolkit {r.command}`, Ctrl-C at {r.interrupt_s:g} s: `{_number(r.other_output)}`"
+                  for r in other.itertuples()]
+    return "\n".join(lines)
 
 
 def _source(stem: str) -> Source:
