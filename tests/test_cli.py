@@ -391,3 +391,17 @@ def test_a_full_disk_is_an_error_line_not_a_traceback(monkeypatch, capsys):
     monkeypatch.setattr(argparse.ArgumentParser, "parse_args", lambda self, argv=None: args)
     assert main([]) == 2
     assert capsys.readouterr().err.startswith("error: run/face.h5: No space left on device")
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["static", "dataset", "--plans", "0", "--out", "db.h5"], "--plans"),
+    (["impact", "simulate", "--velocity", "-30", "--out", "o"], "--velocity"),
+    (["phantom", "face-hex", "--mouth-open", "-5", "--out", "f.vtu"], "--mouth-open"),
+])
+def test_a_library_error_names_the_option_the_user_typed(tmp_path, monkeypatch, capsys, argv, option):
+    """The library names its parameter (``plans``, ``ball velocity``, ``mouth_open``); the command
+    line adds the option typed for it, so the user reads what to change."""
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and f"(command line: {option})" in err, err

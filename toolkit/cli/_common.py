@@ -4,6 +4,7 @@ the database-run options and the Dask client."""
 from __future__ import annotations
 
 import argparse
+import re
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -125,3 +126,18 @@ def dask_client(address: str | None, workers: int):
             client.close()
         if cluster is not None:
             cluster.close()
+
+
+def with_options(message: str, argv: list[str]) -> str:
+    """``message`` of a library error, followed by ``(command line: OPTION, ...)`` for the options the
+    user typed whose parameter it names (``plans = 0; ...`` -> ``--plans``; ``ball velocity ...`` ->
+    ``--velocity``), so that a user reads the option to change; options it already names are left."""
+    typed = dict.fromkeys(a.split("=", 1)[0] for a in argv if a.startswith("--") and len(a) > 2)
+    named = []
+    for option in typed:
+        name = option[2:].replace("-", "_")
+        if option in message:
+            continue
+        if any(re.search(rf"\b{re.escape(n)}\b", message) for n in (name, name.replace("_", " "))):
+            named.append(option)
+    return f"{message} (command line: {', '.join(named)})" if named else message

@@ -10,7 +10,7 @@ import logging
 import sys
 
 from toolkit.cli import demo, impact, phantom, static
-from toolkit.cli._common import Command, HelpFormatter, add_common
+from toolkit.cli._common import Command, HelpFormatter, add_common, with_options
 
 __all__ = ["main", "build_parser"]
 
@@ -40,6 +40,7 @@ def _add(subparsers, name: str, command: Command) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
     from toolkit.common.errors import ToolkitError
@@ -50,11 +51,12 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         _close_progress_bars()
-        print("interrupted; finished files are complete (all writes are atomic)", file=sys.stderr)
+        print("interrupted; finished files are complete (all writes are atomic): rerun the same command to "
+              "resume (train: with --resume)", file=sys.stderr)
         return 130
     except (ToolkitError, ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
         _close_progress_bars()
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {with_options(str(exc), argv)}", file=sys.stderr)
         return 2
     except OSError as exc:  # a full disk, a folder made read-only during the run
         _close_progress_bars()
