@@ -323,7 +323,7 @@ def catalogue() -> list[Case]:
         Case(cmd, "missing database", ["--data", "nothere.h5", "--out", "m"], ["nothere.h5"]),
         Case(cmd, "garbage database", ["--data", "junk.h5", "--out", "m"], ["junk.h5"], {"junk.h5": binary}),
         Case(cmd, "--epochs -1", ["--data", "{F}/impact.h5", "--epochs", "-1", "--out", "m"], ["--epochs"]),
-        Case(cmd, "--config seed (old name)", ["--data", "{F}/impact.h5", "--config", "sead", "--out", "m"],
+        Case(cmd, "--config typo", ["--data", "{F}/impact.h5", "--config", "sead", "--out", "m"],
              ["sead", "--config"]),
         Case(cmd, "--out an existing file", ["--data", "{F}/impact.h5", "--epochs", "1", "--out", "taken"],
              ["taken"], dict(out_files)),
