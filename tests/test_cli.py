@@ -397,6 +397,7 @@ def test_a_full_disk_is_an_error_line_not_a_traceback(monkeypatch, capsys):
     (["static", "dataset", "--plans", "0", "--out", "db.h5"], "--plans"),
     (["impact", "simulate", "--velocity", "-30", "--out", "o"], "--velocity"),
     (["phantom", "face-hex", "--mouth-open", "-5", "--out", "f.vtu"], "--mouth-open"),
+    (["impact", "dataset", "--ball", "rigid", "--velocities", "30,-40", "--out", "d.h5"], "--velocities"),
 ])
 def test_a_library_error_names_the_option_the_user_typed(tmp_path, monkeypatch, capsys, argv, option):
     """The library names its parameter (``plans``, ``ball velocity``, ``mouth_open``); the command
@@ -405,3 +406,13 @@ def test_a_library_error_names_the_option_the_user_typed(tmp_path, monkeypatch, 
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and f"(command line: {option})" in err, err
+    assert "--ball" not in err  # typed, but not what the error is about
+
+
+@pytest.mark.parametrize("argv", [["static", "dataset", "--resolution", "coarse", "--plans", "2"],
+                                  ["impact", "dataset", "--resolution", "coarse", "--ball", "rigid"]])
+def test_a_bad_worker_count_is_refused_before_the_database_file_is_made(tmp_path, capsys, argv):
+    out = tmp_path / "d.h5"
+    assert main([*argv, "--workers", "-1", "--out", str(out)]) == 2
+    assert "workers must be >= 0" in capsys.readouterr().err
+    assert not out.exists() and list(tmp_path.iterdir()) == []

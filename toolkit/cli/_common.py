@@ -129,15 +129,49 @@ def dask_client(address: str | None, workers: int):
 
 
 def with_options(message: str, argv: list[str]) -> str:
-    """``message`` of a library error, followed by ``(command line: OPTION, ...)`` for the options the
-    user typed whose parameter it names (``plans = 0; ...`` -> ``--plans``; ``ball velocity ...`` ->
-    ``--velocity``), so that a user reads the option to change; options it already names are left."""
-    typed = dict.fromkeys(a.split("=", 1)[0] for a in argv if a.startswith("--") and len(a) > 2)
+    """``message`` of a library error, followed by ``(command line: OPTION, ...)`` for the options
+    the user typed that it is about: the message names the option's parameter (``plans``, ``ball
+    velocity`` for ``--velocity``, ``velocity`` for ``--velocities``) and shows the value typed
+    (``-30`` as ``-30.0``). Options the message already names are left out."""
     named = []
-    for option in typed:
-        name = option[2:].replace("-", "_")
+    for option, value in _typed_options(argv):
         if option in message:
             continue
-        if any(re.search(rf"\b{re.escape(n)}\b", message) for n in (name, name.replace("_", " "))):
+        name = option[2:].replace("-", "_")
+        names = {name, name.replace("_", " "), re.sub(r"ies$", "y", name), re.sub(r"s$", "", name)}
+        if any(re.search(rf"\b{re.escape(n)}\b", message) for n in names if n) and _shows(message, value):
             named.append(option)
-    return f"{message} (command line: {', '.join(named)})" if named else message
+    return f"{message} (command line: {', '.join(dict.fromkeys(named))})" if named else message
+
+
+def _typed_options(argv: list[str]) -> list[tuple[str, str]]:
+    """The options of a command line with the value typed after each (``""`` for a flag)."""
+    out = []
+    for i, arg in enumerate(argv):
+        if arg.startswith("--") and len(arg) > 2:
+            option, sep, value = arg.partition("=")
+            if not sep and i + 1 < len(argv) and not argv[i + 1].startswith("--"):
+                value = argv[i + 1]
+            out.append((option, value))
+    return out
+
+
+def _shows(message: str, value: str) -> bool:
+    """Whether ``message`` shows one of the comma-separated parts of ``value`` (numbers compared
+    as numbers, so ``-30`` is shown by ``-30.0``)."""
+    numbers = set()
+    for text in re.findall(r"-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?|nan|inf", message):
+        try:
+            numbers.add(float(text))
+        except ValueError:
+            pass
+    for part in filter(None, value.split(",")):
+        try:
+            number = float(part)
+        except ValueError:
+            if re.search(rf"\b{re.escape(part)}\b", message):
+                return True
+        else:
+            if number in numbers or (number != number and "nan" in message):
+                return True
+    return False

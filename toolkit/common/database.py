@@ -613,6 +613,13 @@ def _resolve_executor(executor, workers: int):
                                initializer=set_threads, initargs=(default_threads(),)), True
 
 
+def check_workers(workers: int) -> None:
+    """Refuse a negative number of worker processes (0 runs the jobs in this process); the
+    database commands call it before they create their file."""
+    if int(workers) < 0:
+        raise ValueError(f"workers must be >= 0 (0: in this process), got {workers}")
+
+
 def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=None, workers: int = 1,
              retry_failed: bool = False, progress: bool = True, merge_every: float = 60.0) -> RunReport:
     """Run the jobs of ``jobs`` not yet in ``db`` and store their records.
@@ -644,8 +651,7 @@ def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=No
     if len(set(keys)) != len(keys):
         dup = sorted({k for k in keys if keys.count(k) > 1})
         raise ValueError(f"job keys must be unique; repeated: {dup}")
-    if int(workers) < 0:
-        raise ValueError(f"workers must be >= 0 (0: in this process), got {workers}")
+    check_workers(workers)
     with db.locked():
         return _run_locked(db, jobs, keys, worker, executor, workers, retry_failed, progress, merge_every, t0)
 

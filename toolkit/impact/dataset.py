@@ -37,7 +37,16 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common import papers
-from toolkit.common.database import Database, Job, Record, RunReport, check_complete, read_index, run_jobs
+from toolkit.common.database import (
+    Database,
+    Job,
+    Record,
+    RunReport,
+    check_complete,
+    check_workers,
+    read_index,
+    run_jobs,
+)
 from toolkit.impact.scene import Scene, yielding_scene
 
 __all__ = ["DATABASE_KIND", "DATABASE_VERSION", "PAPER_VELOCITIES", "default_held_out", "build_database",
@@ -124,6 +133,7 @@ def build_database(out: str | os.PathLike, velocities=PAPER_VELOCITIES, held_out
     """
     from toolkit.impact.simulate import check_travel, face_mesh, fixed_nodes
 
+    check_workers(workers)
     scene = scene or yielding_scene()
     train_v = [float(v) for v in velocities]
     held = default_held_out(train_v) if held_out is None else [float(v) for v in held_out]

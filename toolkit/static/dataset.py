@@ -53,6 +53,7 @@ from toolkit.common.database import (
     Record,
     RunReport,
     check_complete,
+    check_workers,
     deferred_interrupt,
     read_index,
     run_jobs,
@@ -287,6 +288,7 @@ def generate(path: str | os.PathLike, config: DatasetConfig, *, executor=None, w
     -------
     RunReport (``done``, ``failed`` with reasons, ``skipped``, ``seconds``)
     """
+    check_workers(workers)
     stored = dict(config.as_dict())
     with Database(path, DATABASE_KIND, DATABASE_VERSION, stored).locked():
         return _generate(Path(path), config, stored, executor, workers, retry_failed, progress)
