@@ -244,6 +244,18 @@ def _describe_blocks(mesh: Mesh) -> str:
     return ", ".join(f"{t}: {c.shape[0]}" for t, c in mesh.cells.items()) or "none"
 
 
+def read_text(path: Path, error: type[Exception], expected: str, name: str | None = None) -> str:
+    """The UTF-8 text of ``path``; a byte that is not text raises ``error`` naming the file (as
+    ``name``, default the path), the line and ``expected`` (e.g. ``"a TOML scene"``)."""
+    raw = path.read_bytes()
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise error(f"{name or path}, line {line}: byte 0x{raw[exc.start]:02x} is not text (UTF-8); "
+                    f"expected {expected}") from None
+
+
 def _read_meshio(path: Path, fmt: str) -> Mesh:
     """``meshio`` reading with every failure turned into a :class:`MeshError` that names the file
     (and the line of an Abaqus file where it can be found)."""
@@ -254,13 +266,7 @@ def _read_meshio(path: Path, fmt: str) -> Mesh:
         raise MeshError(f"{path.name} is empty (0 bytes); expected {expected}")
     lines = None
     if fmt == "abaqus":
-        raw = path.read_bytes()
-        try:
-            text = raw.decode("utf-8")
-        except UnicodeDecodeError as exc:
-            line = raw.count(b"\n", 0, exc.start) + 1
-            raise MeshError(f"{path.name}, line {line}: byte 0x{raw[exc.start]:02x} is not text (UTF-8);"
-                            f" expected {expected}") from None
+        text = read_text(path, MeshError, expected, name=path.name)
         lines = text.splitlines()
         _check_abaqus_node_ids(path, lines)
     # meshio's own ``read`` prints and calls sys.exit on a file it cannot parse; its per-format

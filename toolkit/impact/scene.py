@@ -296,13 +296,9 @@ class Scene:
         if not path.is_file():
             raise FileNotFoundError(f"scene file {str(path)!r} does not exist; expected a TOML scene (command line: "
                                     "--scene FILE; Scene.write or `toolkit impact predict` writes one)")
-        raw = path.read_bytes()
-        try:
-            text = raw.decode("utf-8")
-        except UnicodeDecodeError as exc:
-            line = raw.count(b"\n", 0, exc.start) + 1
-            raise SceneError(f"{path}, line {line}: byte 0x{raw[exc.start]:02x} is not text (UTF-8); expected a"
-                             f" TOML scene") from None
+        from toolkit.common.io import read_text
+
+        text = read_text(path, SceneError, "a TOML scene")
         try:
             d = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:

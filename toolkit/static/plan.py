@@ -602,13 +602,9 @@ class SurgicalPlan:
 
 def _load(path: Path, fmt: str) -> dict[str, Any]:
     """The plan file's top-level table; syntax errors name the file and the line."""
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = raw.count(b"\n", 0, exc.start) + 1
-        raise PlanError(f"{path}, line {line}: byte 0x{raw[exc.start]:02x} is not text (UTF-8); expected a"
-                        f" {fmt[1:].upper()} plan") from None
+    from toolkit.common.io import read_text
+
+    text = read_text(path, PlanError, f"a {fmt[1:].upper()} plan")
     try:
         d = tomllib.loads(text) if fmt == ".toml" else json.loads(text)
     except tomllib.TOMLDecodeError as exc:
