@@ -63,3 +63,14 @@ def test_bad_input_is_refused_before_meshing(kwargs, match):
     with pytest.raises(MeshingError, match=match) as info:
         tetrahedralize(**args)
     assert isinstance(info.value, ToolkitError)
+
+
+@pytest.mark.parametrize("backend", list(BACKENDS))
+def test_read_only_input_is_meshed(backend):
+    """Surfaces from a :class:`~toolkit.common.mesh.Mesh` hold read-only arrays."""
+    if not available()[backend]:
+        pytest.skip(f"{BACKENDS[backend].module} is not installed ({BACKENDS[backend].install})")
+    points, triangles = _cube()
+    points.flags.writeable = triangles.flags.writeable = False
+    p, t = tetrahedralize(points, triangles, 10.0, backend=backend)
+    assert len(t) >= 5 and (scaled_jacobian("tet4", p[t]) > 0).all()

@@ -132,7 +132,7 @@ def _others(backend: str) -> str:
 
 
 def _as_surface(points, triangles) -> tuple[np.ndarray, np.ndarray]:
-    p = np.ascontiguousarray(points, dtype=np.float64)
+    p = np.array(points, dtype=np.float64, order="C")  # a writable copy: the meshers refuse read-only arrays
     if p.ndim != 2 or p.shape[1] != 3 or len(p) < 4:
         raise MeshingError(f"points has shape {p.shape}; expected (n >= 4, 3) vertex coordinates in mm")
     if not np.isfinite(p).all():
@@ -142,7 +142,7 @@ def _as_surface(points, triangles) -> tuple[np.ndarray, np.ndarray]:
     if t.ndim != 2 or t.shape[1] != 3 or len(t) < 4 or not np.issubdtype(t.dtype, np.integer):
         raise MeshingError(f"triangles has shape {t.shape} and dtype {t.dtype}; expected (m >= 4, 3) integer "
                            f"vertex indices (split quads into two triangles)")
-    t = np.ascontiguousarray(t, dtype=np.int64)
+    t = np.array(t, dtype=np.int64, order="C")
     if t.min() < 0 or t.max() >= len(p):
         raise MeshingError(f"triangles refer to vertex {int(t.max() if t.max() >= len(p) else t.min())}; "
                            f"the surface has {len(p)} vertices (valid 0..{len(p) - 1})")
