@@ -74,3 +74,12 @@ def test_read_only_input_is_meshed(backend):
     points.flags.writeable = triangles.flags.writeable = False
     p, t = tetrahedralize(points, triangles, 10.0, backend=backend)
     assert len(t) >= 5 and (scaled_jacobian("tet4", p[t]) > 0).all()
+
+
+def test_gmsh_refuses_an_open_surface_before_meshing():
+    """Gmsh ends the process on an open surface; the check before it names the open edges."""
+    if not available()["gmsh"]:
+        pytest.skip(f"gmsh is not installed ({BACKENDS['gmsh'].install})")
+    points, triangles = _cube()
+    with pytest.raises(MeshingError, match=r"needs a closed surface: 3 edges .*open: 3.*backend='ftetwild'"):
+        tetrahedralize(points, triangles[1:], 5.0, backend="gmsh")

@@ -166,6 +166,19 @@ def _finish(points, tets, backend: str) -> tuple[np.ndarray, np.ndarray]:
     return points, tets
 
 
+def _require_closed(p, t, backend: str) -> None:
+    """Refuse a surface with an edge not shared by exactly two triangles, naming where."""
+    edges = np.sort(t[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    bad = unique[counts != 2]
+    if len(bad):
+        where = np.round(p[bad[0]].mean(axis=0), 1).tolist()
+        raise MeshingError(f"meshing backend {backend!r} needs a closed surface: {len(bad)} edges are not shared by "
+                           f"exactly two triangles (open: {int((counts == 1).sum())}, shared by more than two: "
+                           f"{int((counts > 2).sum())}; the first at {where} mm). Merge duplicate vertices and "
+                           f"close the holes first, or use backend='ftetwild', which meshes such surfaces")
+
+
 # ----------------------------------------------------------------------------------------------
 # the backends: each takes (module, points, triangles, size_mm, threads) -> (points, tets)
 
@@ -212,6 +225,7 @@ def _tetgen(tetgen, p, t, size, threads):
 
 def _gmsh(gmsh, p, t, size, threads):
     """Remesh the surface at ``size`` (classified into smooth patches at 40 degrees) and fill it."""
+    _require_closed(p, t, "gmsh")  # Gmsh ends the process (a segmentation fault) on an open surface
     if gmsh.isInitialized():
         raise MeshingError("Gmsh is already initialised in this process; backend 'gmsh' runs its own session")
     gmsh.initialize(readConfigFiles=False)
