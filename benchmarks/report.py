@@ -442,6 +442,30 @@ def _interrupts(data):
     return "\n".join(lines)
 
 
+def _meshers(data):
+    df = data["meshers"][0].copy()
+    ok = df["status"].astype(str) == "ok"
+    df["status"] = df["status"].astype(str).str.split(":").str[0]
+    clean = df[df["input"] == "clean"]
+    damaged = df[df["input"] != "clean"].copy()
+    damaged.loc[~ok[damaged.index], "status"] = "failed: " + damaged.loc[~ok[damaged.index], "status"]
+    return "\n\n".join([table(clean, [
+        ("mesher", "mesher"), ("size_mm", "size (mm)", "{:g}"), ("status", "status"), ("nodes", "nodes"),
+        ("tets", "tetrahedra"), ("mean_edge_mm", "mean edge (mm)", "{:.2f}"), ("wall_s", "time (s)"),
+        ("cpu_s", "CPU time (s)"), ("min_sj", "min scaled Jacobian", "{:.3f}"),
+        ("p01_sj", "1st percentile", "{:.3f}"), ("min_dihedral_deg", "min dihedral (deg)", "{:.1f}"),
+        ("max_dihedral_deg", "max dihedral (deg)", "{:.1f}"), ("sliver_share", "slivers (< 10 deg)", "{:.2%}"),
+        ("out_to_in_max_mm", "boundary to surface, max (mm)", "{:.2f}"),
+        ("in_to_out_max_mm", "surface to boundary, max (mm)", "{:.2f}"),
+        ("boundary_closed_manifold", "closed boundary")]),
+        table(damaged, [
+            ("input", "damaged input"), ("mesher", "mesher"), ("repair", "repair"), ("status", "status"),
+            ("wall_s", "time (s)"), ("min_sj", "min scaled Jacobian", "{:.3f}"),
+            ("volume_ratio", "volume / surface's", "{:.4f}"),
+            ("in_to_out_max_mm", "surface to boundary, max (mm)", "{:.2f}"),
+            ("boundary_closed_manifold", "closed boundary")])])
+
+
 def _source(stem: str) -> Source:
     return SOURCES[stem]
 
@@ -468,6 +492,7 @@ SOURCES = {s.stem: s for s in (
     Source("static_solvers", "python benchmarks/static_solvers.py --meshes coarse paper paper-tet4 bulk-tet4 "
            "--methods superlu pardiso amg auto", 1),
     Source("static_ladder", "python benchmarks/static_ladder.py --resolutions coarse paper --increments 1 3 10", 5),
+    Source("meshers", "python benchmarks/meshers.py", 25),
     Source("static_robustness", "python benchmarks/static_robustness.py --resolutions coarse paper --materials "
            "linear --slidings mucosa+lip --modes full --plans 20", 2),
 )}
@@ -526,6 +551,13 @@ BLOCKS = {b.name: b for b in (
           "random split and on held-out velocities: RMSE and Pearson correlation of displacement and von Mises "
           "stress, training time and inference per face frame.",
           (SOURCES["impact_surrogate"], SOURCES["impact_surrogate_coarse"]), _surrogate_impact),
+    Block("meshers", "Tetrahedral meshers",
+          "Each mesher of `toolkit.mesh.backends` on the closed tissue surface of the paper phantom (4 and 3 mm "
+          "mean edge) and of the fine phantom (2 mm), one thread, in a fresh process per case, then on copies of "
+          "the paper surface damaged as segmentation exports hold them, each without repair and after the "
+          "toolkit's, trimesh's or MeshFix's repair: time, counts, element quality, the distance between the "
+          "mesh's boundary and the undamaged surface both ways, and whether the boundary is closed.",
+          (SOURCES["meshers"],), _meshers),
     Block("bad_inputs", "Bad input on the command line",
           "A catalogue of mistakes per command (bad output locations, missing, garbage, empty, binary and metres "
           "meshes, bad plans and scenes, bad option values, a database or model of the other workflow or of "
