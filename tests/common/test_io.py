@@ -134,6 +134,33 @@ def test_time_series_round_trip_and_meshio_interop(tmp_path, meshes):
     assert t == pytest.approx(0.25) and np.allclose(pdata["displacement"], u[2])
 
 
+def test_time_series_of_a_mixed_mesh_reads_back_with_meshio_and_toolkit(tmp_path):
+    """A hex8 + wedge6 + tet4 mesh is one XDMF Mixed topology: meshio reads the same points,
+    cells (block by block) and point data as read_time_series; the node and element sets come
+    back too."""
+    from toolkit.common import mixed_bar
+
+    mesh = mixed_bar()
+    assert list(mesh.cells) == ["hex8", "wedge6", "tet4"]
+    rng = np.random.default_rng(1)
+    times = np.array([0.0, 1.0, 2.0])
+    u = rng.normal(size=(3, mesh.n_points, 3))
+    path = io.write_time_series(tmp_path / "mixed.xdmf", mesh, times, {"displacement": u})
+    ts = io.read_time_series(path)
+    assert ts.mesh.equals(mesh) and np.array_equal(ts.times, times)
+    assert np.array_equal(ts.point_data["displacement"], u)
+    assert ts.mesh.node_sets.keys() == mesh.node_sets.keys() and ts.mesh.element_sets.keys() == mesh.element_sets.keys()
+    with meshio.xdmf.TimeSeriesReader(path) as reader:
+        points, cells = reader.read_points_cells()
+        frames = [reader.read_data(k) for k in range(3)]
+    assert np.array_equal(points, mesh.points)
+    assert [c.type for c in cells] == ["hexahedron", "wedge", "tetra"]
+    for block, (ctype, conn) in zip(cells, mesh.cells.items(), strict=True):
+        assert np.array_equal(block.data, conn), ctype
+    for k, (t, pdata, _) in enumerate(frames):
+        assert t == pytest.approx(times[k]) and np.array_equal(pdata["displacement"], u[k])
+
+
 def test_time_series_resumes_after_interruption(tmp_path, meshes):
     """Frames written before an interruption stay readable; resume appends after them."""
     mesh = meshes["tet4"]

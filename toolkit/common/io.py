@@ -377,6 +377,15 @@ def _check_abaqus_node_ids(path: Path, lines: list[str]) -> None:
 #: XDMF topology names (wedges in meshio's XDMF node order, which is ours)
 _XDMF_TOPOLOGY = {"hex8": "Hexahedron", "wedge6": "Wedge", "tet4": "Tetrahedron", "tet10": "Tetrahedron_10",
                   "tri3": "Triangle", "quad4": "Quadrilateral"}
+#: XDMF cell type numbers in a ``Mixed`` topology (XdmfTopologyType.hpp)
+_XDMF_MIXED_ID = {"tri3": 4, "quad4": 5, "tet4": 6, "wedge6": 8, "hex8": 9, "tet10": 38}
+
+
+def _mixed_connectivity(cells: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The flat XDMF ``Mixed`` array of cell blocks: each cell as its type number then its nodes."""
+    return np.concatenate([np.hstack([np.full((conn.shape[0], 1), _XDMF_MIXED_ID[ctype], dtype=np.int64),
+                                      np.asarray(conn, dtype=np.int64)]).ravel()
+                           for ctype, conn in cells.items()])
 
 
 @dataclass(frozen=True, eq=False)
@@ -403,12 +412,15 @@ class TimeSeriesWriter:
     an interrupted run leaves a readable series of the frames it completed. The
     HDF5 file also keeps the mesh's node and element sets (``/mesh/node_sets``,
     ``/mesh/element_sets``), which :func:`read_time_series` restores. ParaView and
-    meshio read the XDMF as a standard temporal collection.
+    meshio read the XDMF as a standard temporal collection. A mesh of several cell blocks
+    (hexahedra and wedges, say) is written as one XDMF ``Mixed`` topology, in block order
+    (meshio reads it for linear cells; ParaView for every type).
 
     Parameters
     ----------
     path : ``*.xdmf``
-    mesh : Mesh with a single cell block
+    mesh : Mesh (one or several cell blocks of ``hex8``, ``wedge6``, ``tet4``, ``tet10``,
+        ``tri3``, ``quad4``)
     resume : keep the frames already in an existing series and append after them
     """
 
@@ -418,8 +430,6 @@ class TimeSeriesWriter:
         self.path = Path(path)
         if self.path.suffix.lower() != ".xdmf":
             raise ValueError(f"time series are written as XDMF; got {str(self.path)!r}, expected a '.xdmf' name")
-        if len(mesh.cells) != 1:
-            raise ValueError(f"a time series holds one cell block; the mesh has {list(mesh.cells)}")
         self.mesh = mesh
         self.h5_path = self.path.with_suffix(".h5")
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -438,9 +448,16 @@ class TimeSeriesWriter:
         else:
             self.h5 = h5py.File(self.h5_path, "w")
             self.h5["mesh/points"] = mesh.points
-            (ctype, conn), = mesh.cells.items()
-            self.h5["mesh/cells"] = conn
-            self.h5["mesh"].attrs["cell_type"] = ctype
+            if len(mesh.cells) == 1:
+                (ctype, conn), = mesh.cells.items()
+                self.h5["mesh/cells"] = conn
+                self.h5["mesh"].attrs["cell_type"] = ctype
+            else:  # the XDMF Mixed array, and each block for read_time_series
+                self.h5["mesh/cells"] = _mixed_connectivity(mesh.cells)
+                self.h5["mesh"].attrs["cell_type"] = "mixed"
+                self.h5["mesh"].attrs["cell_types"] = list(mesh.cells)
+                for ctype, conn in mesh.cells.items():
+                    self.h5[f"mesh/blocks/{ctype}"] = conn
             for name, ids in mesh.node_sets.items():
                 self.h5[f"mesh/node_sets/{name}"] = ids
             for name, ids in mesh.element_sets.items():
@@ -480,12 +497,20 @@ class TimeSeriesWriter:
     def _write_index(self) -> None:
         from xml.sax.saxutils import quoteattr
 
-        (ctype, conn), = self.mesh.cells.items()
         h5 = self.h5_path.name
-        n, ne = self.mesh.n_points, conn.shape[0]
-        topology = (f'<Topology TopologyType="{_XDMF_TOPOLOGY[ctype]}" NumberOfElements="{ne}">'
-                    f'<DataItem DataType="Int" Precision="8" Dimensions="{ne} {conn.shape[1]}" Format="HDF">'
-                    f'{h5}:/mesh/cells</DataItem></Topology>')
+        n = self.mesh.n_points
+        if len(self.mesh.cells) == 1:
+            (ctype, conn), = self.mesh.cells.items()
+            ne = conn.shape[0]
+            topology = (f'<Topology TopologyType="{_XDMF_TOPOLOGY[ctype]}" NumberOfElements="{ne}">'
+                        f'<DataItem DataType="Int" Precision="8" Dimensions="{ne} {conn.shape[1]}" Format="HDF">'
+                        f'{h5}:/mesh/cells</DataItem></Topology>')
+        else:
+            ne = sum(conn.shape[0] for conn in self.mesh.cells.values())
+            size = self.h5["mesh/cells"].shape[0]
+            topology = (f'<Topology TopologyType="Mixed" NumberOfElements="{ne}">'
+                        f'<DataItem DataType="Int" Precision="8" Dimensions="{size}" Format="HDF">'
+                        f'{h5}:/mesh/cells</DataItem></Topology>')
         geometry = (f'<Geometry GeometryType="XYZ"><DataItem DataType="Float" Precision="8" Dimensions="{n} 3"'
                     f' Format="HDF">{h5}:/mesh/points</DataItem></Geometry>')
         parts = ['<?xml version="1.0"?>', '<Xdmf Version="3.0"><Domain>']
@@ -559,9 +584,13 @@ def read_time_series(path: str | os.PathLike) -> TimeSeries:
         if "mesh" not in h5 or "cell_type" not in h5["mesh"].attrs:
             raise ValueError(f"{h5_path.name} was not written by toolkit's TimeSeriesWriter (no /mesh group)")
         g = h5["mesh"]
+        if g.attrs["cell_type"] == "mixed":
+            cells = {str(ctype): g[f"blocks/{ctype}"][()] for ctype in g.attrs["cell_types"]}
+        else:
+            cells = {g.attrs["cell_type"]: g["cells"][()]}
         mesh = Mesh(
             g["points"][()],
-            {g.attrs["cell_type"]: g["cells"][()]},
+            cells,
             node_sets={k: v[()] for k, v in g.get("node_sets", {}).items()},
             element_sets={k: v[()] for k, v in g.get("element_sets", {}).items()},
             cell_data={k: v[()] for k, v in g.get("cell_data", {}).items()},
