@@ -556,7 +556,7 @@ def write_time_series(
     Parameters
     ----------
     path : ``*.xdmf``
-    mesh : Mesh with one cell block
+    mesh : Mesh (one or several cell blocks)
     times : (n_frames,) s
     point_data : name -> (n_frames, n_points, ...) e.g. ``displacement`` in mm
     """
