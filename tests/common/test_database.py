@@ -206,6 +206,20 @@ def test_string_columns_of_the_index_read_as_str(tmp_path):
     assert sorted(index["key"]) == ["x1", "x2"] and sorted(index["label"]) == ["x1", "x2"]
 
 
+def test_read_index_reads_any_table_of_the_file_with_str_strings(tmp_path):
+    """Another table of the file (a static database's /samples) reads the same way; a name that
+    is not a table is refused, listing the tables."""
+    db = _db(tmp_path)
+    run_jobs(db, _jobs([1]), square, workers=0, progress=False)
+    rows = np.array([("x1", 1), ("x1", 2)], dtype=[("key", h5py.string_dtype()), ("increment", np.int64)])
+    with h5py.File(db.path, "a") as f:
+        f.create_dataset("samples", data=rows)
+    samples = read_index(db.path, "samples")
+    assert samples["key"].tolist() == ["x1", "x1"] and samples["increment"].tolist() == [1, 2]
+    with pytest.raises(DatabaseError, match=r"no table 'records'.*\['index', 'samples'\]"):
+        read_index(db.path, "records")
+
+
 def test_a_sigterm_stops_the_run_like_a_ctrl_c_and_keeps_the_finished_jobs(tmp_path):
     """A SIGTERM (a cluster's time limit) during the third job: KeyboardInterrupt, and the two
     finished records are merged into the .h5; the SIGTERM handler is restored afterwards."""

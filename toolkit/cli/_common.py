@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 import re
+import signal
+import threading
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -13,15 +15,24 @@ from pathlib import Path
 RESOLUTIONS = ["coarse", "paper", "fine"]
 
 
+#: what a Ctrl-C leaves behind, per kind of command (``{out}``: the ``--out`` given)
+NOTHING_WRITTEN = "nothing was written to {out}; rerun the same command"
+SIMULATIONS_KEPT = "the finished simulations are kept in {out}; rerun the same command to finish the database"
+EPOCHS_KEPT = ("the finished epochs are kept in {out}/checkpoint.pt; rerun the same command with --resume to finish "
+               "the training")
+
+
 @dataclass(frozen=True)
 class Command:
     """One subcommand: its one-line ``help``, its ``description``, the function that adds its
-    arguments to a parser and the handler that runs it (returns the exit code)."""
+    arguments to a parser, the handler that runs it (returns the exit code) and what a Ctrl-C
+    leaves behind (``interrupted``, printed as ``interrupted: ...``)."""
 
     help: str
     description: str
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace], int]
+    interrupted: str = "rerun the same command"
 
 
 class HelpFormatter(argparse.HelpFormatter):
@@ -56,6 +67,21 @@ def torch_threads(args: argparse.Namespace) -> None:
     from toolkit.common.runtime import set_threads
 
     set_threads(args.threads)
+
+
+@contextmanager
+def uninterruptible():
+    """Ignore Ctrl-C (SIGINT) inside the block: a command's last writes (a result folder, seconds
+    at most) either do not start or finish, so an interrupted command leaves nothing half
+    written. Outside the main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def positive_int(text: str) -> int:

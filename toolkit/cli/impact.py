@@ -8,6 +8,9 @@ import warnings
 from pathlib import Path
 
 from toolkit.cli._common import (
+    EPOCHS_KEPT,
+    NOTHING_WRITTEN,
+    SIMULATIONS_KEPT,
     Command,
     add_database_run,
     dask_client,
@@ -16,6 +19,7 @@ from toolkit.cli._common import (
     positive_float,
     positive_int,
     torch_threads,
+    uninterruptible,
 )
 
 HELP = "ball-impact workflow (the impact paper)"
@@ -186,13 +190,16 @@ def evaluate(args: argparse.Namespace) -> int:
     check_output_dir(args.out)
     torch_threads(args)
     from toolkit.impact.dataset import load_database
-    from toolkit.impact.evaluation import evaluate_surrogate, write_evaluation
+    from toolkit.impact.evaluation import check_figure_choices, evaluate_surrogate, write_evaluation
     from toolkit.impact.surrogate import ImpactSurrogate
 
     model = ImpactSurrogate.load(args.model)
     db = load_database(args.data)
+    model.check_database(db)
+    check_figure_choices(db, args.nodes, args.frames)
     ev = evaluate_surrogate(model, db, args.split)
-    write_evaluation(ev, db, model, args.out, nodes=args.nodes, frames=args.frames)
+    with uninterruptible():
+        write_evaluation(ev, db, model, args.out, nodes=args.nodes, frames=args.frames)
     m = ev.metrics
     print(f"{m['config']} on the {m['split']} split ({m['n_test_items']} test node series, velocities "
           f"{m['test_velocities_mm_s']} mm/s):")
@@ -220,7 +227,8 @@ def predict(args: argparse.Namespace) -> int:
     from toolkit.impact.surrogate import ImpactSurrogate, predict_scene
 
     pred = predict_scene(ImpactSurrogate.load(args.model), args.velocity)
-    pred.write(args.out)
+    with uninterruptible():
+        pred.write(args.out)
     s = pred.summary()
     print(f"{s['face_nodes']} face nodes at {s['velocity_mm_s']} mm/s, {pred.times.size} frames in "
           f"{s['wall_time_s']:.2f} s: max displacement {s['max_displacement_mm']:.2f} mm, max von Mises "
@@ -263,27 +271,29 @@ COMMANDS = {
         help="run an impact scene",
         description="Run the simulation (quasi-static by default, or explicit) and write face.xdmf (displacement, "
                     "von_mises), ball.xdmf (deformable ball), history.h5, summary.json and preview.png.",
-        add_arguments=add_simulate_arguments, run=simulate),
+        add_arguments=add_simulate_arguments, run=simulate,
+        interrupted="{out} holds nothing from this run, or summary.json with \"status\": \"interrupted\" and the "
+                    "frames finished so far (readable); rerun the same command to run it whole"),
     "dataset": Command(
         help="build the learning database (one simulation per velocity)",
         description="Simulate the scene at every training and held-out velocity and store the per-node "
                     "displacement and von Mises time series in one resumable HDF5 file (rerun to resume; failures "
                     "are recorded). Default scene: the face held by the skull, 0.36 s (yielding_scene).",
-        add_arguments=add_dataset_arguments, run=dataset),
+        add_arguments=add_dataset_arguments, run=dataset, interrupted=SIMULATIONS_KEPT),
     "train": Command(
         help="train a surrogate on a database",
         description="Train the impact paper's LSTM, the stronger LSTM or the non-recurrent baseline; writes "
                     "model.pt, config.json (with the scalers) and checkpoint.pt. The configuration 'seed' is the "
                     "deprecated name of 'paper'.",
-        add_arguments=add_train_arguments, run=train),
+        add_arguments=add_train_arguments, run=train, interrupted=EPOCHS_KEPT),
     "evaluate": Command(
         help="score a model on its test split",
         description="RMSE, Pearson and NRMSE of displacement and von Mises on the model's test split; writes "
                     "metrics.json, timeseries.png and fields.png.",
-        add_arguments=add_evaluate_arguments, run=evaluate),
+        add_arguments=add_evaluate_arguments, run=evaluate, interrupted=NOTHING_WRITTEN),
     "predict": Command(
         help="predict the database's scene at a velocity",
         description="Whole-face displacement and von Mises time series at VELOCITY; writes face.xdmf, summary.json "
                     "and scene.toml (run its FE with `toolkit impact simulate --scene OUT/scene.toml`).",
-        add_arguments=add_predict_arguments, run=predict),
+        add_arguments=add_predict_arguments, run=predict, interrupted=NOTHING_WRITTEN),
 }

@@ -7,13 +7,17 @@ import argparse
 from pathlib import Path
 
 from toolkit.cli._common import (
+    EPOCHS_KEPT,
+    NOTHING_WRITTEN,
     RESOLUTIONS,
+    SIMULATIONS_KEPT,
     Command,
     add_database_run,
     add_units,
     dask_client,
     positive_float,
     positive_int,
+    uninterruptible,
 )
 
 HELP = "orthognathic-surgery workflow (the lip-sliding paper)"
@@ -55,7 +59,8 @@ def simulate(args: argparse.Namespace) -> int:
                      units=args.units)
     result = case.simulate(increments=args.increments, material=args.material, sliding=args.sliding,
                            options=SimulationOptions(solver=args.solver, progress=True))
-    result.write(args.out, preview=not args.no_preview)
+    with uninterruptible():
+        result.write(args.out, preview=not args.no_preview)
     s = result.summary()
     for r in s["increments_report"]:
         print(f"increment {r['increment']}: {r['seconds_step1'] + r['seconds_step2']:.1f} s, {r['linear_solves']} "
@@ -167,7 +172,8 @@ def evaluate(args: argparse.Namespace) -> int:
     model = Surrogate.load(args.model, device=args.device)
     result = evaluate_surrogate(model, args.data)
     mesh = None if args.no_render else subject_phantom(_database_resolution(args.data), 0).mesh
-    write_evaluation(result, args.out, mesh)
+    with uninterruptible():
+        write_evaluation(result, args.out, mesh)
     m = result["metrics"]
     print(f"scored: {m['scored']}")
     print(f"{m['samples']} samples: mean error {m['mean_error_mm']:.3f} mm (median {m['median_error_mm']:.3f}, p95 "
@@ -207,7 +213,8 @@ def predict(args: argparse.Namespace) -> int:
     case = load_case(args.mesh, resolution=resolution, plan=args.plan, bones=bones(args.bone), force=args.force,
                      units=args.units)
     result = model.predict_plan(case.subject, case.plan, segments=case.segments)
-    result.write(args.out, preview=not args.no_preview)
+    with uninterruptible():
+        result.write(args.out, preview=not args.no_preview)
     s = result.summary()
     print(f"{s['nodes']} nodes, {s['increments']} increments predicted in {s['wall_time_s'] * 1e3:.0f} ms: max "
           f"displacement {s['max_displacement_mm']:.2f} mm, min scaled Jacobian {s['min_scaled_jacobian']:.3f} -> "
@@ -246,25 +253,26 @@ COMMANDS = {
         description="Run the incremental FE simulation (mucosa and lip sliding) and write result.vtu (reference "
                     "mesh + displacement), postop.vtu (post-operative face), increments.xdmf, summary.json and "
                     "preview.png.",
-        add_arguments=add_simulate_arguments, run=simulate),
+        add_arguments=add_simulate_arguments, run=simulate,
+        interrupted=NOTHING_WRITTEN + " (the files are written after the last increment)"),
     "dataset": Command(
         help="generate the surrogate's learning database",
         description="Simulate sampled plans on phantom subjects; every increment is a learning sample (the "
                     "PointNet++ paper). Resumable: a rerun skips finished simulations; failures are recorded with "
                     "their reason. Ctrl-C loses no finished simulation.",
-        add_arguments=add_dataset_arguments, run=dataset),
+        add_arguments=add_dataset_arguments, run=dataset, interrupted=SIMULATIONS_KEPT),
     "train": Command(
         help="train the PointNet++ surrogate on a database",
         description="Train PointNet++ (the PointNet++ paper) on a static database; writes model.pt and config.json "
                     "(checkpoint.pt while training; --resume continues it).",
-        add_arguments=add_train_arguments, run=train),
+        add_arguments=add_train_arguments, run=train, interrupted=EPOCHS_KEPT),
     "evaluate": Command(
         help="score a surrogate on a database",
         description="Mean Euclidean nodal error per sample (all, free, lips), inference and FE times; writes "
                     "metrics.json, per_sample.csv and error_map.png.",
-        add_arguments=add_evaluate_arguments, run=evaluate),
+        add_arguments=add_evaluate_arguments, run=evaluate, interrupted=NOTHING_WRITTEN),
     "predict": Command(
         help="predict a plan with a surrogate",
         description="Run a plan with the surrogate instead of the FE; writes the files of `toolkit static simulate`.",
-        add_arguments=add_predict_arguments, run=predict),
+        add_arguments=add_predict_arguments, run=predict, interrupted=NOTHING_WRITTEN),
 }

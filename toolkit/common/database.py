@@ -30,15 +30,18 @@ naming the differences, except for the keys the database ``grows`` along) and ``
 (JSON list of the last run's job keys); ``/shared/...`` arrays common to every record (a mesh);
 ``/records/<key>/`` each record's arrays with ``params`` (JSON) and its scalar ``attrs``;
 ``/failures/<key>`` (``reason``, ``traceback``, ``params``); ``/index``, a table with one
-row per record (key, params, scalar attributes), readable without the toolkit::
+row per record (key, params, scalar attributes). :func:`read_index` reads it (or another table
+of the file, such as a static database's ``/samples``) as a DataFrame with ``str`` strings::
 
-    import h5py, pandas as pd
+    from toolkit.common.database import read_index
+    index = read_index("db.h5")
+
+HDF5 has no text type that h5py returns as ``str`` inside a table (its variable-length strings
+come back as ``bytes``), so a reader with h5py and pandas alone decodes them::
+
     with h5py.File("db.h5") as f:
         index = pd.DataFrame(f["index"][()])
-    # h5py returns the strings of a table as bytes: decode them
     index = index.apply(lambda c: c.str.decode("utf-8") if c.dtype == object else c)
-
-or with :func:`read_index` (strings already ``str``).
 """
 
 from __future__ import annotations
@@ -448,18 +451,23 @@ def _flat(d: Mapping, prefix: str = "") -> dict:
     return out
 
 
-def read_index(path: str | os.PathLike):
-    """The database's index as a DataFrame (one row per finished record, strings decoded)."""
+def read_index(path: str | os.PathLike, table: str = "index"):
+    """A table of the database at ``path`` as a DataFrame with its strings as ``str`` (h5py alone
+    gives ``bytes``): ``/index`` by default (one row per finished record), or another table
+    (``"samples"``: a static database's one row per increment)."""
     import h5py
     import pandas as pd
 
     Database.open_attrs(Path(path))
     with h5py.File(path, "r") as f:
-        table = pd.DataFrame(f["index"][()])
-    for c in table.columns:
-        if table[c].dtype == object:
-            table[c] = table[c].map(_str)
-    return table
+        if table not in f or not isinstance(f[table], h5py.Dataset) or f[table].dtype.names is None:
+            tables = sorted(k for k, v in f.items() if isinstance(v, h5py.Dataset) and v.dtype.names)
+            raise DatabaseError(f"{path} has no table {table!r}; its tables: {tables}")
+        frame = pd.DataFrame(f[table][()])
+    for c in frame.columns:
+        if frame[c].dtype == object:
+            frame[c] = frame[c].map(_str)
+    return frame
 
 
 def read_failures(path: str | os.PathLike):
@@ -604,13 +612,28 @@ def _resolve_executor(executor, workers: int):
         return InProcessExecutor(), True
     import multiprocessing
 
-    from toolkit.common.runtime import default_threads, set_threads
+    from toolkit.common.runtime import default_threads
 
     # spawn: the parent may hold threads (tqdm, BLAS, torch) that fork would copy mid-state; each
     # worker runs on TOOLKIT_NUM_THREADS threads (1 unless set_threads said otherwise), so W
     # workers do not each start a pool per core
     return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=set_threads, initargs=(default_threads(),)), True
+                               initializer=_init_worker, initargs=(default_threads(),)), True
+
+
+def _init_worker(threads: int) -> None:
+    """A local worker process: ``threads`` BLAS/torch threads, and deaf to Ctrl-C. A Ctrl-C in a
+    terminal reaches every process of the command; the main process alone answers it (it keeps
+    the finished jobs and stops the workers), so a worker prints no traceback of its own. tqdm
+    takes a thread lock here instead of its default process-shared one: a worker stopped by the
+    main process then leaves no semaphore behind ("leaked semaphore" at exit)."""
+    from tqdm.auto import tqdm
+
+    from toolkit.common.runtime import set_threads
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    tqdm.set_lock(threading.RLock())
+    set_threads(threads)
 
 
 def check_workers(workers: int) -> None:
@@ -654,6 +677,16 @@ def run_jobs(db: Database, jobs: Iterable[Job], worker: Callable, *, executor=No
     check_workers(workers)
     with db.locked():
         return _run_locked(db, jobs, keys, worker, executor, workers, retry_failed, progress, merge_every, t0)
+
+
+def _stop_pool(pool) -> None:
+    """Terminate a local pool's worker processes and wait for them, so that the pool's queues
+    and locks are released (no "leaked semaphore" warning at exit)."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for proc in processes:
+        proc.terminate()
+    for proc in processes:
+        proc.join(timeout=10)
 
 
 def _run_locked(db, jobs, keys, worker, executor, workers, retry_failed, progress, merge_every, t0) -> RunReport:
@@ -709,15 +742,15 @@ def _run_locked(db, jobs, keys, worker, executor, workers, retry_failed, progres
                 db.write_shard(job, status, payload, extra)
             else:
                 fut.cancel()
-        if owned:  # do not wait for running simulations at exit (the pool would join its workers)
-            for proc in list(getattr(pool, "_processes", {}).values()):
-                proc.terminate()
+        if owned:  # do not wait for running simulations: stop the workers, then close the pool
+            _stop_pool(pool)
         raise
     finally:
         restore_signals()
         bar.close()
-        if owned:
-            pool.shutdown(wait=False, cancel_futures=True)
+        if owned:  # the workers have exited when the run returns (none is left to a later Ctrl-C)
+            with deferred_interrupt():
+                pool.shutdown(wait=True, cancel_futures=True)
         with deferred_interrupt():  # the .h5 alone holds every finished job, even after a second Ctrl-C
             db.merge()
     return RunReport(report.done, report.failed, skipped, time.perf_counter() - t0)

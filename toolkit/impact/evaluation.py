@@ -26,7 +26,8 @@ from toolkit.common import metrics
 from toolkit.impact.dataset import ImpactDatabase, load_database
 from toolkit.impact.surrogate import ImpactSurrogate, item_features, item_targets, split_items
 
-__all__ = ["Evaluation", "evaluate_surrogate", "plot_time_series", "plot_fields", "write_evaluation"]
+__all__ = ["Evaluation", "evaluate_surrogate", "plot_time_series", "plot_fields", "write_evaluation",
+           "check_figure_choices"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,6 +102,32 @@ def evaluate_surrogate(surrogate: ImpactSurrogate, db: ImpactDatabase | str | os
         "speedup_vs_fe": float(np.median(fe)) / inference,
     })
     return Evaluation(m, items, predicted, truth)
+
+
+def check_figure_choices(db: ImpactDatabase, nodes=None, frames=None, ev: Evaluation | None = None) -> None:
+    """Refuse figure choices the database cannot show, before anything is computed or written:
+    ``nodes`` (node ids, for ``timeseries.png``) outside ``[0, n_nodes)``, ``frames`` (frame
+    indices, for ``fields.png``) outside ``[0, n_frames)``, an empty list; with ``ev``, nodes that
+    are not test items of the simulation the figures show."""
+    for name, values, size, what in (("nodes", nodes, db.n_nodes, "node ids"),
+                                     ("frames", frames, db.times.size, "frame indices")):
+        if values is None:
+            continue
+        values = [int(v) for v in values]
+        if not values:
+            raise ValueError(f"{name} is an empty list; expected {what} in [0, {size - 1}] (or none: the default)")
+        bad = [v for v in values if not 0 <= v < size]
+        if bad:
+            raise ValueError(f"{name} {bad} out of range: {db.path} has {size} {what.split()[0]}s, expected "
+                             f"{what} in [0, {size - 1}]")
+    if ev is not None and nodes is not None:
+        sim = _chosen_sim(db, ev)
+        test_nodes = set((ev.items[ev.items // db.n_nodes == sim] % db.n_nodes).tolist())
+        missing = [int(n) for n in nodes if int(n) not in test_nodes]
+        if missing:
+            example = sorted(test_nodes)[:3]
+            raise ValueError(f"nodes {missing} are not test items of the {db.velocities[sim]:g} mm/s simulation "
+                             f"that timeseries.png shows; expected test nodes, e.g. {example}")
 
 
 def _chosen_sim(db: ImpactDatabase, ev: Evaluation) -> int:
@@ -190,9 +217,11 @@ def plot_fields(db: ImpactDatabase, surrogate: ImpactSurrogate, path, sim: int |
 def write_evaluation(ev: Evaluation, db: ImpactDatabase, surrogate: ImpactSurrogate, out: str | os.PathLike,
                      nodes=None, frames=None) -> Path:
     """Write ``metrics.json``, ``timeseries.png`` and ``fields.png`` to ``out``; both figures show
-    the fastest simulation with test items of ``ev`` (one of ``test_velocities_mm_s``)."""
+    the fastest simulation with test items of ``ev`` (one of ``test_velocities_mm_s``). ``nodes``
+    and ``frames`` are checked (:func:`check_figure_choices`) before anything is written."""
     from toolkit.common.io import atomic_path
 
+    check_figure_choices(db, nodes, frames, ev)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "metrics.json") as tmp:

@@ -15,10 +15,11 @@ Configurations (:data:`CONFIGS`):
 - ``paper``: the impact paper's model, LSTM with 5 hidden units and 1 output, one per output
   channel (so 4 models: ux, uy, uz, von Mises), MAE loss, Adam, batches of 10,000 items,
   the impact paper's inputs;
-- ``strong``: one multi-output LSTM with the ``ball`` inputs and an MSE loss, chosen by
-  measurement (``benchmarks/impact_surrogate.py --sweep``; README), its learning rate decayed
-  on a cosine over the training budget (paper database, random split: displacement RMSE
-  0.024 mm after 14 min, against 0.027 mm after 12 min at a constant rate);
+- ``strong`` (the default of :func:`train_surrogate`): one multi-output LSTM with the ``ball``
+  inputs and an MSE loss, chosen by measurement (``benchmarks/impact_surrogate.py --sweep``;
+  README), its learning rate decayed on a cosine over the training budget (paper database,
+  random split: displacement RMSE 0.024 mm after 14 min, against 0.027 mm after 12 min at a
+  constant rate);
 - ``baseline``: a multilayer perceptron applied to each frame independently (no
   recurrence), with the same inputs and loss as ``strong``.
 
@@ -48,6 +49,7 @@ from toolkit.common.training import (
     ModelBundle,
     TrainConfig,
     extrapolation,
+    resolve_device,
     split_groups,
     torch_seeded,
     train,
@@ -237,7 +239,7 @@ def _loss(name: str):
     return torch.nn.functional.l1_loss if name == "mae" else torch.nn.functional.mse_loss
 
 
-def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateConfig | str = "paper",
+def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateConfig | str = "strong",
                     split: str = "random", *, out: str | os.PathLike | None = None, seed: int = 0,
                     device: str = "cpu", resume: bool = False, progress: bool = True) -> ImpactSurrogate:
     """Train a surrogate on an impact database.
@@ -245,7 +247,8 @@ def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateCon
     Parameters
     ----------
     db : ImpactDatabase or the path of one
-    config : a :data:`CONFIGS` name or a SurrogateConfig
+    config : a :data:`CONFIGS` name or a SurrogateConfig (default ``strong``, the best measured;
+        ``paper`` for the impact paper's per-output LSTM)
     split : ``random`` or ``velocity`` (see :func:`split_items`)
     out : model directory; ``model.pt`` + ``config.json`` are written at the end and
         ``checkpoint.pt`` after every epoch (``resume=True`` continues from it)
@@ -263,6 +266,7 @@ def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateCon
 
     if out is not None:
         check_output_dir(out, what="model directory")
+    resolve_device(device)  # a device torch does not see is refused before the model directory is made
     db = load_database(db) if not isinstance(db, ImpactDatabase) else db
     cfg = resolve_config(config)
     idx = split_items(db, split, seed)

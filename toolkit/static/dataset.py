@@ -20,8 +20,9 @@ node sets, common to all subjects); ``/records/<key>/`` each simulation's cumula
 displacement ``displacements (increments + 1, n, 3)`` and the increments' bone
 displacements ``bone (increments, n, 3)`` (float32, mm); ``/index`` one row per
 simulation and ``/samples`` one row per increment (subject, plan, increment, plan
-parameters, largest input displacement, solver diagnostics), both readable with pandas
-without the toolkit (:func:`read_samples`).
+parameters, largest input displacement, solver diagnostics), both read as DataFrames with
+``str`` strings by :func:`toolkit.common.database.read_index` (``read_index(path, "samples")``;
+:func:`read_samples` also rebuilds ``/samples`` of an interrupted run from its records).
 
 Generation runs on any ``concurrent.futures``-style executor (local processes by default,
 a ``dask.distributed.Client`` for a cluster); CLI ``toolkit static dataset``.
@@ -393,7 +394,6 @@ def jaw_side(segment: np.ndarray, sets: dict, n: int, names=("lefort", "distal",
 def read_samples(path: str | os.PathLike):
     """The per-increment table ``/samples`` of a database as a DataFrame (strings decoded)."""
     import h5py
-    import pandas as pd
 
     Database.open_attrs(Path(path))
     with h5py.File(path, "r") as f:
@@ -401,18 +401,12 @@ def read_samples(path: str | os.PathLike):
             raise ValueError(f"{path} has no /records group: it is not a static database; "
                              f"create one with `toolkit static dataset`")
         stored = set(f["records"].keys()) | set(f["failures"].keys())
-        table = pd.DataFrame(f["samples"][()]) if "samples" in f else None
-    if table is None or set(table["key"].map(_decode)) != stored:
+        has_samples = "samples" in f
+    table = read_index(path, "samples") if has_samples else None
+    if table is None or set(table["key"]) != stored:
         # interrupted before /samples was (re)written: the records are the truth
         return _sample_table(Path(path))
-    for c in table.columns:
-        if table[c].dtype == object:
-            table[c] = table[c].map(_decode)
     return table
-
-
-def _decode(v):
-    return v.decode() if isinstance(v, bytes) else v
 
 
 @dataclass(eq=False)

@@ -56,7 +56,7 @@ from toolkit.static.features import FeatureSpec, channel_names, encode
 from toolkit.static.plan import PlanRangeWarning
 from toolkit.static.simulate import SimulationResult
 
-__all__ = ["SurrogateConfig", "Surrogate", "train_surrogate", "evaluate_surrogate", "network_config",
+__all__ = ["SurrogateConfig", "FEATURE_PRESETS", "Surrogate", "train_surrogate", "evaluate_surrogate", "network_config",
            "linear_prior", "MODEL_KIND", "NETWORK_PRESETS", "PLAN_PARAMETERS", "PlanPrediction",
            "plan_extrapolation", "MUST_MATCH"]
 
@@ -73,13 +73,25 @@ NETWORK_PRESETS = {
 }
 
 
+#: named input sets: ``best`` (the default: hard boundary values with the linear prior, the most
+#: accurate measured, ``benchmarks/static_surrogate.py``) and ``paper`` (the PointNet++ paper's explicit
+#: boundary types, no prior)
+FEATURE_PRESETS = {"best": FeatureSpec("hard", linear_prior=True), "paper": FeatureSpec("explicit")}
+
+
 @dataclass(frozen=True)
 class SurrogateConfig:
     """How a surrogate is built and trained.
 
+    The default is the most accurate configuration measured (``benchmarks/static_surrogate.py``:
+    hard boundary values with the linear prior, 0.48 mm mean nodal error on the held-out plans of
+    the coarse 30-plan benchmark against 1.13 mm for the PointNet++ paper's explicit inputs);
+    ``features="paper"`` trains the PointNet++ paper's inputs.
+
     Attributes
     ----------
-    features : FeatureSpec (variant explicit / implicit / hard, extra and material channels)
+    features : FeatureSpec (variant explicit / implicit / hard, extra and material channels,
+        linear prior), or a name of :data:`FEATURE_PRESETS` (``best``, the default, or ``paper``)
     network : preset name (:data:`NETWORK_PRESETS`)
     coarse_radii : use :meth:`PointNet2Config.coarse` radii (meshes of ~800 nodes)
     split : ``plans`` (70/10/20 by simulation) or ``subjects`` (``test_subjects`` held out,
@@ -92,7 +104,7 @@ class SurrogateConfig:
         epochs, or over ``max_seconds`` when set; :class:`~toolkit.common.training.TrainConfig`)
     """
 
-    features: FeatureSpec = FeatureSpec()
+    features: FeatureSpec = FEATURE_PRESETS["best"]
     network: str = "small"
     coarse_radii: bool = False
     split: str = "plans"
@@ -109,6 +121,11 @@ class SurrogateConfig:
     def __post_init__(self):
         if isinstance(self.features, dict):
             object.__setattr__(self, "features", FeatureSpec(**self.features))
+        elif isinstance(self.features, str):
+            if self.features not in FEATURE_PRESETS:
+                raise ValueError(f"features = {self.features!r}; expected a FeatureSpec or one of "
+                                 f"{sorted(FEATURE_PRESETS)}")
+            object.__setattr__(self, "features", FEATURE_PRESETS[self.features])
         if self.network not in NETWORK_PRESETS:
             raise ValueError(f"network = {self.network!r}; expected one of {sorted(NETWORK_PRESETS)}")
         if self.split not in ("plans", "subjects"):
@@ -466,6 +483,26 @@ def _split(data: _Data, config: SurrogateConfig) -> tuple[np.ndarray, np.ndarray
     return rest[tr], rest[va], test
 
 
+def _check_training_inputs(db, config: SurrogateConfig) -> None:
+    """Refuse, before the model directory is made, what the training could not use: a device
+    torch does not see, held-out subjects the database lacks (or that leave none to train on),
+    material channels on a database of one Poisson's ratio."""
+    resolve_device(config.device)
+    subjects = sorted(int(s) for s in db.samples.subject.unique())
+    if config.split == "subjects":
+        absent = [s for s in config.test_subjects if s not in subjects]
+        if absent:
+            raise ValueError(f"test_subjects {absent} are not in the database {db.path}: it holds subjects "
+                             f"{subjects} (build more with `toolkit static dataset --subjects N`)")
+        if not set(subjects) - set(config.test_subjects):
+            raise ValueError(f"test_subjects {list(config.test_subjects)} are every subject of the database "
+                             f"{db.path} ({subjects}): hold some out, not all")
+    if config.features.material_channels and db.config.poisson_range is None:
+        raise ValueError("material_channels needs a database whose simulations vary Poisson's ratio "
+                         "(DatasetConfig.poisson_range; command line: toolkit static dataset --poisson-range LO HI); "
+                         f"this one uses {TISSUE_NU} throughout")
+
+
 def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), *, resume: bool = False,
                     progress: bool = True) -> Surrogate:
     """Train a surrogate on a database and save it to the directory ``out``.
@@ -474,7 +511,8 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
     ----------
     database : path of a static database, or a StaticDatabase
     out : model directory (``model.pt``, ``config.json``; ``checkpoint.pt`` while training)
-    config : SurrogateConfig
+    config : SurrogateConfig (default: hard boundary values with the linear prior, the most
+        accurate measured; ``SurrogateConfig(features="paper")`` for the PointNet++ paper's inputs)
     resume : continue an interrupted training from ``out/checkpoint.pt``
 
     Returns
@@ -489,11 +527,8 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
 
     out = check_output_dir(out, what="model directory")
     db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
+    _check_training_inputs(db, config)
     out.mkdir(parents=True, exist_ok=True)
-    if config.features.material_channels and db.config.poisson_range is None:
-        raise ValueError("material_channels needs a database whose simulations vary Poisson's ratio "
-                         "(DatasetConfig.poisson_range; command line: toolkit static dataset --poisson-range LO HI); "
-                         f"this one uses {TISSUE_NU} throughout")
     t_prior = time.perf_counter()
     priors = _subject_priors(db, db.points) if config.features.linear_prior else None
     t_prior = time.perf_counter() - t_prior
