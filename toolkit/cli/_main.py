@@ -1,12 +1,15 @@
 """``toolkit``: wires the subcommands, sets the threads, and turns the toolkit's errors (any
 :class:`~toolkit.common.errors.ToolkitError`, bad input, a missing file, a failed solve) into
 ``error: ...`` on stderr with exit code 2; so is a full disk or another failed write
-(``OSError``)."""
+(``OSError``). A Ctrl-C exits with 130 and one line, ``interrupted: ...``, saying what the
+command left and how to finish it; once a command has finished, a Ctrl-C while the interpreter
+shuts down is ignored (run as a program)."""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 
 from toolkit.cli import demo, impact, phantom, static
@@ -36,23 +39,30 @@ def _add(subparsers, name: str, command: Command) -> None:
     p = subparsers.add_parser(name, help=command.help, description=command.description, formatter_class=HelpFormatter)
     command.add_arguments(p)
     add_common(p)
-    p.set_defaults(func=command.run)
+    p.set_defaults(func=command.run, interrupted=command.interrupted)
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
+    """Run the command line ``argv`` (default: the program's arguments) and return its exit code:
+    0, 2 for an error, 130 for a Ctrl-C (``interrupted: ...`` says what it left and how to finish)."""
     from toolkit.common.errors import ToolkitError
-    from toolkit.common.runtime import set_threads
 
-    set_threads(args.threads)
+    program = argv is None
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = None
     try:
-        return int(args.func(args) or 0)
+        args = build_parser().parse_args(argv)
+        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                            format="%(levelname)s %(message)s")
+        from toolkit.common.runtime import set_threads
+
+        set_threads(args.threads)
+        code = int(args.func(args) or 0)
     except KeyboardInterrupt:
         _close_progress_bars()
-        print("interrupted; finished files are complete (all writes are atomic): rerun the same command to "
-              "resume (train: with --resume)", file=sys.stderr)
+        left = "nothing was started; rerun the same command" if args is None else \
+            args.interrupted.format(out=getattr(args, "out", None))
+        print(f"interrupted: {left}", file=sys.stderr)
         return 130
     except (ToolkitError, ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
         _close_progress_bars()
@@ -63,6 +73,9 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"error: {where}{exc.strerror or exc} (the files finished before it are complete)", file=sys.stderr)
         return 2
+    if program:  # the work is done and written: a Ctrl-C while the interpreter shuts down changes nothing
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return code
 
 
 def _close_progress_bars() -> None:
