@@ -1,0 +1,156 @@
+"""``toolkit.mesh``: the mouth cut, the labelling rules and the whole pipeline on the coarse phantom's
+surfaces (the round trip's small version; ``benchmarks/own_face.py`` runs it at paper size)."""
+
+import numpy as np
+import pytest
+
+from toolkit.common import face_hex, read
+from toolkit.common.topology import boundary_faces
+from toolkit.mesh import available
+from toolkit.mesh.face import FaceInputError, dihedral_angles, mesh_face
+from toolkit.mesh.mouth import MouthError, cut_mouth
+from toolkit.mesh.rules import RulesError, read_rules
+from toolkit.mesh.surface import tissue_surface_of
+
+BACKEND = "tetgen" if available().get("tetgen") else "ftetwild"
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return face_hex("coarse")
+
+
+@pytest.fixture(scope="module")
+def inputs(phantom):
+    m = phantom.mesh
+    skin = np.zeros(m.n_points, bool)
+    skin[m.node_sets["skin"]] = True
+    lip = m.node_sets["upper_lip_face"]
+    p = m.points[lip[skin[lip]]]
+    commissures = np.stack([p[np.argmax(p[:, 0])], p[np.argmin(p[:, 0])]])
+    bones = {k: s.surface for k, s in phantom.segments.items()}
+    return tissue_surface_of(m), bones, commissures
+
+
+@pytest.fixture(scope="module")
+def face(inputs):
+    surface, bones, commissures = inputs
+    return mesh_face(surface, bones, commissures, size_mm=6.0, order=2, backend=BACKEND)
+
+
+def test_dihedral_angles_of_the_regular_tetrahedron():
+    p = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    assert np.allclose(dihedral_angles(p, np.array([[0, 1, 2, 3]])), np.degrees(np.arccos(1 / 3)))
+
+
+def test_mesh_is_quadratic_valid_and_labelled(face, inputs):
+    m = face.mesh
+    assert m.volume_type == "tet10" and m.scaled_jacobian().min() > 0
+    sets = m.node_sets
+    for name in ("fixed", "maxilla", "mandible", "mucosa_sliding", "mucosa_lefort", "mucosa_distal", "skin", "bone",
+                 "lip_sliding", "upper_lip_face", "lower_lip_face"):
+        assert sets[name].size > 0, name
+    # the simulation's types are disjoint
+    typed = np.concatenate([sets["fixed"], sets["maxilla"], sets["mandible"], sets["mucosa_sliding"],
+                            sets["lip_sliding"]])
+    assert np.unique(typed).size == typed.size
+    # every bone-side node lies on (here: exactly on) a bone
+    assert face.report["bone_offset_mm"]["max"] < 0.5
+    # the volume is the tissue surface's (the mesher keeps the surface within its tolerance)
+    x = m.points[m.volume_cells[:, :4]]
+    vol = np.einsum("ij,ij->i", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]).sum() / 6
+    s = inputs[0].points[inputs[0].cells["tri3"]]
+    enclosed = np.einsum("ij,ij->i", s[:, 0], np.cross(s[:, 1], s[:, 2])).sum() / 6
+    assert vol == pytest.approx(enclosed, rel=0.01)
+
+
+def test_lip_faces_pair_up_at_coincident_points(face):
+    m = face.mesh
+    up, low = m.node_sets["upper_lip_face"], m.node_sets["lower_lip_face"]
+    assert up.size == low.size and np.intersect1d(up, low).size == 0
+    assert np.abs(m.points[up] - m.points[low]).max() == 0.0
+    # the upper face's elements lie above, the lower's below the slit
+    cells = m.volume_cells
+    for nodes, sign in ((up, 1), (low, -1)):
+        has = np.isin(cells, nodes).any(axis=1)
+        z = m.points[cells[has]].mean(axis=1)[:, 2] - m.points[nodes][:, 2].mean()
+        assert np.mean(np.sign(z) == sign) > 0.9
+
+
+def test_labels_agree_with_the_phantom(face, phantom):
+    """Share of labelled nodes whose nearest phantom node carries the same set."""
+    from scipy.spatial import cKDTree
+
+    ph = phantom.mesh
+    tree = cKDTree(ph.points)
+    for name, goal in (("bone", 0.95), ("skin", 0.75), ("mucosa_sliding", 0.6), ("fixed", 0.6)):
+        ids = face.mesh.node_sets[name]
+        _, near = tree.query(face.mesh.points[ids])
+        mask = np.zeros(ph.n_points, bool)
+        mask[ph.node_sets[name]] = True
+        assert mask[near].mean() >= goal, (name, mask[near].mean())
+
+
+def test_written_mesh_reads_back_with_its_sets(face, tmp_path):
+    written = face.write(tmp_path / "face.vtu", image=False)
+    back = read(written["mesh"])
+    assert back.volume_type == "tet10" and back.n_points == face.mesh.n_points
+    for name, ids in face.mesh.node_sets.items():
+        assert np.array_equal(np.sort(back.node_sets[name]), np.sort(ids)), name
+    import json
+
+    report = json.loads(written["labels"].read_text())
+    assert report["node_sets"]["fixed"] == face.mesh.node_sets["fixed"].size
+    assert set(report["seconds"]) == {"read_repair", "mesh", "mouth", "label", "order", "quality"}
+
+
+def test_no_commissures_means_no_lip_sliding(inputs):
+    surface, bones, _ = inputs
+    face = mesh_face(surface, bones, size_mm=8.0, order=1, backend=BACKEND)
+    assert "lip_sliding" not in face.mesh.node_sets and "no lip sliding" in face.report["mouth"]["status"]
+
+
+def test_mouth_cut_refuses_points_that_are_not_commissures(inputs):
+    surface, bones, c = inputs
+    from toolkit.mesh.backends import tetrahedralize
+
+    p, t = tetrahedralize(surface.points, surface.cells["tri3"], 8.0, backend=BACKEND)
+    with pytest.raises(MouthError, match="30-70 mm apart"):
+        cut_mouth(p, t, [c[0], c[0] + 1.0])
+    with pytest.raises(MouthError, match="side by side"):
+        cut_mouth(p, t, [c[0], c[0] + [0, 40.0, 0]])
+    with pytest.raises(MouthError, match="no face of the mesh lies on the mouth slit"):
+        cut_mouth(p, t, c + [0, 0, 500.0])
+    slit = cut_mouth(p, t, c)
+    inner = np.setdiff1d(np.arange(len(p)), np.unique(boundary_faces("tet4", t)))
+    assert not np.isin(slit.upper, inner).all()  # the slit opens onto the surface
+
+
+def test_bad_inputs_are_refused_before_meshing(inputs, tmp_path):
+    surface, bones, c = inputs
+    with pytest.raises(FaceInputError, match="unknown bone segments"):
+        mesh_face(surface, {"jaw": bones["distal"]})
+    with pytest.raises(FaceInputError, match="--size"):
+        mesh_face(surface, bones, size_mm=0.01)
+    with pytest.raises(FaceInputError, match="--order"):
+        mesh_face(surface, bones, order=3)
+    far = {"distal": bones["distal"].translated(np.array([0, 0, 300.0]))}
+    with pytest.raises(FaceInputError, match="lies .* mm from the tissue surface"):
+        mesh_face(surface, far)
+
+
+def test_rules_file_overrides_and_refuses_unknown_keys(tmp_path):
+    path = tmp_path / "rules.toml"
+    path.write_text('contact_mm = 4.5\n[segments.distal]\ninferior_fraction = 0.5\n[cuts]\nmargin_mm = 2\n')
+    rules = read_rules(path)
+    assert rules.contact_mm == 4.5 and rules.segments["distal"].inferior_fraction == 0.5
+    assert rules.cuts.margin_mm == 2.0 and rules.segments["lefort"].attach == "anterior"
+    path.write_text('contact_mn = 4.5\n')
+    with pytest.raises(RulesError, match="rules.toml: unknown key 'contact_mn'"):
+        read_rules(path)
+    path.write_text('[segments.skull]\nattach = "inferior"\n')
+    with pytest.raises(RulesError, match="only lefort and distal carry tissue"):
+        read_rules(path)
+    path.write_text('contact_mm = "far"\n')
+    with pytest.raises(RulesError, match="contact_mm"):
+        read_rules(path)

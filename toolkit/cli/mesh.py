@@ -1,0 +1,88 @@
+"""``toolkit mesh``: a labelled tetrahedral face mesh from a patient's segmented surfaces."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from toolkit.cli._common import Command, positive_float
+
+FORMATS = (".vtu", ".inp")
+
+
+def point(text: str) -> tuple[float, float, float]:
+    """``X,Y,Z`` (mm) -> a 3-tuple."""
+    parts = text.split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a point X,Y,Z in mm, e.g. 24.5,60,0.3")
+    return values
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from toolkit.mesh.backends import BACKENDS, DEFAULT
+    from toolkit.mesh.face import DEFAULT_ORDER, DEFAULT_SIZE_MM
+
+    parser.add_argument("--tissue", required=True, type=Path,
+                        help="closed surface of the soft tissue (STL/OBJ/PLY/VTK/VTU/OFF), in the toolkit's axes "
+                             "(x left, y anterior, z superior)")
+    parser.add_argument("--bone", action="append", default=[], metavar="SEGMENT=FILE", required=True,
+                        help="bone surface of a segment after the virtual osteotomy (lefort, distal, proximal_left, "
+                             "proximal_right, skull), e.g. --bone lefort=maxilla.stl; repeatable")
+    parser.add_argument("--commissures", nargs=2, type=point, default=None, metavar="X,Y,Z",
+                        help="the two corners of the mouth on the skin, mm: the lips are cut between them and slide "
+                             "(default: a closed mouth without lip sliding)")
+    parser.add_argument("--order", type=int, default=DEFAULT_ORDER, choices=[1, 2],
+                        help="element order: 1 tet4, 2 tet10 (linear tetrahedra lock at the tissue's nu = 0.47)")
+    parser.add_argument("--size", type=positive_float, default=DEFAULT_SIZE_MM, help="tetrahedron edge length, mm")
+    parser.add_argument("--backend", default=DEFAULT, choices=list(BACKENDS), help="tetrahedral mesher")
+    parser.add_argument("--rules", type=Path, default=None,
+                        help="labelling rules (TOML) overriding the defaults (see docs/own-face.md)")
+    parser.add_argument("--units", default="mm", choices=["mm", "m", "cm", "um"],
+                        help="length unit of the surface files, converted to mm")
+    parser.add_argument("--max-hole-edges", type=int, default=60,
+                        help="holes of the tissue surface bounded by up to this many edges are closed")
+    parser.add_argument("--no-image", action="store_true", help="skip labels.png")
+    parser.add_argument("--out", required=True, type=Path,
+                        help="output mesh (.vtu or .inp); labels.json and labels.png are written beside it")
+
+
+def run(args: argparse.Namespace) -> int:
+    from toolkit.cli.static import bones
+    from toolkit.common.outputs import OutputError, check_output_file
+    from toolkit.mesh.face import mesh_face
+
+    if args.out.suffix.lower() not in FORMATS:
+        raise OutputError(f"--out {str(args.out)!r}: expected a mesh file name ending in {' or '.join(FORMATS)}")
+    check_output_file(args.out, what="mesh file")
+    for name in ("labels.json", "labels.png"):
+        check_output_file(args.out.with_name(name), what=name)
+    for path in [args.tissue, *bones(args.bone).values()] + ([args.rules] if args.rules else []):
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"{str(path)!r} does not exist; expected a surface file "
+                                    f"{'(--rules: TOML)' if path == args.rules else ''}".rstrip())
+    face = mesh_face(args.tissue, bones(args.bone), args.commissures, size_mm=args.size, order=args.order,
+                     backend=args.backend, rules=args.rules, units=args.units, max_hole_edges=args.max_hole_edges,
+                     threads=1 if args.threads is None else args.threads)
+    written = face.write(args.out, image=not args.no_image)
+    r = face.report
+    print(face.summary())
+    print("seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in r["seconds"].items()))
+    repairs = {k: v for k, v in r["repair"].items() if v}
+    print(f"tissue surface repairs: {repairs if repairs else 'none needed'}")
+    print("wrote " + ", ".join(str(p) for p in written.values()))
+    return 0
+
+
+COMMAND = Command(
+    help="a labelled tet mesh of a face from segmented surfaces",
+    description="Mesh a patient's face: the tissue surface and the bony segments' surfaces (as a planning system "
+                "exports them after the virtual osteotomy) -> a tetrahedral mesh with the node sets of the static "
+                "workflow, labels.json and labels.png.",
+    add_arguments=add_arguments,
+    run=run,
+    interrupted="nothing was written to {out}; rerun the same command",
+)

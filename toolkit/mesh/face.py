@@ -1,0 +1,338 @@
+"""From a patient's segmented surfaces to a labelled tetrahedral face mesh.
+
+:func:`mesh_face` runs the stages in order, each timed in the report:
+
+1. **read**: the tissue surface and the bone surfaces (STL, OBJ, PLY, VTK, VTU, OFF; unit
+   check and ``units`` conversion), the tissue repaired into a closed outward surface
+   (:func:`~toolkit.mesh.surface.closed_surface`), each bone oriented toward the tissue, and
+   every bone checked to lie against the tissue (within the contact distance);
+2. **mesh**: linear tetrahedra of edge length about ``size_mm``
+   (:func:`~toolkit.mesh.backends.tetrahedralize`);
+3. **mouth** (with commissures): the slit cut between them (:mod:`toolkit.mesh.mouth`);
+4. **label**: node sets by the rules (:mod:`toolkit.mesh.labels`, :mod:`toolkit.mesh.rules`);
+5. **order**: quadratic tetrahedra (``order=2``: mid-edge nodes, straight sides), the sets
+   extended to the mid-edge nodes of their boundary edges;
+6. **quality**: minimum scaled Jacobian and the dihedral angles of the result.
+
+The result (:class:`MeshedFace`) writes itself as VTU (or Abaqus ``.inp``) with its sets,
+``labels.json`` (counts, quality, repairs, rules, times) and ``labels.png`` (the sets in colour,
+from the front and from inside).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from toolkit.common.errors import ToolkitError
+from toolkit.common.mesh import Mesh
+from toolkit.mesh.backends import DEFAULT, tetrahedralize
+from toolkit.mesh.labels import label_nodes
+from toolkit.mesh.rules import SEGMENTS, LabelRules, read_rules
+
+__all__ = ["MeshedFace", "mesh_face", "FaceInputError", "dihedral_angles", "DEFAULT_SIZE_MM", "DEFAULT_ORDER"]
+
+#: mm, default tetrahedron edge length (a paper-size face: a few thousand nodes)
+DEFAULT_SIZE_MM = 3.0
+#: default element order of a meshed face (quadratic: linear tetrahedra lock at nu = 0.47)
+DEFAULT_ORDER = 2
+
+
+class FaceInputError(ToolkitError, ValueError):
+    """Surfaces or options that cannot make a face mesh."""
+
+
+@dataclass(frozen=True)
+class MeshedFace:
+    """A labelled face mesh and what made it.
+
+    mesh : tet4 or tet10 :class:`~toolkit.common.mesh.Mesh` (mm) with the node sets of the
+        static workflow and, with a mouth, the element set ``lip_muscle``
+    bones : segment name -> its ``tri3`` surface (mm), oriented toward the tissue
+    report : counts, quality, repairs, rules and stage times (``labels.json``)
+    """
+
+    mesh: Mesh
+    bones: Mapping[str, Mesh]
+    report: dict = field(default_factory=dict)
+
+    def write(self, path, *, image: bool = True) -> dict[str, Path]:
+        """Write the mesh to ``path`` (``.vtu`` or ``.inp``), ``labels.json`` and ``labels.png``
+        beside it (atomically each). Returns the paths written."""
+        from toolkit.common.io import atomic_path, write
+
+        path = Path(path)
+        out = {"mesh": path, "labels": path.with_name("labels.json")}
+        write(path, self.mesh)
+        with atomic_path(out["labels"]) as tmp:
+            tmp.write_text(json.dumps(self.report, indent=2) + "\n")
+        if image:
+            out["image"] = render_labels(self, path.with_name("labels.png"))
+        return out
+
+    def summary(self) -> str:
+        r = self.report
+        q = r["quality"]
+        sets = ", ".join(f"{k} {v}" for k, v in r["node_sets"].items())
+        return (f"{r['nodes']} nodes, {r['elements']} {r['element_type']} elements; min scaled Jacobian "
+                f"{q['min_scaled_jacobian']:.3f}, dihedral angles {q['min_dihedral_deg']:.1f}-"
+                f"{q['max_dihedral_deg']:.1f} deg; lips: {r['mouth']['status']}\nsets: {sets}")
+
+
+def dihedral_angles(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """The six dihedral angles (degrees) of each tetrahedron ``(t, 6)`` (corner nodes)."""
+    x = points[tets[:, :4]]
+    faces = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # face opposite corner i
+    n = np.cross(x[:, faces[:, 1]] - x[:, faces[:, 0]], x[:, faces[:, 2]] - x[:, faces[:, 0]])
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+    cos = -np.einsum("tpk,tpk->tp", n[:, pairs[:, 0]], n[:, pairs[:, 1]])
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def _check_inputs(bones: Mapping, size_mm: float, order: int, commissures) -> None:
+    unknown = sorted(set(bones) - set(SEGMENTS))
+    if unknown:
+        raise FaceInputError(f"unknown bone segments {unknown}; expected some of {list(SEGMENTS)} "
+                             "(command line: --bone NAME=FILE)")
+    if not bones:
+        raise FaceInputError("no bone surface given; expected at least the moving segments of the plan "
+                             "(command line: --bone lefort=maxilla.stl --bone distal=mandible.stl)")
+    if not (np.isfinite(size_mm) and 0.3 <= size_mm <= 20.0):
+        raise FaceInputError(f"size_mm = {size_mm!r}; expected an element edge length of 0.3-20 mm "
+                             "(command line: --size)")
+    if order not in (1, 2):
+        raise FaceInputError(f"order = {order!r}; expected 1 (tet4) or 2 (tet10) (command line: --order)")
+    if commissures is not None:
+        c = np.asarray(commissures, dtype=float)
+        if c.shape != (2, 3) or not np.isfinite(c).all():
+            raise FaceInputError(f"commissures = {np.asarray(commissures).tolist()}; expected two points "
+                                 "[x, y, z] mm (command line: --commissures X,Y,Z X,Y,Z)")
+
+
+def _read_bone(name: str, source, units: str) -> Mesh:
+    from toolkit.static.bones import read_surface
+
+    if isinstance(source, Mesh):
+        return source
+    return read_surface(source, units=units)
+
+
+def _check_contact(tissue: Mesh, bones: Mapping[str, Mesh], rules: LabelRules, names: Mapping[str, str]) -> None:
+    from toolkit.common.surface_distance import closest_points
+
+    for name, bone in bones.items():
+        d = closest_points(bone.points, tissue.points, tissue.cells["tri3"]).distance
+        if d.min() > rules.contact_mm:
+            raise FaceInputError(
+                f"bone {name} ({names[name]}) lies {d.min():.1f} mm from the tissue surface at its nearest; "
+                f"expected it against the tissue's inner side (within contact_mm = {rules.contact_mm:g} mm). "
+                "Check that it is in the tissue's axes and units (--units), or raise contact_mm in the "
+                "labelling rules (--rules)")
+
+
+def _edges_of(faces: np.ndarray) -> np.ndarray:
+    return np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
+
+
+def _elevate(points: np.ndarray, tets: np.ndarray, node_sets: dict[str, np.ndarray],
+             set_faces: Mapping[str, np.ndarray]):
+    """tet10 from tet4, each set extended to the mid-edge nodes of the edges of its faces
+    (``set_faces[name]``; default the boundary faces) whose two ends are in the set."""
+    from toolkit.common.topology import boundary_faces, tet10_from_tet4
+
+    p10, t10 = tet10_from_tet4(points, tets)
+    n4 = points.shape[0]
+    corner_pairs = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+    pairs = np.sort(t10[:, corner_pairs], axis=2).reshape(-1, 2)
+    mids = t10[:, 4:].reshape(-1)
+    key, first = np.unique(pairs[:, 0] * (n4 + 1) + pairs[:, 1], return_index=True)
+    mid_of = mids[first]
+
+    def mid(edges):
+        return mid_of[np.searchsorted(key, edges[:, 0] * (n4 + 1) + edges[:, 1])]
+
+    boundary = _edges_of(boundary_faces("tet4", tets))
+    out = {}
+    for name, ids in node_sets.items():
+        edges = _edges_of(set_faces[name]) if name in set_faces else boundary
+        member = np.zeros(n4, dtype=bool)
+        member[ids] = True
+        both = member[edges[:, 0]] & member[edges[:, 1]]
+        out[name] = np.union1d(ids, mid(edges[both]))
+    # a mid-edge node between two segments' mucosa slides on neither: the union is rebuilt
+    per_segment = [v for k, v in out.items() if k.startswith("mucosa_") and k != "mucosa_sliding"]
+    if "mucosa_sliding" in out:
+        out["mucosa_sliding"] = np.unique(np.concatenate(per_segment)) if per_segment else np.zeros(0, np.int64)
+    return p10, t10, out
+
+
+def _pair_lips(points: np.ndarray, cells: np.ndarray, node_sets: dict[str, np.ndarray]):
+    """Renumber the lower lip's nodes so that the sorted ``upper_lip_face`` and
+    ``lower_lip_face`` pair up index by index at coincident points (the static workflow
+    pairs the two faces in that order)."""
+    from scipy.spatial import cKDTree
+
+    upper, lower = np.sort(node_sets["upper_lip_face"]), np.sort(node_sets["lower_lip_face"])
+    dist, partner = cKDTree(points[lower]).query(points[upper])
+    if upper.size != lower.size or np.unique(partner).size != partner.size or dist.max() > 1e-9:
+        raise ToolkitError(f"the mouth slit's faces do not pair up ({upper.size} upper, {lower.size} lower nodes, "
+                           f"largest gap {dist.max():.2g} mm)")
+    perm = np.arange(points.shape[0])
+    perm[lower[partner]] = lower  # the partner of upper[i] becomes the i-th lower id
+    new_points = np.empty_like(points)
+    new_points[perm] = points
+    return new_points, perm[cells], {k: np.sort(perm[v]) for k, v in node_sets.items()}
+
+
+def _lip_muscle(points: np.ndarray, tets: np.ndarray, slit, commissures, rules: LabelRules) -> np.ndarray:
+    """Elements within ``lip_muscle_mm`` above or below the slit plane, between the commissures,
+    no farther behind their line than the slit reaches."""
+    c = np.asarray(commissures, dtype=float)
+    e = (c[1] - c[0]) / slit.width_mm
+    x = points[tets[:, :4]].mean(axis=1)
+    t = (x - c[0]) @ e / slit.width_mm
+    behind = c[0, 1] + t * (c[1, 1] - c[0, 1]) - x[:, 1]
+    return np.flatnonzero((t > 0) & (t < 1) & (np.abs((x - c[0]) @ slit.normal) <= rules.lip_muscle_mm)
+                          & (behind < 15.0))
+
+
+def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFAULT_SIZE_MM,
+              order: int = DEFAULT_ORDER, backend: str = DEFAULT, rules=None, units: str = "mm",
+              max_hole_edges: int = 60, threads: int = 1) -> MeshedFace:
+    """Mesh and label a face from its segmented surfaces (see the module for the stages).
+
+    Parameters
+    ----------
+    tissue : the soft tissue's closed surface: a file or a ``tri3`` Mesh (mm)
+    bones : segment name (``lefort``, ``distal``, ``proximal_left``, ``proximal_right``,
+        ``skull``) -> its surface file or ``tri3`` Mesh, as the planning system exports it
+        after the virtual osteotomy
+    commissures : the two corners of the mouth on the skin ``(2, 3)`` mm; the lips are cut
+        between them and slide on each other. None: a closed mouth, no lip sliding
+    size_mm : target tetrahedron edge length, mm
+    order : 1 (tet4) or 2 (tet10)
+    backend : the tetrahedral mesher (:data:`toolkit.mesh.backends.BACKENDS`)
+    rules : :class:`~toolkit.mesh.rules.LabelRules`, a TOML file of overrides, or None (defaults)
+    units : length unit of the files (``mm``, ``cm``, ``m``, ``um``)
+    max_hole_edges : holes of the tissue surface bounded by up to this many edges are closed
+    threads : threads the mesher may use (1: a reproducible mesh)
+    """
+    from toolkit.mesh.surface import closed_surface, read_tissue_surface
+    from toolkit.static.bones import orient_surface
+
+    _check_inputs(bones, size_mm, order, commissures)
+    rules = rules if isinstance(rules, LabelRules) else read_rules(rules)
+    names = {k: (Path(v).name if not isinstance(v, Mesh) else "given surface") for k, v in bones.items()}
+    times = {}
+    t0 = time.perf_counter()
+    if isinstance(tissue, Mesh):
+        surface, repair = closed_surface(tissue.points, tissue.cells["tri3"], max_hole_edges=max_hole_edges)
+        tissue_name = "given surface"
+    else:
+        surface, repair = read_tissue_surface(tissue, units=units, max_hole_edges=max_hole_edges)
+        tissue_name = Path(tissue).name
+    bone_surfaces = {k: _read_bone(k, v, units) for k, v in bones.items()}
+    _check_contact(surface, bone_surfaces, rules, names)
+    times["read_repair"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    points, tets = tetrahedralize(surface.points, surface.cells["tri3"], size_mm, backend=backend, threads=threads)
+    # element centroids lie inside the tissue: each bone's normals turn toward them
+    centroids = points[tets].mean(axis=1)
+    bone_surfaces = {k: orient_surface(v, centroids) for k, v in bone_surfaces.items()}
+    times["mesh"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    slit, mouth = None, {"status": "closed mouth: no lip sliding (give the commissures to cut the lips)"}
+    if commissures is not None:
+        from toolkit.mesh.mouth import cut_mouth
+
+        slit = cut_mouth(points, tets, commissures)
+        points, tets = slit.points, slit.tets
+        mouth = {"status": f"cut between the commissures ({slit.width_mm:.1f} mm wide), lips slide",
+                 "slit_faces": int(slit.faces.shape[0]), "duplicated_nodes": int(slit.upper.size),
+                 "commissures_mm": np.asarray(commissures, dtype=float).round(3).tolist()}
+    times["mouth"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    exclude = None if slit is None else np.vstack([slit.faces, slit.lower_faces])
+    labels = label_nodes(points, tets, bone_surfaces, rules, exclude_faces=exclude)
+    node_sets = dict(labels.node_sets)
+    element_sets = {}
+    if slit is not None:
+        node_sets["upper_lip_face"] = np.sort(slit.upper)
+        node_sets["lower_lip_face"] = np.sort(slit.lower)
+        node_sets["lip_sliding"] = np.sort(np.concatenate([slit.upper, slit.lower]))
+        element_sets["lip_muscle"] = _lip_muscle(points, tets, slit, commissures, rules)
+    times["label"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    ctype, cells = "tet4", tets
+    if order == 2:
+        set_faces = {} if slit is None else {"upper_lip_face": slit.faces, "lower_lip_face": slit.lower_faces,
+                                             "lip_sliding": np.vstack([slit.faces, slit.lower_faces])}
+        points, cells, node_sets = _elevate(points, tets, node_sets, set_faces)
+        ctype = "tet10"
+    if slit is not None:
+        points, cells, node_sets = _pair_lips(points, cells, node_sets)
+    mesh = Mesh(points, {ctype: cells}, node_sets=node_sets, element_sets=element_sets)
+    times["order"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    sj = mesh.scaled_jacobian()
+    dihedral = dihedral_angles(mesh.points, mesh.volume_cells)
+    times["quality"] = time.perf_counter() - t0
+    if sj.min() <= 0:
+        raise ToolkitError(f"the {backend} mesh has {int((sj <= 0).sum())} inverted elements; try another "
+                           "backend or size")
+    offsets = np.concatenate([v for v in labels.offsets.values()]) if labels.offsets else np.zeros(0)
+    report = {
+        "tissue": tissue_name, "bones": names, "backend": backend, "size_mm": float(size_mm),
+        "element_type": mesh.volume_type, "nodes": int(mesh.n_points), "elements": int(mesh.n_volume_cells),
+        "node_sets": {k: int(len(v)) for k, v in sorted(node_sets.items())},
+        "element_sets": {k: int(len(v)) for k, v in element_sets.items()},
+        "quality": {"min_scaled_jacobian": float(sj.min()), "p1_scaled_jacobian": float(np.percentile(sj, 1)),
+                    "min_dihedral_deg": float(dihedral.min()), "max_dihedral_deg": float(dihedral.max()),
+                    "slivers_below_10deg": int((dihedral.min(axis=1) < 10.0).sum())},
+        "bone_offset_mm": {"median": float(np.median(offsets)) if offsets.size else 0.0,
+                           "p90": float(np.percentile(offsets, 90)) if offsets.size else 0.0,
+                           "max": float(offsets.max(initial=0.0))},
+        "mouth": mouth, "repair": repair.as_dict(), "rules": rules.as_dict(),
+        "seconds": {k: round(v, 3) for k, v in times.items()},
+    }
+    return MeshedFace(mesh, bone_surfaces, report)
+
+
+_SHOWN = ("fixed", "maxilla", "mandible", "mucosa_sliding", "lip_sliding", "skin")
+
+
+def render_labels(face: MeshedFace, path) -> Path:
+    """``labels.png``: the node sets in colour, from the front and from inside, side by side."""
+    import tempfile
+
+    from matplotlib.figure import Figure
+    from matplotlib.image import imread
+
+    from toolkit.common.io import atomic_path
+    from toolkit.common.plotting import render
+
+    sets = {k: face.mesh.node_sets[k] for k in _SHOWN if k in face.mesh.node_sets and k != "skin"}
+    fig = Figure(figsize=(12, 5), dpi=100)
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, camera in enumerate(("front", "inner")):
+            png = render(face.mesh, Path(tmp) / f"{camera}.png", camera=camera, node_sets=sets, show_edges=False,
+                         title=f"{'front' if camera == 'front' else 'from inside'}")
+            ax = fig.add_subplot(1, 2, i + 1)
+            ax.imshow(imread(png))
+            ax.set_axis_off()
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path

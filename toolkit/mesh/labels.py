@@ -1,0 +1,172 @@
+"""Node sets of a meshed face from its bone surfaces, by the rules of :mod:`toolkit.mesh.rules`.
+
+Each boundary face of the tissue mesh is classified once, then its nodes take its label:
+
+1. **bone side**: the face lies within ``contact_mm`` of a bone surface and faces it (its
+   outward normal and the bone's normal opposed within ``facing_deg``): ``bone``, and the
+   segment of the nearest such bone;
+2. **truncation cuts** (``fixed``): among the others, faces turned toward a cut direction and
+   within ``margin_mm`` of the mesh's extreme along it;
+3. **skin**: the rest (the mouth slit's faces, when cut, are labelled by
+   :mod:`toolkit.mesh.mouth` and taken out first).
+
+Bone-side nodes are then split per segment by its :class:`~toolkit.mesh.rules.SegmentRule`:
+carried (``maxilla`` for ``lefort``, ``mandible`` for ``distal``; ``fixed`` for a segment
+ruled ``fixed``) or sliding (``mucosa_<segment>``, all of them in ``mucosa_sliding``). Sets
+are disjoint where the simulation needs them so (``fixed`` first, then carried, sliding and
+lip nodes), as :meth:`~toolkit.static.boundary.BoundaryConditions.from_mesh` requires.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from toolkit.common.mesh import Mesh
+from toolkit.common.surface_distance import closest_points
+from toolkit.common.topology import boundary_faces
+from toolkit.mesh.rules import SEGMENTS, LabelRules
+
+__all__ = ["FaceLabels", "label_nodes", "CARRIED_SETS"]
+
+#: node set carried by each segment (segments without one cannot use ``attach`` other than
+#: ``none`` or ``fixed``: the static workflow has no attachment set for them)
+CARRIED_SETS = {"lefort": "maxilla", "distal": "mandible"}
+
+
+@dataclass(frozen=True)
+class FaceLabels:
+    """Node sets (name -> sorted int64 ids) and what decided them."""
+
+    node_sets: dict[str, np.ndarray]
+    face_label: np.ndarray  # (f,) str per boundary face: 'bone:<segment>', 'fixed', 'skin', 'slit'
+    offsets: dict[str, np.ndarray]  # segment -> distances (mm) of its bone-side nodes to its bone
+
+
+def _face_normals(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    x = points[faces]
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    return x.mean(axis=1), n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _bone_normals(surface: Mesh, triangle: np.ndarray) -> np.ndarray:
+    x = surface.points[surface.cells["tri3"][triangle]]
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh], rules: LabelRules,
+                exclude_faces: np.ndarray | None = None) -> FaceLabels:
+    """Boundary node sets of a tet mesh of the tissue.
+
+    Parameters
+    ----------
+    points : (n, 3) mm
+    tets : (t, 4) positively oriented corners
+    bones : segment name -> ``tri3`` surface (mm), normals toward the tissue
+        (:func:`~toolkit.static.bones.orient_surface`)
+    rules : the labelling rules
+    exclude_faces : (k, 3) boundary faces already labelled (the mouth slit); their nodes
+        are kept out of every set made here
+    """
+    faces = boundary_faces("tet4", tets)
+    centre, normal = _face_normals(points, faces)
+    f = faces.shape[0]
+    label = np.full(f, "skin", dtype=object)
+    slit = np.zeros(f, dtype=bool)
+    if exclude_faces is not None and len(exclude_faces):
+        key = {tuple(k) for k in np.sort(exclude_faces, axis=1).tolist()}
+        slit = np.array([tuple(k) in key for k in np.sort(faces, axis=1).tolist()], dtype=bool)
+        label[slit] = "slit"
+    # 1. bone side: nearest facing bone within contact
+    names = [s for s in SEGMENTS if s in bones]
+    best = np.full(f, np.inf)
+    seg_of = np.full(f, -1)
+    cos_facing = np.cos(np.radians(rules.facing_deg))
+    for k, name in enumerate(names):
+        cp = closest_points(centre, bones[name].points, bones[name].cells["tri3"])
+        facing = -np.einsum("ij,ij->i", normal, _bone_normals(bones[name], cp.triangle)) >= cos_facing
+        ok = facing & (cp.distance <= rules.contact_mm) & (cp.distance < best) & ~slit
+        best[ok], seg_of[ok] = cp.distance[ok], k
+    on_bone = seg_of >= 0
+    label[on_bone] = np.array([f"bone:{names[k]}" for k in seg_of[on_bone]], dtype=object)
+    # 2. truncation cuts, among the faces not on a bone
+    cut = np.zeros(f, dtype=bool)
+    cos_cut = np.cos(np.radians(rules.cuts.max_angle_deg))
+    for d in rules.cuts.directions:
+        d = np.asarray(d, dtype=float) / np.linalg.norm(d)
+        extreme = float((points @ d).max())
+        cut |= (normal @ d >= cos_cut) & (centre @ d >= extreme - rules.cuts.margin_mm)
+    moving = [s for s in names if _moves(s, rules)]
+    for name in moving:
+        idx = np.flatnonzero(cut)
+        near = closest_points(centre[idx], bones[name].points, bones[name].cells["tri3"]).distance
+        cut[idx[near < rules.cuts.clear_of_moving_mm]] = False
+    cut &= ~on_bone & ~slit
+    label[cut] = "fixed"
+
+    n = points.shape[0]
+
+    def nodes_of(mask):
+        return np.unique(faces[mask])
+
+    slit_nodes = nodes_of(slit)
+    taken = np.zeros(n, dtype=bool)
+    taken[slit_nodes] = True
+    sets: dict[str, np.ndarray] = {}
+    fixed = np.setdiff1d(nodes_of(cut), slit_nodes)
+    bone_nodes = np.setdiff1d(nodes_of(on_bone), slit_nodes)
+    # a bone-side node takes the segment of its nearest bone
+    node_dist = np.full((n, len(names)), np.inf)
+    for k, name in enumerate(names):
+        node_dist[bone_nodes, k] = closest_points(points[bone_nodes], bones[name].points,
+                                                  bones[name].cells["tri3"]).distance
+    node_seg = np.argmin(node_dist, axis=1)
+    fixed_mask = np.zeros(n, dtype=bool)
+    fixed_mask[fixed] = True
+    offsets = {}
+    for k, name in enumerate(names):
+        mine = bone_nodes[node_seg[bone_nodes] == k]
+        mine = mine[~fixed_mask[mine]]
+        offsets[name] = node_dist[mine, k]
+        rule = rules.segments[name]
+        carried = _carried(points, mine, bones[name], rule)
+        others = [o for o in names if o != name and _moves(o, rules)]
+        if rule.border_mm > 0 and others and carried.any():
+            near = np.min([closest_points(points[mine], bones[o].points, bones[o].cells["tri3"]).distance
+                           for o in others], axis=0)
+            carried &= near >= rule.border_mm
+        if rule.attach == "fixed":
+            fixed_mask[mine[carried]] = True
+        elif carried.any():
+            sets[CARRIED_SETS[name]] = mine[carried]
+        sets[f"mucosa_{name}"] = mine[~carried]
+    sets["fixed"] = np.flatnonzero(fixed_mask)
+    sliding = [sets[f"mucosa_{s}"] for s in names if f"mucosa_{s}" in sets]
+    sets["mucosa_sliding"] = np.unique(np.concatenate(sliding)) if sliding else np.zeros(0, np.int64)
+    sets["bone"] = bone_nodes
+    skin = nodes_of(label == "skin")
+    sets["skin"] = skin[~np.isin(skin, bone_nodes) & ~taken[skin]]
+    return FaceLabels({k: np.asarray(v, dtype=np.int64) for k, v in sets.items()}, label, offsets)
+
+
+def _moves(segment: str, rules: LabelRules) -> bool:
+    """Whether a segment can move in a plan (the skull and segments ruled ``fixed`` do not)."""
+    return segment != "skull" and rules.segments[segment].attach != "fixed"
+
+
+def _carried(points: np.ndarray, nodes: np.ndarray, bone: Mesh, rule) -> np.ndarray:
+    """Which of a segment's bone-side ``nodes`` it carries (bool per node)."""
+    if rule.attach in ("all", "fixed"):
+        return np.ones(nodes.size, dtype=bool)
+    if rule.attach == "none" or not nodes.size:
+        return np.zeros(nodes.size, dtype=bool)
+    x = points[nodes]
+    if rule.attach == "anterior":
+        c = bone.points.mean(axis=0)
+        angle = np.degrees(np.arctan2(np.abs(x[:, 0] - c[0]), x[:, 1] - c[1]))
+        return angle <= rule.anterior_deg
+    z = x[:, 2]
+    return z <= z.min() + rule.inferior_fraction * (z.max() - z.min())
