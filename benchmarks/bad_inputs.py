@@ -27,7 +27,7 @@ The fixtures (a coarse face mesh, static and impact databases and models) are bu
 
     python benchmarks/bad_inputs.py                 # the catalogue, ~2 min
     python benchmarks/bad_inputs.py --only static   # the commands whose name starts so (a trial)
-    python benchmarks/bad_inputs.py --interrupts    # Ctrl-C in each long command, then rerun, ~5 min
+    python benchmarks/bad_inputs.py --interrupts    # Ctrl-C in each long and short command, then rerun, ~9 min
 
 ``--interrupts`` runs each long command (``static dataset``, ``impact dataset``, ``static
 train``, ``impact train``, tiny) once to its end, then afresh once per interrupt time (0.5 s, and
@@ -36,6 +36,12 @@ time, counts the finished simulations (records in the database and its shards) o
 checkpoint's), reruns the same command (a training with ``--resume``, which its refusal names)
 and counts again: nothing is lost when the count after is at least the count before, and the
 rerun completes the job when it exits 0 with the uninterrupted run's count.
+
+``--interrupts`` also interrupts each short command (``simulate``, ``predict``, ``evaluate`` of
+both workflows; ``bad_inputs_interrupts_short.csv``) at the same fractions of its run and
+records what its output folder holds: nothing, a complete result, a result marked as
+interrupted, or partial files (which must not happen), and whether the same command rerun into
+it completes.
 """
 
 from __future__ import annotations
@@ -75,8 +81,8 @@ def toolkit(*args: str, cwd: Path, timeout: float = 300) -> tuple[subprocess.Com
 
 
 def build_fixtures() -> None:
-    """Face mesh, two static databases (mucosa+lip and no sliding), one impact database and a
-    model of each workflow, all coarse and tiny."""
+    """Face mesh, two static databases (mucosa+lip and no sliding), two impact databases (with
+    and without a held-out velocity) and a model of each workflow, all coarse and tiny."""
     FIXTURES.mkdir(parents=True, exist_ok=True)
     steps = [
         ("face.inp", ["phantom", "face-hex", "--resolution", "coarse", "--out", "face.inp"]),
@@ -89,6 +95,8 @@ def build_fixtures() -> None:
         ("impact.h5", ["impact", "dataset", *IMPACT, "--mass-scaling", "100", "--velocities", "30,40",
                        "--held-out", "35", "--workers", "0", "--out", "impact.h5"]),
         ("imodel/model.pt", ["impact", "train", "--data", "impact.h5", "--epochs", "1", "--out", "imodel"]),
+        ("impact_no_held.h5", ["impact", "dataset", *IMPACT, "--mass-scaling", "100", "--velocities", "30",
+                               "--held-out", "", "--workers", "0", "--out", "impact_no_held.h5"]),
     ]
     for target, args in steps:
         if not (FIXTURES / target).exists():
@@ -220,6 +228,11 @@ def catalogue() -> list[Case]:
                                         "--out", "/proc/x"], ["/proc/x"]),
         Case(cmd, "--device cuda without GPU", ["--data", "{F}/static.h5", "--epochs", "1", "--network", "tiny",
                                                 "--device", "cuda", "--out", "m"], ["cuda"]),
+        Case(cmd, "--test-subjects every subject", ["--data", "{F}/static.h5", "--test-subjects", "0", "--epochs",
+                                                    "1", "--network", "tiny", "--out", "m"], ["--test-subjects"]),
+        Case(cmd, "--material-channels, one Poisson's ratio", ["--data", "{F}/static.h5", "--material-channels",
+                                                               "--epochs", "1", "--network", "tiny", "--out", "m"],
+             ["material", "--poisson-range"]),
     ]
 
     # static evaluate
@@ -331,6 +344,11 @@ def catalogue() -> list[Case]:
              ["/proc/x"]),
         Case(cmd, "--max-minutes -1", ["--data", "{F}/impact.h5", "--max-minutes", "-1", "--out", "m"],
              ["--max-minutes"]),
+        Case(cmd, "--device cuda without GPU", ["--data", "{F}/impact.h5", "--epochs", "1", "--device", "cuda",
+                                                "--out", "m"], ["cuda", "--device"]),
+        Case(cmd, "--split velocity without held-out velocities", ["--data", "{F}/impact_no_held.h5", "--split",
+                                                                   "velocity", "--epochs", "1", "--out", "m"],
+             ["held-out", "--split"]),
     ]
 
     # impact evaluate
@@ -344,6 +362,12 @@ def catalogue() -> list[Case]:
                                            "999999", "--out", "e"], ["999999", "--nodes"]),
         Case(cmd, "--frames a word", ["--model", "{F}/imodel", "--data", "{F}/impact.h5", "--frames", "x",
                                       "--out", "e"], ["--frames"]),
+        Case(cmd, "--frames out of range", ["--model", "{F}/imodel", "--data", "{F}/impact.h5", "--frames", "99",
+                                            "--out", "e"], ["99", "--frames"]),
+        Case(cmd, "--nodes empty", ["--model", "{F}/imodel", "--data", "{F}/impact.h5", "--nodes", ",",
+                                    "--out", "e"], ["--nodes", "nodes"]),
+        Case(cmd, "--nodes not a test node", ["--model", "{F}/imodel", "--data", "{F}/impact.h5", "--nodes", "0",
+                                              "--out", "e"], ["--nodes"]),
         Case(cmd, "--out an existing file", ["--model", "{F}/imodel", "--data", "{F}/impact.h5", "--out", "taken"],
              ["taken"], dict(out_files)),
     ]
@@ -541,6 +565,74 @@ def interrupt_rows(command: str, fractions=(0.3, 0.6, 0.9), early: float = 0.5) 
     return rows
 
 
+#: the short commands (seconds to a minute), whose output folder must hold nothing or a result
+#: marked as unfinished after a Ctrl-C; "{F}" is the fixtures folder
+SHORT = {
+    "static simulate": ["static", "simulate", "--resolution", "paper", "--no-preview", "--out", "o"],
+    "impact simulate": ["impact", "simulate", *IMPACT, "--integrator", "explicit", "--no-preview", "--out", "o"],
+    "static predict": ["static", "predict", "--model", "{F}/smodel", "--no-preview", "--out", "o"],
+    "static evaluate": ["static", "evaluate", "--model", "{F}/smodel", "--data", "{F}/static.h5", "--out", "o"],
+    "impact predict": ["impact", "predict", "--model", "{F}/imodel", "--velocity", "35", "--out", "o"],
+    "impact evaluate": ["impact", "evaluate", "--model", "{F}/imodel", "--data", "{F}/impact.h5", "--out", "o"],
+}
+
+
+def output_state(out: Path) -> str:
+    """What an output folder holds: ``nothing``, ``complete`` (``summary.json`` with status
+    finished, or ``metrics.json``), ``marked STATUS`` (``summary.json`` saying the run did not
+    finish) or ``partial: FILES`` (files without either)."""
+    import json
+
+    files = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    if not files:
+        return "nothing"
+    if (out / "summary.json").is_file():
+        status = json.loads((out / "summary.json").read_text()).get("status", "finished")
+        return "complete" if status == "finished" else f"marked {status}"
+    if (out / "metrics.json").is_file():
+        return "complete"
+    return "partial: " + " ".join(files)
+
+
+def short_rows(command: str, fractions=(0.3, 0.6, 0.9), early: float = 0.5) -> list[dict]:
+    """As :func:`interrupt_rows` for a short command: one uninterrupted run (its time T), then a
+    fresh run per interrupt time with Ctrl-C, what the output folder holds, and the same
+    command rerun into it."""
+    args = SHORT[command]
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="interrupt_") as tmp:
+        t0 = time.perf_counter()
+        proc = start(args, Path(tmp))
+        _, err = proc.communicate()
+        total_s = time.perf_counter() - t0
+        if proc.returncode != 0:
+            raise RuntimeError(f"{command}: {err[-2000:]}")
+    for at in (early, *(f * total_s for f in fractions)):
+        with tempfile.TemporaryDirectory(prefix="interrupt_") as tmp:
+            cwd = Path(tmp)
+            proc = start(args, cwd)
+            time.sleep(at)
+            running = proc.poll() is None
+            if running:
+                os.killpg(proc.pid, signal.SIGINT)
+            _, err = proc.communicate()
+            state = output_state(cwd / "o")
+            lines = [ln.strip() for ln in err.splitlines() if ln.strip()]
+            said = [ln for ln in lines if "interrupted" in ln.lower()]
+            again = start(args, cwd)
+            _, err2 = again.communicate()
+            after = output_state(cwd / "o")
+            rows.append({"command": command, "interrupt_s": round(at, 2), "full_run_s": round(total_s, 1),
+                         "interrupted": running, "exit_code": proc.returncode,
+                         "message": (said or lines or [""])[-1][:300], "traceback": "Traceback" in err,
+                         "other_output": _noise(err)[:300], "output": state[:200],
+                         "output_ok": state in ("nothing", "complete") or state.startswith("marked"),
+                         "rerun_exit_code": again.returncode, "rerun_output": after[:200],
+                         "rerun_completes": again.returncode == 0 and after == "complete"})
+            print(rows[-1], flush=True)
+    return rows
+
+
 def import_seconds(command: str) -> float:
     words = command.split()
     mods = MODULES[words[-1]].format(workflow=words[0])
@@ -557,15 +649,21 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default="", help="run only the commands whose name starts with this")
     ap.add_argument("--out", type=Path, default=RESULTS / "bad_inputs.csv")
     ap.add_argument("--interrupts", action="store_true",
-                    help="instead, interrupt each long command at several times and rerun it "
-                         "(writes bad_inputs_interrupts.csv beside --out)")
+                    help="instead, interrupt each long and short command at several times and rerun it "
+                         "(writes bad_inputs_interrupts.csv and bad_inputs_interrupts_short.csv beside --out)")
     args = ap.parse_args(argv)
     build_fixtures()
     if args.interrupts:
         rows = [r for command in LONG if command.startswith(args.only) for r in interrupt_rows(command)]
-        df = pd.DataFrame(rows)
-        write_result(args.out.with_name(args.out.stem + "_interrupts.csv"), df)
-        print(df.drop(columns=["message", "rerun_message", "rerun"]).to_string())
+        if rows:
+            df = pd.DataFrame(rows)
+            write_result(args.out.with_name(args.out.stem + "_interrupts.csv"), df)
+            print(df.drop(columns=["message", "rerun_message", "rerun"]).to_string())
+        rows = [r for command in SHORT if command.startswith(args.only) for r in short_rows(command)]
+        if rows:
+            df = pd.DataFrame(rows)
+            write_result(args.out.with_name(args.out.stem + "_interrupts_short.csv"), df)
+            print(df.drop(columns=["message"]).to_string())
         return 0
     cases = [c for c in catalogue() if c.command.startswith(args.only)]
     baseline = {c: import_seconds(c) for c in dict.fromkeys(c.command for c in cases)}
