@@ -1,7 +1,7 @@
 """Render the figures of the documentation pages into ``docs/figures/``.
 
     python docs/figures/make_figures.py            # all figures, about 1 minute on 2 cores
-    python docs/figures/make_figures.py phantom    # only some: phantom, static, impact, ladder
+    python docs/figures/make_figures.py phantom    # only some: phantom, static, impact, ladder, own_face
 
 Every figure names its view (axes: x lateral, y anterior, z superior) and the unit of its colour
 bar. Rendering is off-screen (pyvista through EGL); nothing needs a display.
@@ -122,7 +122,19 @@ def ladder() -> list[Path]:
     return [_shrink(out)]
 
 
-FIGURES = {"phantom": phantom, "static": static, "impact": impact, "ladder": ladder}
+def own_face() -> list[Path]:
+    """``toolkit mesh`` on the paper phantom's surfaces: its labels.png."""
+    from toolkit.common.phantom import face_hex
+    from toolkit.mesh import mesh_face
+    from toolkit.mesh.face import render_labels
+    from toolkit.mesh.phantom import phantom_surfaces
+
+    s = phantom_surfaces(face_hex("paper"))
+    face = mesh_face(s.tissue, s.bones, s.commissures, size_mm=5.0, order=2)
+    return [_shrink(render_labels(face, HERE / "own_face_labels.png"))]
+
+
+FIGURES = {"phantom": phantom, "static": static, "impact": impact, "ladder": ladder, "own_face": own_face}
 
 
 def main(argv=None) -> None:

@@ -6,13 +6,13 @@ import pytest
 
 from toolkit.common import face_hex, read
 from toolkit.common.topology import boundary_faces
-from toolkit.mesh import available
+from toolkit.mesh import DEFAULT
 from toolkit.mesh.face import FaceInputError, dihedral_angles, mesh_face
 from toolkit.mesh.mouth import MouthError, cut_mouth
 from toolkit.mesh.rules import RulesError, read_rules
 from toolkit.mesh.surface import tissue_surface_of
 
-BACKEND = "tetgen" if available().get("tetgen") else "ftetwild"
+BACKEND = DEFAULT
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +35,7 @@ def inputs(phantom):
 @pytest.fixture(scope="module")
 def face(inputs):
     surface, bones, commissures = inputs
-    return mesh_face(surface, bones, commissures, size_mm=6.0, order=2, backend=BACKEND)
+    return mesh_face(surface, bones, commissures, size_mm=10.0, order=2, backend=BACKEND)
 
 
 def test_dihedral_angles_of_the_regular_tetrahedron():
@@ -106,7 +106,7 @@ def test_written_mesh_reads_back_with_its_sets(face, tmp_path):
 
 def test_no_commissures_means_no_lip_sliding(inputs):
     surface, bones, _ = inputs
-    face = mesh_face(surface, bones, size_mm=8.0, order=1, backend=BACKEND)
+    face = mesh_face(surface, bones, size_mm=12.0, order=1, backend=BACKEND)
     assert "lip_sliding" not in face.mesh.node_sets and "no lip sliding" in face.report["mouth"]["status"]
 
 
@@ -114,7 +114,7 @@ def test_mouth_cut_refuses_points_that_are_not_commissures(inputs):
     surface, bones, c = inputs
     from toolkit.mesh.backends import tetrahedralize
 
-    p, t = tetrahedralize(surface.points, surface.cells["tri3"], 8.0, backend=BACKEND)
+    p, t = tetrahedralize(surface.points, surface.cells["tri3"], 10.0, backend=BACKEND)
     with pytest.raises(MouthError, match="30-70 mm apart"):
         cut_mouth(p, t, [c[0], c[0] + 1.0])
     with pytest.raises(MouthError, match="side by side"):

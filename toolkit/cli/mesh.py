@@ -10,16 +10,24 @@ from toolkit.cli._common import Command, positive_float
 FORMATS = (".vtu", ".inp")
 
 
-def point(text: str) -> tuple[float, float, float]:
-    """``X,Y,Z`` (mm) -> a 3-tuple."""
-    parts = text.split(",")
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) != 3:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a point X,Y,Z in mm, e.g. 24.5,60,0.3")
-    return values
+def commissures(text: str) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """``X,Y,Z:X,Y,Z`` (mm), or a file of two lines ``X,Y,Z`` -> two points."""
+    source = text
+    if ":" not in text and Path(text).is_file():
+        lines = [ln.strip() for ln in Path(text).read_text(errors="replace").splitlines() if ln.strip()]
+        source = ":".join(lines)
+    points = []
+    for part in source.split(":"):
+        try:
+            values = tuple(float(v) for v in part.split(","))
+        except ValueError:
+            values = ()
+        points.append(values)
+    if len(points) != 2 or any(len(p) != 3 for p in points):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected two points X,Y,Z:X,Y,Z in mm (e.g. 16.8,57.7,0.3:-16.8,57.7,0.3; write "
+            "--commissures=-16.8,... when the first begins with a minus sign) or a file of two lines X,Y,Z")
+    return tuple(points)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,9 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bone", action="append", default=[], metavar="SEGMENT=FILE", required=True,
                         help="bone surface of a segment after the virtual osteotomy (lefort, distal, proximal_left, "
                              "proximal_right, skull), e.g. --bone lefort=maxilla.stl; repeatable")
-    parser.add_argument("--commissures", nargs=2, type=point, default=None, metavar="X,Y,Z",
-                        help="the two corners of the mouth on the skin, mm: the lips are cut between them and slide "
-                             "(default: a closed mouth without lip sliding)")
+    parser.add_argument("--commissures", type=commissures, default=None, metavar="X,Y,Z:X,Y,Z",
+                        help="the two corners of the mouth on the skin, mm, or a file of two lines X,Y,Z: the lips "
+                             "are cut between them and slide (default: a closed mouth without lip sliding)")
     parser.add_argument("--order", type=int, default=DEFAULT_ORDER, choices=[1, 2],
                         help="element order: 1 tet4, 2 tet10 (linear tetrahedra lock at the tissue's nu = 0.47)")
     parser.add_argument("--size", type=positive_float, default=DEFAULT_SIZE_MM, help="tetrahedron edge length, mm")

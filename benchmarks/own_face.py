@@ -1,0 +1,146 @@
+"""Round trip of ``toolkit mesh`` on the phantom, and its speed.
+
+The phantom's closed tissue surface, bone surfaces and commissures
+(:func:`toolkit.mesh.phantom.phantom_surfaces`) go through :func:`toolkit.mesh.mesh_face`; the
+result is compared with the phantom it came from:
+
+- **labels**: per set, the share of the meshed face's nodes whose nearest phantom node carries
+  the same set, and the other way round (the phantom's set nodes whose nearest boundary node
+  of the meshed face carries it);
+- **displacement**: the default plan on both (linear, mucosa+lip sliding, 3 increments), the
+  meshed face's displacement interpolated at the phantom's skin nodes (those within 0.5 mm of
+  the meshed skin): mean, 95th percentile and maximum difference, beside the phantom's mean
+  and maximum skin displacement;
+- **speed**: the stage times of ``mesh_face`` at each ``--sizes`` (a ~50k-node mesh among them).
+
+Writes ``benchmarks/results/own_face.csv`` (stages and the displacement comparison, one row per
+size and order) and ``own_face_labels.csv`` (label agreement), with provenance sidecars.
+
+Usage::
+
+    python benchmarks/own_face.py                      # paper phantom, sizes 5 and 3.5 mm, tet10
+    python benchmarks/own_face.py --sizes 5 --orders 1 2 --resolution paper
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from _provenance import RESULTS, write_result
+
+SETS = ("bone", "skin", "fixed", "maxilla", "mandible", "mucosa_sliding", "lip_sliding")
+
+
+def label_agreement(face_mesh, phantom_mesh) -> list[dict]:
+    from scipy.spatial import cKDTree
+
+    from toolkit.common.topology import boundary_faces
+
+    rows = []
+    boundary = np.unique(boundary_faces("tet4", face_mesh.volume_cells[:, :4]))
+    tree_ph, tree_face = cKDTree(phantom_mesh.points), cKDTree(face_mesh.points[boundary])
+    for name in SETS:
+        if name not in face_mesh.node_sets or name not in phantom_mesh.node_sets:
+            continue
+        ids = face_mesh.node_sets[name]
+        ph_mask = np.zeros(phantom_mesh.n_points, bool)
+        ph_mask[phantom_mesh.node_sets[name]] = True
+        face_mask = np.zeros(face_mesh.n_points, bool)
+        face_mask[ids] = True
+        near_ph = tree_ph.query(face_mesh.points[ids])[1]
+        near_face = boundary[tree_face.query(phantom_mesh.points[phantom_mesh.node_sets[name]])[1]]
+        rows.append({"set": name, "nodes": int(ids.size), "phantom_nodes": int(ph_mask.sum()),
+                     "agree_meshed_to_phantom": float(ph_mask[near_ph].mean()),
+                     "agree_phantom_to_meshed": float(face_mask[near_face].mean())})
+    return rows
+
+
+def skin_difference(face_mesh, u_face, phantom_mesh, u_phantom) -> dict:
+    from toolkit.common.surface_distance import closest_points, interpolate_on_surface
+    from toolkit.common.topology import boundary_faces
+
+    faces = boundary_faces("tet4", face_mesh.volume_cells[:, :4])
+    skin = np.zeros(face_mesh.n_points, bool)
+    skin[face_mesh.node_sets["skin"]] = True
+    skin_faces = faces[skin[faces].all(axis=1)]
+    X = phantom_mesh.points[phantom_mesh.node_sets["skin"]]
+    near = closest_points(X, face_mesh.points, skin_faces).distance < 0.5
+    u_t = interpolate_on_surface(X[near], face_mesh.points, skin_faces, u_face)
+    u_h = u_phantom[phantom_mesh.node_sets["skin"]][near]
+    d = np.linalg.norm(u_t - u_h, axis=1)
+    mag = np.linalg.norm(u_h, axis=1)
+    return {"skin_points": int(near.sum()), "phantom_mean_mm": float(mag.mean()), "phantom_max_mm": float(mag.max()),
+            "diff_mean_mm": float(d.mean()), "diff_p95_mm": float(np.percentile(d, 95)),
+            "diff_max_mm": float(d.max())}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--resolution", default="paper")
+    ap.add_argument("--sizes", type=float, nargs="+", default=[5.0, 3.5])
+    ap.add_argument("--orders", type=int, nargs="+", default=[2])
+    ap.add_argument("--backend", default=None, help="mesher (default: toolkit.mesh.DEFAULT)")
+    ap.add_argument("--no-simulate", action="store_true", help="mesh and label only")
+    ap.add_argument("--out", type=Path, default=RESULTS / "own_face.csv")
+    args = ap.parse_args(argv)
+
+    from toolkit.common.phantom import face_hex
+    from toolkit.common.runtime import set_threads
+    from toolkit.mesh import DEFAULT, mesh_face
+    from toolkit.mesh.phantom import phantom_surfaces
+    from toolkit.static import load_case
+
+    set_threads(1)
+    backend = args.backend or DEFAULT
+    phantom = face_hex(args.resolution)
+    surfaces = phantom_surfaces(phantom)
+    reference = None
+    rows, label_rows = [], []
+    for size in args.sizes:
+        for order in args.orders:
+            t0 = time.perf_counter()
+            face = mesh_face(surfaces.tissue, surfaces.bones, surfaces.commissures, size_mm=size, order=order,
+                             backend=backend)
+            row = {"resolution": args.resolution, "backend": backend, "size_mm": size, "order": order,
+                   "nodes": face.report["nodes"], "elements": face.report["elements"],
+                   "mesh_face_s": time.perf_counter() - t0,
+                   **{f"{k}_s": v for k, v in face.report["seconds"].items()},
+                   "min_scaled_jacobian": face.report["quality"]["min_scaled_jacobian"],
+                   "min_dihedral_deg": face.report["quality"]["min_dihedral_deg"],
+                   "max_dihedral_deg": face.report["quality"]["max_dihedral_deg"]}
+            for r in label_agreement(face.mesh, phantom.mesh):
+                label_rows.append({"size_mm": size, "order": order, **r})
+            if not args.no_simulate:
+                if reference is None:
+                    case = load_case(resolution=args.resolution)
+                    t1 = time.perf_counter()
+                    reference = case.simulate(increments=3, material="linear", sliding="mucosa+lip")
+                    ref_s = time.perf_counter() - t1
+                meshed = load_case(face.mesh, plan=case.plan,
+                                   bones={k: v for k, v in face.bones.items() if k != "skull"})
+                t1 = time.perf_counter()
+                try:
+                    res = meshed.simulate(increments=3, material="linear", sliding="mucosa+lip")
+                    row.update(status="ok", simulate_s=time.perf_counter() - t1, phantom_simulate_s=ref_s,
+                               min_sj_after=res.summary()["min_scaled_jacobian"],
+                               **skin_difference(face.mesh, res.displacement, phantom.mesh, reference.displacement))
+                except Exception as exc:  # noqa: BLE001 - recorded
+                    row.update(status=f"{type(exc).__name__}: {str(exc)[:200]}", simulate_s=time.perf_counter() - t1)
+            rows.append(row)
+            print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+    table = pd.DataFrame(rows)
+    write_result(args.out, table, argv=argv)
+    labels = pd.DataFrame(label_rows)
+    write_result(args.out.with_name(args.out.stem + "_labels.csv"), labels, argv=argv)
+    with pd.option_context("display.width", 200):
+        print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+        print(labels.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
+    return table
+
+
+if __name__ == "__main__":
+    main()
