@@ -569,7 +569,7 @@ def interrupt_rows(command: str, fractions=(0.3, 0.6, 0.9), early: float = 0.5) 
 #: marked as unfinished after a Ctrl-C; "{F}" is the fixtures folder
 SHORT = {
     "static simulate": ["static", "simulate", "--resolution", "paper", "--no-preview", "--out", "o"],
-    "impact simulate": ["impact", "simulate", *IMPACT, "--integrator", "explicit", "--no-preview", "--out", "o"],
+    "impact simulate": ["impact", "simulate", *IMPACT, "--mass-scaling", "100", "--no-preview", "--out", "o"],
     "static predict": ["static", "predict", "--model", "{F}/smodel", "--no-preview", "--out", "o"],
     "static evaluate": ["static", "evaluate", "--model", "{F}/smodel", "--data", "{F}/static.h5", "--out", "o"],
     "impact predict": ["impact", "predict", "--model", "{F}/imodel", "--velocity", "35", "--out", "o"],
