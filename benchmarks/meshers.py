@@ -1,7 +1,8 @@
 """Benchmark: the tetrahedral meshers on the phantom's tissue surface and on damaged copies of it.
 
 For every (mesher, repair, input, size) case, in a fresh process (a mesher that crashes or hangs
-costs one row), :func:`toolkit.mesh.backends.tetrahedralize` on one thread, and per case:
+costs one row), :func:`toolkit.mesh.backends.tetrahedralize` on one thread (``--threads``), and
+per case:
 
 - ``status`` (``ok``, or the error's class and message; ``timeout``, ``crash``);
 - ``wall_s`` (median of ``--repeat`` runs on the undamaged surfaces, one run on the damaged
@@ -23,6 +24,7 @@ drop duplicate faces, fix winding, fill holes) and ``pymeshfix`` (MeshFix: also 
 self-intersections).
 
     python benchmarks/meshers.py [--sizes 4 3 2] [--meshers ftetwild tetgen gmsh] [--repeat 3]
+    python benchmarks/meshers.py --meshers ftetwild --sizes 2 --damages clean --threads 2 --add
 """
 
 from __future__ import annotations
@@ -195,7 +197,7 @@ def metrics(points, tets, ref_points, ref_triangles) -> dict:
 # one case, in a child process
 
 
-def case(mesher: str, repair: str, damage: str, size: float, repeat: int) -> dict:
+def case(mesher: str, repair: str, damage: str, size: float, repeat: int, threads: int = 1) -> dict:
     from toolkit.mesh.backends import tetrahedralize
 
     ref_p, ref_t = clean_surface(SIZES[size])
@@ -211,7 +213,7 @@ def case(mesher: str, repair: str, damage: str, size: float, repeat: int) -> dic
     for _ in range(repeat):
         c0, w0 = time.process_time(), time.perf_counter()
         try:
-            points, tets = tetrahedralize(p, t, size, backend=mesher, threads=1)
+            points, tets = tetrahedralize(p, t, size, backend=mesher, threads=threads)
         except Exception as exc:  # a mesher that fails is a result
             row["status"] = f"{type(exc).__name__}: {exc}"[:300]
             row["wall_s"] = time.perf_counter() - w0
@@ -225,9 +227,10 @@ def case(mesher: str, repair: str, damage: str, size: float, repeat: int) -> dic
     return row
 
 
-def run_case(mesher, repair, damage, size, repeat, timeout) -> dict:
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    cmd = [sys.executable, __file__, "--case", mesher, repair, damage, str(size), str(repeat)]
+def run_case(mesher, repair, damage, size, repeat, timeout, threads=1) -> dict:
+    n = str(threads)
+    env = dict(os.environ, OMP_NUM_THREADS=n, OPENBLAS_NUM_THREADS=n, MKL_NUM_THREADS=n)
+    cmd = [sys.executable, __file__, "--case", mesher, repair, damage, str(size), str(repeat), n]
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env, cwd=ROOT)
     except subprocess.TimeoutExpired:
@@ -260,6 +263,9 @@ def main(argv=None) -> pd.DataFrame:
     parser.add_argument("--repeat", type=int, default=3, help="runs per undamaged case (median wall time)")
     parser.add_argument("--timeout", type=float, default=600.0,
                         help="seconds per fTetWild case; TetGen and Gmsh get at most 120 s")
+    parser.add_argument("--threads", type=int, default=1, help="threads the mesher may use")
+    parser.add_argument("--add", action="store_true",
+                        help="keep the rows of the result that this command does not measure again")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -269,23 +275,32 @@ def main(argv=None) -> pd.DataFrame:
     for mesher, repair, damage, size in cases(args.meshers, args.sizes, args.damages):
         repeat = args.repeat if damage == "clean" else 1
         row = {"mesher": mesher, "repair": repair, "input": damage, "size_mm": size, "phantom": SIZES[size],
+               "threads": args.threads,
                **run_case(mesher, repair, damage, size, repeat,
-                          args.timeout if mesher in ("ftetwild", "wildmeshing") else min(args.timeout, 120.0))}
+                          args.timeout if mesher in ("ftetwild", "wildmeshing") else min(args.timeout, 120.0),
+                          args.threads)}
         rows.append(row)
         print(f"{mesher:12s} {repair:9s} {damage:19s} {size:4g} mm  {row['status'][:60]:60s} "
               f"{row.get('wall_s', float('nan')):7.2f} s  nodes {row.get('nodes', 0):>7}  "
               f"min SJ {row.get('min_sj', float('nan')):.3f}", flush=True)
     df = pd.DataFrame(rows)
+    out = args.out or RESULTS / "meshers.csv"
+    if args.add and out.exists():
+        old = pd.read_csv(out)
+        old["threads"] = old["threads"].fillna(1).astype(int) if "threads" in old else 1
+        key = ["mesher", "repair", "input", "size_mm", "threads"]
+        old = old[~old.set_index(key).index.isin(df.set_index(key).index)]
+        df = pd.concat([old, df], ignore_index=True)
     from toolkit.mesh.backends import BACKENDS
 
     extra = {"licences": {name: b.licence for name, b in BACKENDS.items()}, "sliver_deg": SLIVER_DEG}
-    write_result(args.out or RESULTS / "meshers.csv", df, extra=extra)
+    write_result(out, df, extra=extra, resumed=args.add)
     return df
 
 
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--case":
-        mesher, repair, damage, size, repeat = sys.argv[2:7]
-        print(json.dumps(case(mesher, repair, damage, float(size), int(repeat))))
+        mesher, repair, damage, size, repeat, *threads = sys.argv[2:9]
+        print(json.dumps(case(mesher, repair, damage, float(size), int(repeat), int(threads[0]) if threads else 1)))
     else:
         main()

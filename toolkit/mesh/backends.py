@@ -116,7 +116,8 @@ def tetrahedralize(points, triangles, size_mm: float, backend: str = DEFAULT, *,
         raise
     except Exception as exc:  # the meshers raise RuntimeError, ValueError or their own classes
         raise MeshingError(f"meshing backend {backend!r} ({spec.mesher}) failed on a surface of {len(p)} "
-                           f"vertices and {len(t)} triangles at size {size:g} mm: {type(exc).__name__}: {exc}. "
+                           f"vertices and {len(t)} triangles at size {size:g} mm: {type(exc).__name__}: "
+                           f"{str(exc).rstrip('. ')}. "
                            f"Repair the surface (close holes, merge duplicate vertices, orient the faces "
                            f"outwards, remove self-intersections) or try another backend: "
                            f"{_others(backend)}") from exc
