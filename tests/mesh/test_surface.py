@@ -111,3 +111,15 @@ def test_empty_and_garbage_files_name_the_file(tmp_path):
     with pytest.raises(Exception, match="junk.ply"):
         read_tissue_surface(junk)
     _ = write  # the writer stays importable for VTU round trips
+
+
+def test_two_holes_touching_at_a_vertex_are_closed(surface):
+    """A vertex where two holes meet has two rim edges leaving it (a pinch)."""
+    t = surface.cells["tri3"]
+    v = int(t[0, 0])
+    around = np.flatnonzero((t == v).any(axis=1))
+    # two triangles around v that share no edge: v's rim then runs through v twice
+    a = around[0]
+    b = next(k for k in around[1:] if np.intersect1d(t[a], t[k]).size == 1)
+    out, rep = closed_surface(surface.points, np.delete(t, [a, b], axis=0))
+    assert _closed(out) and rep.filled_holes >= 1

@@ -183,21 +183,37 @@ def _boundary_loops(tris: np.ndarray) -> list[np.ndarray]:
     nxt: dict[int, list[int]] = {}  # a vertex where two holes touch has two successors
     for a, b in rim.tolist():
         nxt.setdefault(a, []).append(b)
-    loops, seen = [], set()
+    loops = []
     for start in rim[:, 0].tolist():
-        if start in seen:
+        if not nxt[start]:
             continue
         loop, v = [start], start
-        seen.add(start)
-        while True:
+        while True:  # each directed rim edge once; a pinch vertex may appear twice in a loop
             w = nxt[v].pop()
-            if w == start or w in seen:
+            if w == start:
                 break
             loop.append(w)
-            seen.add(w)
             v = w
-        loops.append(np.array(loop, dtype=np.int64))
+        loops.extend(_simple_loops(loop))
     return loops
+
+
+def _simple_loops(loop: list[int]) -> list[np.ndarray]:
+    """Split a closed walk that passes a vertex twice (holes touching at a pinch) into simple loops."""
+    out, stack, where = [], [], {}
+    for v in loop:
+        if v in where:  # close the sub-loop since the first visit
+            i = where[v]
+            sub = stack[i:]
+            out.append(np.array(sub, dtype=np.int64))
+            for w in sub[1:]:
+                del where[w]
+            del stack[i + 1:]
+        else:
+            where[v] = len(stack)
+            stack.append(v)
+    out.append(np.array(stack, dtype=np.int64))
+    return [lp for lp in out if lp.size >= 3]
 
 
 def _fill_holes(points: np.ndarray, tris: np.ndarray, max_edges: int, name: str):
