@@ -3,15 +3,26 @@
 The bony movements of a :class:`~toolkit.static.plan.SurgicalPlan` are applied in
 ``increments`` steps (slerp for rotations, linear for translations). Each increment:
 
-1. moving nodes follow their segment; fixed nodes stay; **mucosa** nodes slide on the
-   moved bone surface (normal component prescribed: no separation, no penetration;
-   tangential free); **lip** pairs across the mouth slit may not interpenetrate
-   craniocaudally but slide otherwise (master-slave, active set);
-2. the mucosa nodes are projected on the closest point of the moved bone surface and
-   the increment is solved again with them prescribed there. A bone surface is an open
-   patch: a node that slid past its edge is projected onto the plane of the edge triangle
-   (the surface extended), not onto the edge line, which would gather every such node on
-   one line and crush the elements between them.
+1. moving nodes follow their segment; fixed nodes stay; **mucosa** nodes slide at their
+   pre-operative distance from the moved bone surface (normal component prescribed: no
+   separation, no penetration; tangential free); **lip** pairs across the mouth slit may not
+   interpenetrate craniocaudally but slide otherwise (master-slave, active set);
+2. each mucosa node is projected on the closest point of the moved bone surface plus its
+   pre-operative offset ``d0`` along the normal there (the offset surface), and the
+   increment is solved again with them prescribed there. A bone surface is an open patch: a
+   node that slid past its edge is projected onto the plane of the edge triangle (the
+   surface extended, offset likewise), not onto the edge line, which would gather every such
+   node on one line and crush the elements between them.
+
+The offset ``d0`` of a mucosa node is its distance to its bone surface (extended beyond the
+rim) on the pre-operative mesh. A segmented face never puts the tissue exactly on the bone
+(1-3 mm, up to 20 mm, on a real face): projecting the mucosa onto the bone itself would jump
+its nodes by millimetres at the first increment and invert the elements between them and the
+skin (:func:`toolkit.common.off_bone.off_bone` reproduces this). A node farther than
+``max_mucosa_offset`` (5 mm) from its bone does not slide (it is left free): the offset surface of
+a rough bone has creases at such distances, and nodes sliding on it jump
+(``benchmarks/off_bone.py``). The result's summary gives the offsets (``mucosa_offset_mm``) and
+the nodes left free (``far_mucosa_nodes``).
 
 Linear materials follow the lip-sliding paper: each increment is a small-strain solve on the
 geometry left by the previous one (updated geometry, stress-free start). Neo-Hookean
@@ -70,7 +81,7 @@ from toolkit.common.fem.solvers import SolverError
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import FacePhantom
-from toolkit.common.surface_distance import barycentric, beyond_rim_onto_plane, closest_points
+from toolkit.common.surface_distance import ClosestPoints, barycentric, beyond_rim_onto_plane, closest_points
 from toolkit.common.topology import rim_edges
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
 from toolkit.static.constraints import Constraints
@@ -87,6 +98,7 @@ log = logging.getLogger(__name__)
 SLIDING_MODELS = ("none", "mucosa", "mucosa+lip")
 MATERIALS = ("linear", "neo-hookean")
 _MAX_CUT_FREEINGS = 3  # retries of one plan that free more of the cut (each a full run)
+_OFFSET_ITERATIONS = 20  # most repeated projections onto the offset surface of a mucosa node (_onto_offset)
 
 
 class SimulationError(ToolkitError, RuntimeError):
@@ -134,6 +146,8 @@ class SimulationOptions:
         (the truncation cut of the face; meshes without a ``bone`` node set have none), the fixed
         nodes off the bone within this distance of its centroid are freed and the plan is run
         again, before any wider release band (0: never)
+    max_mucosa_offset : mm; a mucosa node farther than this from its bone surface on the
+        pre-operative mesh is left free instead of sliding (inf: every mucosa node slides)
     progress : show a tqdm bar over increments
     """
 
@@ -145,6 +159,7 @@ class SimulationOptions:
     regulation_below: float | None = 0.1
     max_cuts: int = 4
     free_cut_radius: float = 6.0
+    max_mucosa_offset: float = 5.0
     progress: bool = False
 
     def __post_init__(self):
@@ -154,6 +169,9 @@ class SimulationOptions:
             raise ValueError(f"release_width = {self.release_width!r} mm; expected a finite number >= 0")
         if not np.isfinite(self.free_cut_radius) or self.free_cut_radius < 0:
             raise ValueError(f"free_cut_radius = {self.free_cut_radius!r} mm; expected a finite number >= 0")
+        if not self.max_mucosa_offset >= 0:
+            raise ValueError(f"max_mucosa_offset = {self.max_mucosa_offset!r} mm; expected a number >= 0 (inf: "
+                             f"no limit)")
         wider = tuple(float(w) for w in self.wider_release)
         if any(not np.isfinite(w) or w <= 0 for w in wider) or list(wider) != sorted(set(wider)):
             raise ValueError(f"wider_release = {self.wider_release!r} mm; expected increasing positive widths")
@@ -199,6 +217,11 @@ class SimulationResult:
         one of ``SimulationOptions.wider_release``; None when not applicable, e.g. a surrogate)
     freed_cut : (k,) int64 — fixed nodes of the truncation cut the plan needed freed
         (``SimulationOptions.free_cut_radius``; empty for almost every plan)
+    mucosa_offset : (m,) float, mm — distance of each mucosa node of the sliding model (outside
+        the release bands, those left free as ``far_mucosa`` included) to its bone surface on
+        the pre-operative mesh; empty without mucosa sliding
+    far_mucosa : (f,) int64 — mucosa nodes left free as farther than
+        ``SimulationOptions.max_mucosa_offset`` from their bone
     """
 
     reference: Mesh
@@ -210,6 +233,8 @@ class SimulationResult:
     sliding: str
     release_width: float | None = None
     freed_cut: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    mucosa_offset: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    far_mucosa: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def displacement(self) -> np.ndarray:
@@ -246,6 +271,8 @@ class SimulationResult:
             "min_scaled_jacobian": float(min(r.min_scaled_jacobian for r in self.reports)),
             "max_penetration_mm": float(max(r.max_penetration for r in self.reports)),
             "max_mucosa_gap_mm": float(max(r.mucosa_gap_after_projection for r in self.reports)),
+            "mucosa_offset_mm": _offset_statistics(self.mucosa_offset),
+            "far_mucosa_nodes": int(np.size(self.far_mucosa)),
             "released_nodes": int(self.boundary.released.size),
             "release_width_mm": self.release_width,
             "freed_cut_nodes": int(np.size(self.freed_cut)),
@@ -258,18 +285,19 @@ class SimulationResult:
 
     def write(self, out: str | Path, preview: bool = True) -> Path:
         """Write ``result.vtu`` (pre-operative face with ``displacement``), ``postop.vtu`` (the
-        post-operative face), ``increments.xdmf`` (+ .h5), ``summary.json`` and ``preview.png``."""
+        post-operative face), ``summary.json``, ``increments.xdmf`` (+ .h5, one XDMF ``Mixed``
+        topology for a mesh of several cell types) and ``preview.png``."""
         from toolkit.common.io import atomic_path, write, write_time_series
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         write(out / "result.vtu", self.reference_mesh)
         write(out / "postop.vtu", self.final_mesh)
+        with atomic_path(out / "summary.json") as tmp:
+            tmp.write_text(json.dumps(self.summary(), indent=2))
         write_time_series(out / "increments.xdmf", self.reference.without_fields(),
                           np.arange(self.displacements.shape[0], dtype=float),
                           {"displacement": self.displacements})
-        with atomic_path(out / "summary.json") as tmp:
-            tmp.write_text(json.dumps(self.summary(), indent=2))
         if preview:
             from toolkit.common.plotting import render
 
@@ -314,10 +342,21 @@ class _Model:
     movable: np.ndarray = field(init=False)
     quality0: np.ndarray = field(init=False)
     rims: dict = field(init=False)  # segment name -> rim edges of its bone surface
+    mucosa_offset: np.ndarray = field(init=False)  # pre-operative offset of every mucosa node of the sliding model
+    far_mucosa: np.ndarray = field(init=False)  # of those, the ones left free (beyond max_mucosa_offset)
+    offset: np.ndarray = field(init=False)  # (m,) mm, offset d0 of each sliding mucosa node
+    side: np.ndarray = field(init=False)  # (m,) +-1, side of its bone triangle's normal it lies on
 
     def __post_init__(self):
         self.quality0 = element_quality(self.mesh, self.mesh.points)
         self.rims = {name: rim_edges(surf.cells["tri3"]) for name, surf in self.surfaces.items()}
+        mucosa = self.bc.nodes(NodeType.MUCOSA_SLIDING)
+        offset, side = self._offsets(mucosa)
+        far = offset > self.options.max_mucosa_offset
+        self.mucosa_offset, self.far_mucosa = offset, mucosa[far]
+        if far.any():
+            self.bc = self.bc.with_freed(self.far_mucosa)
+        self.offset, self.side = offset[~far], side[~far]
         self.moving = self.bc.nodes(NodeType.MOVING)
         self.fixed = self.bc.nodes(NodeType.FIXED)
         self.mucosa = self.bc.nodes(NodeType.MUCOSA_SLIDING)
@@ -333,6 +372,20 @@ class _Model:
         movable[self.bc_all.upper_lip] = False
         movable[self.bc_all.lower_lip] = False
         self.movable = movable
+
+    def _offsets(self, mucosa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance (mm) of the ``mucosa`` nodes to their bone surface extended beyond its rim
+        on the pre-operative mesh, and the side (+-1) of the closest triangle they lie on."""
+        X = self.mesh.points
+        offset, side = np.zeros(mucosa.size), np.ones(mucosa.size)
+        seg = self.bc.segment[mucosa]
+        for s, name in enumerate(self.bc.segment_names):
+            sel = np.flatnonzero(seg == s)
+            if sel.size:
+                ext = _on_extended(X[mucosa[sel]], self.surfaces[name].points, self.surfaces[name], self.rims[name])
+                offset[sel] = ext.distance
+                side[sel] = np.where(np.einsum("ij,ij->i", X[mucosa[sel]] - ext.point, ext.normal) < 0, -1.0, 1.0)
+        return offset, side
 
     def problem(self, x: np.ndarray) -> StaticProblem:
         """The problem a step solves: on the current geometry ``x`` (linear, updated) or on
@@ -392,10 +445,61 @@ def _targets(model: _Model, plan: SurgicalPlan, base: np.ndarray) -> tuple[np.nd
     return nodes, target - base[nodes]
 
 
+def _on_extended(positions: np.ndarray, points: np.ndarray, surface: Mesh, rim: np.ndarray) -> ClosestPoints:
+    """Closest points of ``positions`` on ``surface`` placed at ``points``, extended beyond its
+    ``rim`` by the planes of its rim triangles."""
+    tris = surface.cells["tri3"]
+    return beyond_rim_onto_plane(positions, closest_points(positions, points, tris), points, tris, rim)[0]
+
+
+def _away_from_bone(positions: np.ndarray, on_bone: np.ndarray, normal: np.ndarray, side: np.ndarray) -> np.ndarray:
+    """Unit normals ``(k, 3)`` of the offset surface through ``positions`` at their closest
+    points ``on_bone``: from the bone point to the node, or ``side`` times the triangle
+    ``normal`` where the node is on the bone or on the other side of it."""
+    v = positions - on_bone
+    length = np.linalg.norm(v, axis=1)
+    ok = (length > 1e-9) & (side * np.einsum("ij,ij->i", v, normal) > 0)
+    return np.where(ok[:, None], v / np.where(ok, length, 1.0)[:, None], side[:, None] * normal)
+
+
+def _onto_offset(positions: np.ndarray, offset: np.ndarray, side: np.ndarray, on_bone: np.ndarray,
+                 normal: np.ndarray, points: np.ndarray, surface: Mesh, rim: np.ndarray) -> np.ndarray:
+    """Points ``(k, 3)`` at distance ``offset`` from ``surface`` (at ``points``, extended beyond
+    its ``rim``) reached from ``positions`` along the normal at their closest points ``on_bone``
+    (triangle ``normal``). Where the bone is concave within the offset, the closest point of
+    that point is elsewhere: the step is repeated from it until the points move less than
+    1e-9 mm (at most ``_OFFSET_ITERATIONS`` times)."""
+    x = on_bone + offset[:, None] * _away_from_bone(positions, on_bone, normal, side)
+    for _ in range(_OFFSET_ITERATIONS):
+        near = _on_extended(x, points, surface, rim)
+        nxt = near.point + offset[:, None] * _away_from_bone(x, near.point, near.normal, side)
+        done = np.abs(nxt - x).max() < 1e-9
+        x = nxt
+        if done:
+            break
+    return x
+
+
+def _carried(vectors: np.ndarray, before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """``vectors (k, 3)`` rotated with their triangles, rigidly moved from ``before`` to
+    ``after`` (``(k, 3, 3)`` corners, mm)."""
+
+    def frame(t):
+        e1 = t[:, 1] - t[:, 0]
+        n = np.cross(e1, t[:, 2] - t[:, 0])
+        e1 = e1 / np.linalg.norm(e1, axis=1, keepdims=True)
+        n = n / np.linalg.norm(n, axis=1, keepdims=True)
+        return np.stack([e1, np.cross(n, e1), n], axis=1)  # rows: the frame's axes
+
+    local = np.einsum("kij,kj->ki", frame(before), vectors)
+    return np.einsum("kij,ki->kj", frame(after), local)
+
+
 def _sliding_constraints(model: _Model, state: _State, plan: SurgicalPlan, base: np.ndarray, x: np.ndarray,
                          nodes: np.ndarray, values: np.ndarray) -> Constraints:
     """Step 1: each mucosa node keeps its closest point on its bone, carried rigidly from the
-    previous bone position to the new one; its normal displacement is prescribed there."""
+    previous bone position to the new one, and its offset ``d0`` along the normal there; its
+    normal displacement to that point of the offset surface is prescribed."""
     n, mucosa = model.mesh.n_points, model.mucosa
     if not mucosa.size:
         return Constraints(n, nodes, values)
@@ -411,19 +515,31 @@ def _sliding_constraints(model: _Model, state: _State, plan: SurgicalPlan, base:
         prev_pts = _apply(state.plan, name, surf.points)
         cp = closest_points(x[mucosa[sel]], prev_pts, tris)
         new_pts = _apply(plan, name, surf.points)
+        off = model.offset[sel] > 0
+        point = cp.point
+        if off.any():  # off the bone: on the surface extended beyond its rim, like the projection
+            ext, _ = beyond_rim_onto_plane(x[mucosa[sel]], cp, prev_pts, tris, model.rims[name])
+            point = np.where(off[:, None], ext.point, cp.point)
         tri = tris[cp.triangle]
-        bary = barycentric(cp.point, prev_pts[tri])
+        bary = barycentric(point, prev_pts[tri])
         on_surface[sel] = np.einsum("ij,ijk->ik", bary, new_pts[tri])
         nrm = np.cross(new_pts[tri[:, 1]] - new_pts[tri[:, 0]], new_pts[tri[:, 2]] - new_pts[tri[:, 0]])
         normals[sel] = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+        if off.any():
+            o = sel[off]
+            away = _away_from_bone(x[mucosa[o]], point[off], cp.normal[off], model.side[o])
+            away = _carried(away, prev_pts[tri[off]], new_pts[tri[off]])
+            on_surface[o] += model.offset[o, None] * away
+            normals[o] = away
     g = np.einsum("ij,ij->i", normals, on_surface - base[mucosa])
     return Constraints(n, nodes, values, mucosa, normals, g)
 
 
 def _projection(model: _Model, plan: SurgicalPlan, positions: np.ndarray) -> tuple[np.ndarray, float]:
     """Step 2: closest points ``(m, 3)`` mm of the mucosa ``positions`` on their moved bone
-    (extended beyond its edge by the planes of its edge triangles), and the largest distance
-    to them (the gap closed by the projection), mm."""
+    (extended beyond its edge by the planes of its edge triangles), each moved by its offset
+    ``d0`` along the normal there (onto the offset surface), and the largest distance to
+    them (the gap closed by the projection), mm."""
     mucosa = model.mucosa
     proj = np.empty_like(positions)
     dist = np.zeros(mucosa.size)
@@ -433,9 +549,14 @@ def _projection(model: _Model, plan: SurgicalPlan, positions: np.ndarray) -> tup
         if sel.size:
             surf = model.surfaces[name]
             moved = _apply(plan, name, surf.points)
-            cp = closest_points(positions[sel], moved, surf.cells["tri3"])
-            cp, _ = beyond_rim_onto_plane(positions[sel], cp, moved, surf.cells["tri3"], model.rims[name])
+            cp = _on_extended(positions[sel], moved, surf, model.rims[name])
             proj[sel], dist[sel] = cp.point, cp.distance
+            off = model.offset[sel] > 0
+            if off.any():
+                o = sel[off]
+                proj[o] = _onto_offset(positions[o], model.offset[o], model.side[o], cp.point[off], cp.normal[off],
+                                       moved, surf, model.rims[name])
+                dist[o] = np.linalg.norm(positions[o] - proj[o], axis=1)
     return proj, float(dist.max(initial=0.0))
 
 
@@ -610,7 +731,8 @@ def simulate(
             log.warning("%s; retrying with a %g mm release band", exc, widths[attempt])
     material_name = material if isinstance(material, str) else "custom"
     return SimulationResult(model.mesh, displacements, model.bc, reports, time.perf_counter() - t_start,
-                            material_name, sliding, release_width=width, freed_cut=freed)
+                            material_name, sliding, release_width=width, freed_cut=freed,
+                            mucosa_offset=model.mucosa_offset, far_mucosa=model.far_mucosa)
 
 
 def _cut_near(model: _Model, element: int | None) -> np.ndarray:
@@ -697,6 +819,14 @@ def _remedy(model: _Model, increments: int) -> str:
             f"a wider release band than {model.options.release_width:g} mm, a smaller movement, a larger "
             f"free_cut_radius than {model.options.free_cut_radius:g} mm if the element is near the fixed cut, "
             f"or check the boundary node sets near that element")
+
+
+def _offset_statistics(offset: np.ndarray) -> dict | None:
+    """Median, 90th percentile and maximum (mm) of the mucosa offsets; None without any."""
+    if not np.size(offset):
+        return None
+    median, p90 = np.percentile(offset, [50, 90])
+    return {"nodes": int(offset.size), "median": float(median), "p90": float(p90), "max": float(np.max(offset))}
 
 
 def _penetration(x: np.ndarray, upper: np.ndarray, lower: np.ndarray) -> float:
