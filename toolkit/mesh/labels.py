@@ -152,6 +152,16 @@ def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh],
     return FaceLabels({k: np.asarray(v, dtype=np.int64) for k, v in sets.items()}, label, offsets)
 
 
+def arch_centre(bone: Mesh) -> np.ndarray:
+    """Centre ``(2,)`` mm (x, y) of the circle fitted, seen from above, to a bone surface's
+    points: for a jaw segment, the centre of its dental arch (least squares on
+    ``x^2 + y^2 = 2 a x + 2 b y + c``)."""
+    x, y = bone.points[:, 0], bone.points[:, 1]
+    a = np.column_stack([2 * x, 2 * y, np.ones_like(x)])
+    cx, cy, _ = np.linalg.lstsq(a, x**2 + y**2, rcond=None)[0]
+    return np.array([cx, cy])
+
+
 def _moves(segment: str, rules: LabelRules) -> bool:
     """Whether a segment can move in a plan (the skull and segments ruled ``fixed`` do not)."""
     return segment != "skull" and rules.segments[segment].attach != "fixed"
@@ -165,7 +175,7 @@ def _carried(points: np.ndarray, nodes: np.ndarray, bone: Mesh, rule) -> np.ndar
         return np.zeros(nodes.size, dtype=bool)
     x = points[nodes]
     if rule.attach == "anterior":
-        c = bone.points.mean(axis=0)
+        c = arch_centre(bone)
         angle = np.degrees(np.arctan2(np.abs(x[:, 0] - c[0]), x[:, 1] - c[1]))
         return angle <= rule.anterior_deg
     z = x[:, 2]

@@ -25,8 +25,38 @@ class PhantomSurfaces:
     commissures: np.ndarray
 
 
+#: the phantom's bone-side node sets of each segment
+_SEGMENT_SETS = {"lefort": ("maxilla", "mucosa_lefort"), "distal": ("mandible", "mucosa_distal"),
+                 "proximal_left": ("mucosa_proximal_left",), "proximal_right": ("mucosa_proximal_right",),
+                 "skull": ("mucosa_skull",)}
+
+
+def _trimmed(phantom: FacePhantom) -> dict[str, Mesh]:
+    """Each bone surface cut back to its own segment, as a planning system exports the segments
+    after the osteotomies. (The phantom extends each surface two cells past its segment, so
+    neighbouring surfaces overlap.) A triangle stays when the nearest bone-side node of the
+    phantom belongs to its segment."""
+    from scipy.spatial import cKDTree
+
+    m = phantom.mesh
+    names = [n for n in _SEGMENT_SETS if n in phantom.segments]
+    ids = [np.concatenate([m.node_sets[s] for s in _SEGMENT_SETS[n] if s in m.node_sets]) for n in names]
+    owner = np.concatenate([np.full(len(i), k) for k, i in enumerate(ids)])
+    tree = cKDTree(m.points[np.concatenate(ids)])
+    out = {}
+    for k, name in enumerate(names):
+        surface = phantom.segments[name].surface
+        tris = surface.cells["tri3"]
+        keep = owner[tree.query(surface.points[tris].mean(axis=1))[1]] == k
+        used, local = np.unique(tris[keep], return_inverse=True)
+        out[name] = Mesh(surface.points[used], {"tri3": local.reshape(-1, 3)})
+    return out
+
+
 def phantom_surfaces(phantom: FacePhantom) -> PhantomSurfaces:
-    """The surfaces of a hexahedral face phantom (:func:`toolkit.common.face_hex`)."""
+    """The surfaces of a hexahedral face phantom (:func:`toolkit.common.face_hex`): its closed
+    tissue surface, its bone surfaces cut back to their segments (they do not overlap, as
+    after a virtual osteotomy) and its commissures."""
     from toolkit.mesh.surface import tissue_surface_of
 
     m = phantom.mesh
@@ -35,8 +65,7 @@ def phantom_surfaces(phantom: FacePhantom) -> PhantomSurfaces:
     lip = m.node_sets["upper_lip_face"]
     p = m.points[lip[skin[lip]]]
     commissures = np.stack([p[np.argmax(p[:, 0])], p[np.argmin(p[:, 0])]])
-    bones = {name: seg.surface for name, seg in phantom.segments.items()}
-    return PhantomSurfaces(tissue_surface_of(m), bones, commissures)
+    return PhantomSurfaces(tissue_surface_of(m), _trimmed(phantom), commissures)
 
 
 def write_surfaces(folder, surfaces: PhantomSurfaces, suffix: str = ".stl") -> dict[str, Path]:

@@ -42,9 +42,10 @@ class RulesError(ToolkitError, ValueError):
 class SegmentRule:
     """Which tissue facing a segment's bone is carried by it (the rest slides on it).
 
-    attach : ``anterior`` (within ``anterior_deg`` of the midline, seen from above, around the
-        segment surface's centroid), ``inferior`` (the lowest ``inferior_fraction`` of the
-        height of the tissue facing it), ``all``, ``none`` (all slides), or ``fixed`` (held
+    attach : ``anterior`` (within ``anterior_deg`` of the midline, seen from above, about the
+        centre of the circle fitted to the segment's bone surface: its dental arch),
+        ``inferior`` (the lowest ``inferior_fraction`` of the height of the tissue facing
+        it), ``all``, ``none`` (all slides), or ``fixed`` (held
         in place with the ``fixed`` set: an immobile segment)
     border_mm : carried tissue lies at least this far from every other moving segment's
         bone; nearer, it slides (the vestibule at the occlusal level, the degloved borders)
