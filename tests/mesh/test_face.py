@@ -154,3 +154,26 @@ def test_rules_file_overrides_and_refuses_unknown_keys(tmp_path):
     path.write_text('contact_mm = "far"\n')
     with pytest.raises(RulesError, match="contact_mm"):
         read_rules(path)
+
+
+def test_self_intersecting_tissue_is_meshed_by_the_default_backend(inputs):
+    """fTetWild meshes through a self-intersection: the vertices around the thinnest place of
+    the tissue pushed 2 mm through the opposite side."""
+    from scipy.spatial import cKDTree
+
+    from toolkit.common.mesh import Mesh
+    from toolkit.common.surface_distance import closest_points, vertex_normals
+
+    surface, bones, _ = inputs
+    p = surface.points.copy()
+    n = vertex_normals(p, surface.cells["tri3"])
+    dist, near = cKDTree(p).query(p, k=64)
+    thick = np.where(np.einsum("ij,ikj->ik", n, n[near]) < -0.5, dist, np.inf).min(axis=1)
+    v = int(np.argmin(thick))
+    patch = np.linalg.norm(p - p[v], axis=1) < 6.0
+    p[patch] -= (thick[v] + 2.0) * n[v]
+    # the pushed vertices now lie outside the tissue, beyond its other side
+    assert closest_points(p[patch], surface.points, surface.cells["tri3"]).distance.max() > 1.0
+    broken = Mesh(p, {"tri3": surface.cells["tri3"]})
+    face = mesh_face(broken, bones, size_mm=12.0, order=1)
+    assert face.mesh.scaled_jacobian().min() > 0 and face.report["nodes"] > 100
