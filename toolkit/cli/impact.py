@@ -13,6 +13,7 @@ from toolkit.cli._common import (
     SIMULATIONS_KEPT,
     Command,
     add_database_run,
+    add_units,
     dask_client,
     floats,
     ints,
@@ -45,9 +46,21 @@ def _add_scene_options(parser: argparse.ArgumentParser, scene: str) -> None:
     """Options that change the scene (each one keeps the scene's own value when not given)."""
     parser.add_argument("--scene", type=Path, help=f"scene TOML (default: {scene})")
     parser.add_argument("--resolution", choices=["coarse", "paper"], help="face resolution (default: the scene's)")
+    parser.add_argument("--mesh", type=Path,
+                        help="face mesh (.vtu/.inp/.xdmf, tet4 or tet10) with node sets fixed and skin (and bone for "
+                             "--support skull), as `toolkit mesh` writes it (default: the phantom at --resolution)")
+    add_units(parser)
+    parser.add_argument("--target", type=_point, metavar="X,Y,Z",
+                        help="skin point (mm) the ball's centre line passes through (default: the scene's aim, 30 mm "
+                             "above the most anterior skin point)")
+    parser.add_argument("--support", choices=["band", "skull"],
+                        help="how the face is held: its fixed set only (band; for a `toolkit mesh` face, the "
+                             "truncation cuts) or the bone-side surface too (skull) (default: the scene's; with "
+                             "--mesh, skull: the tissue on the bones holds the face, the truncation cuts are free)")
     parser.add_argument("--ball", choices=["deformable", "rigid"], help="ball model (default: the scene's)")
     parser.add_argument("--order", type=int, choices=[1, 2],
-                        help="tetrahedron order (1: tet4, 2: tet10) (default: the scene's)")
+                        help="tetrahedron order (1: tet4, 2: tet10) (default: the scene's; with --mesh, the mesh's, "
+                             "and another order is refused)")
     parser.add_argument("--mass-scaling", type=float,
                         help="density factor >= 1 (longer stable steps) (default: the scene's)")
     parser.add_argument("--safety", type=float,
@@ -64,7 +77,8 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
                              "ball speeds, in a fraction of the time) or explicit dynamics (the impact paper) "
                              "(default: implicit; explicit when --mass-scaling or --safety is given; with --scene, "
                              "the scene's)")
-    parser.add_argument("--duration", type=float, help="simulated time, s (default: the scene's, 1.8)")
+    parser.add_argument("--duration", type=float,
+                        help="simulated time, s (default: the scene's, 1.8; with --mesh, 0.36)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
 
@@ -240,17 +254,41 @@ def predict(args: argparse.Namespace) -> int:
     return 0
 
 
+def _point(text: str) -> tuple[float, float, float]:
+    """``"0,-80,10"`` -> ``(0.0, -80.0, 10.0)`` mm (an argparse type)."""
+    values = floats(text)
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"expected a point X,Y,Z in mm, got {text!r}")
+    return tuple(values)
+
+
 def scene(args: argparse.Namespace, base):
     """The scene of ``--scene`` (or ``base()``) with the options given on the command line."""
     from dataclasses import replace
 
     from toolkit.impact.scene import Scene
 
-    out = Scene.read(args.scene) if args.scene else base()
+    if args.mesh is not None and args.resolution is not None:
+        raise ValueError(f"--mesh {args.mesh} and --resolution {args.resolution} both choose the face; give one")
+    if args.scene:
+        out = Scene.read(args.scene)
+        out = out if args.mesh is None else out.with_face(mesh=str(args.mesh), units=args.units)
+    elif args.mesh is not None:
+        from toolkit.impact.scene import meshed_scene
+
+        out = meshed_scene(args.mesh, args.units)
+        if args.support == "band":  # held by its own fixed set (the truncation cuts), not by the bones
+            out = out.with_face(fixed_set="fixed")
+    else:
+        out = base()
     if getattr(args, "velocity", None) is not None:
         out = out.with_ball(velocity=args.velocity)
     if args.resolution is not None:
         out = out.with_face(resolution=args.resolution)
+    if args.target is not None:
+        out = out.with_ball(target=args.target, target_offset=(0.0, 0.0, 0.0))
+    if args.support is not None:
+        out = out.with_face(support=args.support)
     if args.ball is not None:
         out = out.with_ball(rigid=args.ball == "rigid")
     if args.order is not None:

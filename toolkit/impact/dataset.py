@@ -74,6 +74,8 @@ def _scene_config(scene: Scene) -> dict:
     """What makes two databases comparable: the scene with the velocity left out."""
     d = scene.as_dict()
     d["ball"] = {k: v for k, v in d["ball"].items() if k != "velocity"}
+    if d["face"]["units"] == "mm":  # the phantoms and mm files: the configuration of databases without units
+        del d["face"]["units"]
     return d
 
 
@@ -131,7 +133,7 @@ def build_database(out: str | os.PathLike, velocities=PAPER_VELOCITIES, held_out
     -------
     RunReport (done, failed with reasons, skipped)
     """
-    from toolkit.impact.simulate import check_travel, face_mesh, fixed_nodes
+    from toolkit.impact.simulate import ball_start, check_travel, face_mesh, fixed_nodes
 
     check_workers(workers)
     scene = scene or yielding_scene()
@@ -142,7 +144,8 @@ def build_database(out: str | os.PathLike, velocities=PAPER_VELOCITIES, held_out
         scene.with_ball(velocity=v)  # validates the range and units
     if len(set(everything)) != len(everything):
         raise ValueError(f"velocities {train_v} and held-out {held} repeat a value")
-    face = face_mesh(scene)
+    face = face_mesh(scene)  # a mesh file: its node sets and element order
+    ball_start(scene, face.points[face.node_set("skin")])  # a ball that misses the face is refused here
     check_travel(scene.with_ball(velocity=max(everything)), face)  # the fastest ball travels farthest
     masks = {}
     for name in ("skin", "bone"):

@@ -38,7 +38,7 @@ from toolkit.impact.scene import MaterialSpec, Scene, SceneError
 
 __all__ = ["simulate", "ImpactResult", "build_model", "UnstableTimeStepError", "SceneGeometryWarning", "sweep_travel",
            "face_mesh", "fixed_nodes", "ball_start", "travel_limit", "check_travel", "write_preview",
-           "COMPRESSED_TISSUE_FRACTION"]
+           "COMPRESSED_TISSUE_FRACTION", "MESH_ORDERS", "mesh_order"]
 
 
 class UnstableTimeStepError(ToolkitError, ValueError):
@@ -276,14 +276,51 @@ def face_mesh(scene: Scene) -> Mesh:
     """The scene's face: the tetrahedral phantom at ``scene.face.resolution`` and the fidelity's
     element order, or the mesh file ``scene.face.mesh`` (with node sets ``fixed_set``, ``skin``
     and, for a skull-held face, ``bone``). Points ``(n, 3)`` mm."""
-    from toolkit.common.io import read
     from toolkit.common.phantom import face_tet
 
     if scene.face.mesh:
-        needed = [scene.face.fixed_set, "skin"] + (["bone"] if scene.face.support == "skull" else [])
-        return read(scene.face.mesh, require_node_sets=needed)
+        return _face_file(scene)
     return face_tet(scene.face.resolution, order=scene.fidelity.order,
                     lower_fixed_fraction=scene.face.lower_fixed_fraction)
+
+
+#: element order of each tetrahedron type a face mesh file may hold
+MESH_ORDERS = {"tet4": 1, "tet10": 2}
+
+
+def _face_file(scene: Scene) -> Mesh:
+    """The face mesh file of ``scene``, checked: tetrahedra of the fidelity's order and the node
+    sets the scene holds and aims at (:class:`~toolkit.impact.scene.SceneError` otherwise)."""
+    from toolkit.common.io import read
+
+    spec = scene.face
+    needed = list(dict.fromkeys([spec.fixed_set, "skin"] + (["bone"] if spec.support == "skull" else [])))
+    face = read(spec.mesh, units=spec.units)
+    missing = [n for n in needed if n not in face.node_sets]
+    if missing:
+        hint = (" or hold the face by its fixed set only (support = \"band\", command line --support band)"
+                if missing == ["bone"] else "")
+        raise SceneError(f"face mesh {spec.mesh} lacks the node sets {missing} (it has {sorted(face.node_sets)}); "
+                         f"an impact scene on it needs {needed}: make the mesh with `toolkit mesh`{hint}")
+    types = face.volume_types
+    if len(types) != 1 or types[0] not in MESH_ORDERS:
+        raise SceneError(f"face mesh {spec.mesh}: volume cells {list(types)}; the impact workflow takes one block "
+                         f"of {' or '.join(MESH_ORDERS)} (`toolkit mesh --order 1|2` writes them)")
+    order = MESH_ORDERS[types[0]]
+    if order != scene.fidelity.order:
+        raise SceneError(f"face mesh {spec.mesh} holds {types[0]} (order {order}) and the scene asks for order "
+                         f"{scene.fidelity.order}; pass --order {order} (Python: Fidelity.order = {order}) or "
+                         f"remesh with `toolkit mesh --order {scene.fidelity.order}`")
+    return face
+
+
+def mesh_order(path, units: str = "mm") -> int:
+    """Element order (1: tet4, 2: tet10) of the face mesh file at ``path``, or 0 when it holds
+    other cells (:func:`face_mesh` then says why)."""
+    from toolkit.common.io import read
+
+    types = read(path, units=units).volume_types
+    return MESH_ORDERS.get(types[0], 0) if len(types) == 1 else 0
 
 
 def fixed_nodes(scene: Scene, face: Mesh) -> np.ndarray:
