@@ -1,7 +1,7 @@
 """The static simulation on a face whose mucosa lies off its bone, as segmented faces come.
 
 The paper phantom with its bone surfaces moved away from the tissue
-(:func:`toolkit.common.off_bone.off_bone`: mucosa 2.3 mm median, 4.6 mm at most off its bone)
+(:func:`toolkit.common.off_bone.off_bone`: mucosa 2.3 mm median, 4.3 mm at most off its bone)
 runs a 5 mm mandibular advance, then plans drawn by :func:`toolkit.static.plan.sample_plans`
 in both modes (the lip-sliding paper's ranges), 3 increments, mucosa and lip sliding. Per plan:
 status, time, minimum corner scaled Jacobian over the increments, the release band used, and

@@ -466,6 +466,20 @@ def _meshers(data):
             ("boundary_closed_manifold", "closed boundary")])])
 
 
+def _off_bone(data):
+    parts = []
+    for stem in ("off_bone", "off_bone_far"):
+        if stem in data:
+            parts.append(table(data[stem][0], [
+                ("resolution", "resolution"), ("case", "case"), ("max_mucosa_offset_mm", "max_mucosa_offset (mm)"),
+                ("material", "material"), ("plans", "plans"), ("completed", "completed"),
+                ("median_s", "median time (s)"), ("max_s", "max time (s)"),
+                ("min_sj", "min scaled Jacobian", "{:.3f}"), ("wider_band", "wider release band"),
+                ("max_drift_mm", "offset drift (mm)", "{:.2g}"), ("offset_median_mm", "offset median (mm)", "{:.2f}"),
+                ("offset_max_mm", "offset max (mm)", "{:.2f}"), ("far_mucosa_nodes", "far mucosa nodes")]))
+    return "\n\n".join(parts)
+
+
 def _source(stem: str) -> Source:
     return SOURCES[stem]
 
@@ -493,6 +507,10 @@ SOURCES = {s.stem: s for s in (
            "--methods superlu pardiso amg auto", 1),
     Source("static_ladder", "python benchmarks/static_ladder.py --resolutions coarse paper --increments 1 3 10", 5),
     Source("meshers", "python benchmarks/meshers.py", 25),
+    Source("off_bone", "python benchmarks/off_bone.py --plans 5", 8),
+    Source("off_bone_far", "python benchmarks/off_bone.py --resolution coarse --median 5 --p90 15 --max-offset 20 "
+           "--modes full --plans 8 --materials linear --thresholds inf 10 5 3 "
+           "--out benchmarks/results/off_bone_far.csv", 1),
     Source("static_robustness", "python benchmarks/static_robustness.py --resolutions coarse paper --materials "
            "linear --slidings mucosa+lip --modes full --plans 20", 2),
 )}
@@ -558,6 +576,13 @@ BLOCKS = {b.name: b for b in (
           "toolkit's, trimesh's or MeshFix's repair: time, counts, element quality, the distance between the "
           "mesh's boundary and the undamaged surface both ways, and whether the boundary is closed.",
           (SOURCES["meshers"],), _meshers),
+    Block("off_bone", "Mucosa off the bone",
+          "The paper phantom with its bone surfaces moved away from the tissue (`toolkit.common.off_bone`, "
+          "mucosa 2.3 mm median and 4.3 mm at most off its bone): a 5 mm mandibular advance and plans drawn by "
+          "`sample_plans` in both modes, 3 increments, mucosa and lip sliding. The offset drift is the largest "
+          "change of a sliding mucosa node's distance to its moved bone over the increments. Then, on the coarse "
+          "phantom with the mucosa farther off (4.8 mm median, 8.4 mm at most), each `max_mucosa_offset`.",
+          (SOURCES["off_bone"], SOURCES["off_bone_far"]), _off_bone),
     Block("bad_inputs", "Bad input on the command line",
           "A catalogue of mistakes per command (bad output locations, missing, garbage, empty, binary and metres "
           "meshes, bad plans and scenes, bad option values, a database or model of the other workflow or of "
