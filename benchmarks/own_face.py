@@ -11,7 +11,10 @@ result is compared with the phantom it came from:
   meshed face's displacement interpolated at the phantom's skin nodes (those within 0.5 mm of
   the meshed skin): mean, 95th percentile and maximum difference, beside the phantom's mean
   and maximum skin displacement;
-- **speed**: the stage times of ``mesh_face`` at each ``--sizes`` (a ~50k-node mesh among them).
+- **speed**: the stage times of ``mesh_face`` at each ``--sizes`` (a ~50k-node mesh among them);
+- **robustness** (``--plans N``): N plans of each sampling mode (:func:`toolkit.static.plan.sample_plans`,
+  the physiological ranges, the phantom's pivots) on the meshed face of the first size: completion,
+  minimum scaled Jacobian, time (``own_face_robustness.csv``).
 
 Writes ``benchmarks/results/own_face.csv`` (stages and the displacement comparison, one row per
 size and order) and ``own_face_labels.csv`` (label agreement), with provenance sidecars.
@@ -20,6 +23,8 @@ Usage::
 
     python benchmarks/own_face.py                      # paper phantom, sizes 5 and 3.5 mm, tet10
     python benchmarks/own_face.py --sizes 5 --orders 1 2 --resolution paper
+    python benchmarks/own_face.py --sizes 7 5 3.5 --simulate-sizes 7 5
+    python benchmarks/own_face.py --sizes 7 --plans 25 --no-simulate    # 50 sampled plans
 """
 
 from __future__ import annotations
@@ -84,7 +89,10 @@ def main(argv=None):
     ap.add_argument("--sizes", type=float, nargs="+", default=[5.0, 3.5])
     ap.add_argument("--orders", type=int, nargs="+", default=[2])
     ap.add_argument("--backend", default=None, help="mesher (default: toolkit.mesh.DEFAULT)")
-    ap.add_argument("--no-simulate", action="store_true", help="mesh and label only")
+    ap.add_argument("--no-simulate", action="store_true", help="no default-plan comparison")
+    ap.add_argument("--simulate-sizes", type=float, nargs="+", default=None,
+                    help="compare the default plan at these sizes only (default: every size)")
+    ap.add_argument("--plans", type=int, default=0, help="sampled plans per mode on the first size's mesh")
     ap.add_argument("--out", type=Path, default=RESULTS / "own_face.csv")
     args = ap.parse_args(argv)
 
@@ -114,7 +122,7 @@ def main(argv=None):
                    "max_dihedral_deg": face.report["quality"]["max_dihedral_deg"]}
             for r in label_agreement(face.mesh, phantom.mesh):
                 label_rows.append({"size_mm": size, "order": order, **r})
-            if not args.no_simulate:
+            if not args.no_simulate and (args.simulate_sizes is None or size in args.simulate_sizes):
                 if reference is None:
                     case = load_case(resolution=args.resolution)
                     t1 = time.perf_counter()
@@ -132,6 +140,10 @@ def main(argv=None):
                     row.update(status=f"{type(exc).__name__}: {str(exc)[:200]}", simulate_s=time.perf_counter() - t1)
             rows.append(row)
             print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+    if args.plans:
+        robustness(args, phantom, surfaces, backend)
+        if args.no_simulate:
+            return None
     table = pd.DataFrame(rows)
     write_result(args.out, table, argv=argv)
     labels = pd.DataFrame(label_rows)
@@ -139,6 +151,39 @@ def main(argv=None):
     with pd.option_context("display.width", 200):
         print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
         print(labels.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
+    return table
+
+
+def robustness(args, phantom, surfaces, backend) -> pd.DataFrame:
+    from tqdm import tqdm
+
+    from toolkit.mesh import mesh_face
+    from toolkit.static import load_case
+    from toolkit.static.plan import sample_plans
+
+    face = mesh_face(surfaces.tissue, surfaces.bones, surfaces.commissures, size_mm=args.sizes[0],
+                     order=args.orders[0], backend=backend)
+    bones = {k: v for k, v in face.bones.items() if k != "skull"}
+    rows = []
+    for mode in ("sagittal", "full"):
+        for i, plan in enumerate(tqdm(sample_plans(args.plans, 0, mode, phantom=phantom), desc=mode)):
+            case = load_case(face.mesh, plan=plan, bones=bones)
+            t0 = time.perf_counter()
+            try:
+                s = case.simulate(increments=3, material="linear", sliding="mucosa+lip").summary()
+                row = {"status": "ok", "min_scaled_jacobian": s["min_scaled_jacobian"], "substeps": s["substeps"],
+                       "release_width_mm": s["release_width_mm"], "max_displacement_mm": s["max_displacement_mm"]}
+            except Exception as exc:  # noqa: BLE001 - recorded
+                row = {"status": type(exc).__name__, "message": str(exc)[:200]}
+            rows.append({"size_mm": args.sizes[0], "order": args.orders[0], "mode": mode, "plan": i,
+                         "seconds": time.perf_counter() - t0, **row})
+            if row["status"] != "ok":
+                tqdm.write(f"{mode} plan {i}: {row['status']}: {row.get('message', '')[:150]}")
+    table = pd.DataFrame(rows)
+    write_result(args.out.with_name(args.out.stem + "_robustness.csv"), table)
+    summary = table.groupby("mode").agg(plans=("status", "size"), completed=("status", lambda x: (x == "ok").sum()),
+                                        min_sj=("min_scaled_jacobian", "min"), median_s=("seconds", "median"))
+    print(summary.to_string())
     return table
 
 

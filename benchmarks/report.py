@@ -442,15 +442,32 @@ def _interrupts(data):
     return "\n".join(lines)
 
 
+#: (text of the failure, its short name in the table), the first that matches names it
+_MESHER_FAILURES = (("needs a closed surface", "refused: not closed"),
+                    ("contain self-intersections", "self-intersections"),
+                    ("Failed to tetrahedralize", "not manifold"), ("Wrong topology", "wrong topology"),
+                    ("HXT 3D mesh failed", "3D meshing failed"), ("points has shape", "repair left no surface"),
+                    ("timeout", "timeout"), ("crash", "crash"))
+
+
+def _mesher_outcome(row) -> str:
+    status = str(row["status"])
+    if status == "ok":
+        return f"ok: {row['wall_s']:.3g} s, min SJ {row['min_sj']:.3f}, off {row['in_to_out_max_mm']:.2f} mm"
+    return next((short for key, short in _MESHER_FAILURES if key in status), status.split(":")[0])
+
+
 def _meshers(data):
     df = data["meshers"][0].copy()
-    ok = df["status"].astype(str) == "ok"
-    df["status"] = df["status"].astype(str).str.split(":").str[0]
+    if "threads" not in df:
+        df["threads"] = 1
     clean = df[df["input"] == "clean"]
     damaged = df[df["input"] != "clean"].copy()
-    damaged.loc[~ok[damaged.index], "status"] = "failed: " + damaged.loc[~ok[damaged.index], "status"]
+    damaged["outcome"] = damaged.apply(_mesher_outcome, axis=1)
+    grid = damaged.pivot_table(index=["input", "repair"], columns="mesher", values="outcome", aggfunc="first",
+                               sort=False).fillna("").reset_index()
     return "\n\n".join([table(clean, [
-        ("mesher", "mesher"), ("size_mm", "size (mm)", "{:g}"), ("status", "status"), ("nodes", "nodes"),
+        ("mesher", "mesher"), ("size_mm", "size (mm)", "{:g}"), ("threads", "threads"), ("nodes", "nodes"),
         ("tets", "tetrahedra"), ("mean_edge_mm", "mean edge (mm)", "{:.2f}"), ("wall_s", "time (s)"),
         ("cpu_s", "CPU time (s)"), ("min_sj", "min scaled Jacobian", "{:.3f}"),
         ("p01_sj", "1st percentile", "{:.3f}"), ("min_dihedral_deg", "min dihedral (deg)", "{:.1f}"),
@@ -458,12 +475,11 @@ def _meshers(data):
         ("out_to_in_max_mm", "boundary to surface, max (mm)", "{:.2f}"),
         ("in_to_out_max_mm", "surface to boundary, max (mm)", "{:.2f}"),
         ("boundary_closed_manifold", "closed boundary")]),
-        table(damaged, [
-            ("input", "damaged input"), ("mesher", "mesher"), ("repair", "repair"), ("status", "status"),
-            ("wall_s", "time (s)"), ("min_sj", "min scaled Jacobian", "{:.3f}"),
-            ("volume_ratio", "volume / surface's", "{:.4f}"),
-            ("in_to_out_max_mm", "surface to boundary, max (mm)", "{:.2f}"),
-            ("boundary_closed_manifold", "closed boundary")])])
+        "Damaged copies of the paper surface at 3 mm: time, min scaled Jacobian (SJ) and the largest distance of "
+        "the undamaged surface to the mesh's boundary (off; the self-intersection moves vertices through the "
+        "tissue, so its off is the damage), or why it failed.",
+        table(grid, [("input", "damaged input"), ("repair", "repair"),
+                     *[(m, m) for m in ("ftetwild", "wildmeshing", "tetgen", "gmsh") if m in grid]])])
 
 
 def _off_bone(data):
@@ -477,6 +493,43 @@ def _off_bone(data):
                 ("min_sj", "min scaled Jacobian", "{:.3f}"), ("wider_band", "wider release band"),
                 ("max_drift_mm", "offset drift (mm)", "{:.2g}"), ("offset_median_mm", "offset median (mm)", "{:.2f}"),
                 ("offset_max_mm", "offset max (mm)", "{:.2f}"), ("far_mucosa_nodes", "far mucosa nodes")]))
+    return "\n\n".join(parts)
+
+
+def _own_face(data):
+    parts = []
+    if "own_face" in data:
+        df = data["own_face"][0].copy()
+        df["stages"] = df.apply(lambda r: ", ".join(f"{k} {r[k + '_s']:.1f}" for k in
+                                                     ("read_repair", "mesh", "mouth", "label", "order", "quality")),
+                                axis=1)
+        parts.append(table(df, [
+            ("size_mm", "size (mm)", "{:g}"), ("order", "order"), ("nodes", "nodes"), ("elements", "elements"),
+            ("mesh_face_s", "toolkit mesh (s)", "{:.1f}"), ("stages", "stages (s)"),
+            ("min_scaled_jacobian", "min scaled Jacobian", "{:.3f}"),
+            ("min_dihedral_deg", "min dihedral (deg)", "{:.1f}"),
+            ("simulate_s", "simulation (s)", "{:.0f}"), ("phantom_simulate_s", "phantom hex (s)", "{:.1f}"),
+            ("phantom_mean_mm", "phantom skin mean |u| (mm)", "{:.2f}"),
+            ("diff_mean_mm", "difference mean (mm)", "{:.2f}"), ("diff_p95_mm", "p95 (mm)", "{:.2f}"),
+            ("diff_max_mm", "max (mm)", "{:.2f}")]))
+    if "own_face_labels" in data:
+        parts.append("Labels against the phantom's own sets: the share of the meshed face's nodes of each set "
+                     "whose nearest phantom node carries it, and the other way round.")
+        parts.append(table(data["own_face_labels"][0], [
+            ("size_mm", "size (mm)", "{:g}"), ("set", "set"), ("nodes", "nodes"), ("phantom_nodes", "phantom nodes"),
+            ("agree_meshed_to_phantom", "meshed -> phantom", "{:.0%}"),
+            ("agree_phantom_to_meshed", "phantom -> meshed", "{:.0%}")]))
+    if "own_face_robustness" in data:
+        df = data["own_face_robustness"][0]
+        df = df.assign(ok=df.status == "ok")
+        summary = df.groupby(["size_mm", "order", "mode"], sort=False).agg(
+            plans=("ok", "size"), completed=("ok", "sum"), median_s=("seconds", "median"),
+            max_s=("seconds", "max"), min_sj=("min_scaled_jacobian", "min")).reset_index()
+        parts.append("Plans drawn by `sample_plans` (both modes, the physiological ranges) on the meshed face:")
+        parts.append(table(summary, [
+            ("size_mm", "size (mm)", "{:g}"), ("order", "order"), ("mode", "mode"), ("plans", "plans"),
+            ("completed", "completed"), ("median_s", "median time (s)", "{:.0f}"), ("max_s", "max time (s)", "{:.0f}"),
+            ("min_sj", "min scaled Jacobian", "{:.3f}")]))
     return "\n\n".join(parts)
 
 
@@ -511,6 +564,9 @@ SOURCES = {s.stem: s for s in (
     Source("off_bone_far", "python benchmarks/off_bone.py --resolution coarse --median 5 --p90 15 --max-offset 20 "
            "--modes full --plans 8 --materials linear --thresholds inf 10 5 3 "
            "--out benchmarks/results/off_bone_far.csv", 1),
+    Source("own_face", "python benchmarks/own_face.py --sizes 7 5 3.5 --simulate-sizes 7 5", 12),
+    Source("own_face_labels", "python benchmarks/own_face.py --sizes 7 5 3.5 --simulate-sizes 7 5", 12),
+    Source("own_face_robustness", "python benchmarks/own_face.py --sizes 7 --plans 5 --no-simulate", 15),
     Source("static_robustness", "python benchmarks/static_robustness.py --resolutions coarse paper --materials "
            "linear --slidings mucosa+lip --modes full --plans 20", 2),
 )}
@@ -576,6 +632,12 @@ BLOCKS = {b.name: b for b in (
           "toolkit's, trimesh's or MeshFix's repair: time, counts, element quality, the distance between the "
           "mesh's boundary and the undamaged surface both ways, and whether the boundary is closed.",
           (SOURCES["meshers"],), _meshers),
+    Block("own_face", "A meshed face against the phantom",
+          "`toolkit mesh` on the paper phantom's own surfaces (fTetWild, tet10, one thread): the stage times and "
+          "element quality at each size, and the packaged plan (linear, mucosa and lip sliding, 3 increments) on "
+          "the meshed face against the phantom's hexahedral run: its time, and the skin displacement differences "
+          "at the phantom's skin nodes.",
+          (SOURCES["own_face"], SOURCES["own_face_labels"], SOURCES["own_face_robustness"]), _own_face),
     Block("off_bone", "Mucosa off the bone",
           "The paper phantom with its bone surfaces moved away from the tissue (`toolkit.common.off_bone`, "
           "mucosa 2.3 mm median and 4.3 mm at most off its bone): a 5 mm mandibular advance and plans drawn by "
@@ -597,7 +659,7 @@ BLOCKS = {b.name: b for b in (
           (SOURCES["bad_inputs_interrupts"],), _interrupts),
 )}
 #: blocks whose table needs every source (the others render what is present, the rest as one line)
-_PARTIAL = {"headline", "static_surrogate", "impact_surrogate", "static_convergence"}
+_PARTIAL = {"headline", "static_surrogate", "impact_surrogate", "static_convergence", "own_face"}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -626,7 +688,7 @@ def render(name: str, data: dict) -> str:
     if not present and name != "headline":
         return not_measured(block.sources[-1])
     body = block.render(present)
-    if name in ("static_surrogate", "impact_surrogate", "static_convergence"):
+    if name in ("static_surrogate", "impact_surrogate", "static_convergence", "own_face"):
         body += "\n\n" + _sources_footer(present, block.sources)
     return body
 

@@ -6,7 +6,7 @@ through one of the :data:`BACKENDS`, each an optional package imported only when
 ==============  ================================  ============================  ===========================
 backend         package (mesher)                  licence                       install
 ==============  ================================  ============================  ===========================
-``ftetwild``    ``pytetwild`` (fTetWild)          MPL-2.0 (GMP: LGPL-3)         ``[mesh]``
+``ftetwild``    ``pytetwild`` (fTetWild)          MPL-2.0 (GMP: LGPL-3)         a dependency
 ``wildmeshing`` ``wildmeshing`` (fTetWild)        MPL-2.0 (GMP: LGPL-3)         ``pip install wildmeshing``
 ``tetgen``      ``tetgen`` (TetGen)               AGPL-3.0 (wrapper MIT)        ``[mesh-agpl]``
 ``gmsh``        ``gmsh`` (Gmsh)                   GPL-2.0-or-later              ``[mesh-gpl]``
@@ -54,7 +54,7 @@ class Backend:
 
 BACKENDS = {b.name: b for b in (
     Backend("ftetwild", "pytetwild", "fTetWild", "MPL-2.0 (bundled GMP: LGPL-3.0)",
-            "pip install 'facial-biomech-toolkit[mesh]'"),
+            "pip install pytetwild (a dependency of the toolkit)"),
     Backend("wildmeshing", "wildmeshing", "fTetWild", "MPL-2.0 (bundled GMP: LGPL-3.0)",
             "pip install wildmeshing"),
     Backend("tetgen", "tetgen", "TetGen", "AGPL-3.0 (TetGen; the Python wrapper is MIT)",
