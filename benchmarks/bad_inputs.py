@@ -504,8 +504,15 @@ def finished(command: str, cwd: Path) -> tuple[int, int | None]:
 
 
 def start(args: list[str], cwd: Path) -> subprocess.Popen:
+    """The command in a process group of its own, with Ctrl-C's default action: a benchmark started
+    in the background of a shell ignores SIGINT, and its commands would inherit that."""
     return subprocess.Popen([PY, "-m", "toolkit", *[a.replace("{F}", str(FIXTURES)) for a in args]], cwd=cwd,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=_default_sigint)
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _noise(stderr: str) -> str:

@@ -24,8 +24,10 @@ def interrupt(args, cwd: Path, *, after: float = 0.0, when_exists: Path | None =
     """Start ``toolkit ARGS`` in ``cwd``, send SIGINT to its process group ``after`` seconds after
     ``when_exists`` appears (or after the start), and return (exit code, stderr, whether the
     command was still running at the interrupt)."""
+    # SIGINT's default action in the command (a test run started in the background ignores it)
     proc = subprocess.Popen([sys.executable, "-m", "toolkit", *map(str, args)], cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.monotonic()
     while when_exists is not None and not when_exists.exists() and proc.poll() is None:
         assert time.monotonic() - t0 < timeout, f"{when_exists} never appeared"
