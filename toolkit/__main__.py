@@ -2,7 +2,10 @@
 
 import sys
 
-from toolkit.cli import main
-
 if __name__ == "__main__":
+    try:
+        from toolkit.cli import main
+    except KeyboardInterrupt:  # Ctrl-C while the command line loads: nothing has started
+        print("interrupted: nothing was done; rerun the same command", file=sys.stderr)
+        sys.exit(130)
     sys.exit(main())

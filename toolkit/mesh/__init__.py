@@ -6,11 +6,24 @@
 :mod:`~toolkit.mesh.rules` (node sets).
 """
 
-from toolkit.mesh.backends import BACKENDS, DEFAULT, MeshingError, available, tetrahedralize
-from toolkit.mesh.face import FaceInputError, MeshedFace, mesh_face
-from toolkit.mesh.rules import LabelRules, RulesError, read_rules
-from toolkit.mesh.surface import SurfaceError, closed_surface, read_tissue_surface
+import importlib
 
-__all__ = ["BACKENDS", "DEFAULT", "MeshingError", "available", "tetrahedralize", "FaceInputError", "MeshedFace",
-           "mesh_face", "LabelRules", "RulesError", "read_rules", "SurfaceError", "closed_surface",
-           "read_tissue_surface"]
+#: public name -> the module that holds it (imported when first used: the command line builds its
+#: parser from this package without loading the meshing code)
+_EXPORTS = {
+    **dict.fromkeys(["BACKENDS", "DEFAULT", "MeshingError", "available", "tetrahedralize"], "backends"),
+    **dict.fromkeys(["FaceInputError", "MeshedFace", "mesh_face"], "face"),
+    **dict.fromkeys(["LabelRules", "RulesError", "read_rules"], "rules"),
+    **dict.fromkeys(["SurfaceError", "closed_surface", "read_tissue_surface"], "surface"),
+}
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'toolkit.mesh' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"toolkit.mesh.{_EXPORTS[name]}"), name)
+
+
+def __dir__():
+    return sorted(__all__)

@@ -32,7 +32,6 @@ import numpy as np
 from toolkit.common.errors import ToolkitError
 from toolkit.common.mesh import Mesh
 from toolkit.mesh.backends import DEFAULT, tetrahedralize
-from toolkit.mesh.labels import label_nodes
 from toolkit.mesh.rules import SEGMENTS, LabelRules, read_rules
 
 __all__ = ["MeshedFace", "mesh_face", "FaceInputError", "dihedral_angles", "DEFAULT_SIZE_MM", "DEFAULT_ORDER"]
@@ -223,6 +222,7 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
     max_hole_edges : holes of the tissue surface bounded by up to this many edges are closed
     threads : threads the mesher may use (1: a reproducible mesh)
     """
+    from toolkit.mesh.labels import label_nodes
     from toolkit.mesh.surface import closed_surface, read_tissue_surface
     from toolkit.static.bones import orient_surface
 
