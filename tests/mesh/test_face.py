@@ -1,6 +1,8 @@
 """``toolkit.mesh``: the mouth cut, the labelling rules and the whole pipeline on the coarse phantom's
 surfaces (the round trip's small version; ``benchmarks/own_face.py`` runs it at paper size)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -177,3 +179,13 @@ def test_self_intersecting_tissue_is_meshed_by_the_default_backend(inputs):
     broken = Mesh(p, {"tri3": surface.cells["tri3"]})
     face = mesh_face(broken, bones, size_mm=12.0, order=1)
     assert face.mesh.scaled_jacobian().min() > 0 and face.report["nodes"] > 100
+
+
+def test_meshing_leaves_nothing_in_the_working_directory(inputs, tmp_path, monkeypatch):
+    """fTetWild writes __tracked_surface.stl into the current directory: it runs in a scratch one."""
+    from toolkit.mesh.backends import tetrahedralize
+
+    monkeypatch.chdir(tmp_path)
+    surface = inputs[0]
+    tetrahedralize(surface.points, surface.cells["tri3"], 12.0, backend=BACKEND)
+    assert list(tmp_path.iterdir()) == [] and Path.cwd() == tmp_path

@@ -81,7 +81,10 @@ def tetrahedralize(points, triangles, size_mm: float, backend: str = DEFAULT, *,
     triangles : (m, 3) int — surface triangles (indices into ``points``)
     size_mm : target tetrahedron edge length, mm
     backend : one of :data:`BACKENDS`
-    threads : threads the mesher may use (fTetWild); 1 gives a reproducible mesh
+    threads : threads the mesher may use (fTetWild)
+
+    The mesher runs in a temporary working directory (fTetWild and TetGen write scratch files
+    into the current one), so two calls must not run in two threads at once.
 
     Returns
     -------
@@ -111,7 +114,8 @@ def tetrahedralize(points, triangles, size_mm: float, backend: str = DEFAULT, *,
                            f"{spec.licence}), which is not installed ({exc}); install it with "
                            f"{spec.install}, or choose another backend: {_others(backend)}") from None
     try:
-        out_p, out_t = _RUNNERS[backend](module, p, t, size, threads)
+        with _scratch_directory():
+            out_p, out_t = _RUNNERS[backend](module, p, t, size, threads)
     except MeshingError:
         raise
     except Exception as exc:  # the meshers raise RuntimeError, ValueError or their own classes
@@ -198,6 +202,22 @@ def _wildmeshing(wildmeshing, p, t, size, threads):
         tetra.tetrahedralize()
         out_p, out_t = tetra.get_tet_mesh()[:2]
     return out_p, out_t
+
+
+@contextmanager
+def _scratch_directory():
+    """Run inside a temporary working directory: fTetWild writes ``__tracked_surface.stl`` and
+    TetGen ``_skipped.node``/``.face`` into the current directory, which is the user's. The working
+    directory is process-wide: meshing is not to run in two threads at once."""
+    import tempfile
+
+    previous = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix="toolkit-mesher-") as tmp:
+        os.chdir(tmp)
+        try:
+            yield
+        finally:
+            os.chdir(previous)
 
 
 @contextmanager

@@ -220,7 +220,7 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
     rules : :class:`~toolkit.mesh.rules.LabelRules`, a TOML file of overrides, or None (defaults)
     units : length unit of the files (``mm``, ``cm``, ``m``, ``um``)
     max_hole_edges : holes of the tissue surface bounded by up to this many edges are closed
-    threads : threads the mesher may use (1: a reproducible mesh)
+    threads : threads the mesher may use (fTetWild; its mesh may differ slightly from run to run)
     """
     from toolkit.mesh.labels import label_nodes
     from toolkit.mesh.surface import closed_surface, read_tissue_surface
