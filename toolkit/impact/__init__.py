@@ -20,6 +20,7 @@ from toolkit.impact.scene import (
     Scene,
     SceneError,
     default_scene,
+    meshed_scene,
     yielding_scene,
 )
 from toolkit.impact.simulate import ImpactResult, SceneGeometryWarning, UnstableTimeStepError, build_model, simulate
@@ -35,6 +36,7 @@ __all__ = [
     "MaterialSpec",
     "default_scene",
     "yielding_scene",
+    "meshed_scene",
     "simulate",
     "build_model",
     "ImpactResult",
