@@ -22,6 +22,11 @@ from toolkit.impact.explicit import InstabilityError
 from toolkit.impact.plasticity import InvertedPointError
 from toolkit.impact.scene import BallSpec, SceneError
 from toolkit.impact.simulate import UnstableTimeStepError
+from toolkit.mesh.backends import MeshingError
+from toolkit.mesh.face import FaceInputError
+from toolkit.mesh.mouth import MouthError
+from toolkit.mesh.rules import RulesError
+from toolkit.mesh.surface import SurfaceError
 from toolkit.static.boundary import BoundaryError
 from toolkit.static.plan import PlanError, RigidMotion, SurgicalPlan
 from toolkit.static.simulate import SimulationError
@@ -46,6 +51,11 @@ BUILTIN_BASES = {
     SimulationError: RuntimeError,
     InstabilityError: RuntimeError,
     InvertedPointError: FloatingPointError,
+    SurfaceError: ValueError,
+    FaceInputError: ValueError,
+    RulesError: ValueError,
+    MouthError: ValueError,
+    MeshingError: RuntimeError,
 }
 
 
