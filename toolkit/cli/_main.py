@@ -63,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
         left = "nothing was started; rerun the same command" if args is None else \
             args.interrupted.format(out=getattr(args, "out", None))
         print(f"interrupted: {left}", file=sys.stderr)
+        if program:  # said and done: a second Ctrl-C while the interpreter shuts down changes nothing
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
         return 130
     except (ToolkitError, ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
         _close_progress_bars()
