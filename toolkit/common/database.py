@@ -65,6 +65,7 @@ import numpy as np
 
 from toolkit.common.config_diff import jsonable, require_same
 from toolkit.common.errors import ToolkitError
+from toolkit.common.runtime import deferred_interrupt
 
 __all__ = ["Job", "Record", "RunReport", "DatabaseError", "Database", "run_jobs", "read_index", "read_failures",
            "InProcessExecutor", "DatabaseStatus", "database_status", "IncompleteDatabaseWarning",
@@ -115,26 +116,6 @@ class DatabaseStatus:
         if self.pending:
             text += f", {self.pending} more finished in {self.path.name}.shards/ (not yet merged)"
         return text + f"; rerun {command} to finish it"
-
-
-@contextmanager
-def deferred_interrupt():
-    """Hold a Ctrl-C (SIGINT) arriving inside the block until the block ends, then raise it.
-
-    Wraps short, atomic file updates (a merge) so that an impatient second Ctrl-C does not throw
-    finished work away. Outside the main thread (where signals cannot be handled) it does nothing.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    caught = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if caught:
-        raise KeyboardInterrupt
 
 
 @dataclass(frozen=True)

@@ -9,9 +9,12 @@ here runs on import: the command line calls :func:`set_threads` (``--threads``, 
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 
-__all__ = ["set_threads", "configure_headless_rendering", "default_threads"]
+__all__ = ["set_threads", "configure_headless_rendering", "default_threads", "deferred_interrupt"]
 
 _threadpool_limiter = None
 
@@ -75,3 +78,25 @@ def configure_headless_rendering() -> None:
     """
     if not os.environ.get("DISPLAY"):
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+
+@contextmanager
+def deferred_interrupt():
+    """Hold a Ctrl-C (SIGINT) arriving inside the block until the block ends, then raise it.
+
+    Wraps short, atomic file updates (a merge) so that an impatient second Ctrl-C does not throw
+    finished work away, and calls into extensions that abort the process when an interrupt
+    reaches Python inside them (pymetis). Outside the main thread (where signals cannot be
+    handled) it does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt

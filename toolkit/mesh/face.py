@@ -136,7 +136,11 @@ def _check_contact(tissue: Mesh, bones: Mapping[str, Mesh], rules: LabelRules, n
 
 
 def _edges_of(faces: np.ndarray) -> np.ndarray:
-    return np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
+    """Unique sorted edges ``(e, 2)`` of triangles."""
+    from toolkit.common.fem.reference import REFERENCE_ELEMENTS
+    from toolkit.common.topology import unique_edges
+
+    return unique_edges(faces, REFERENCE_ELEMENTS["tri3"].edges)[0]
 
 
 def _elevate(points: np.ndarray, tets: np.ndarray, node_sets: dict[str, np.ndarray],

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from toolkit.common.errors import ToolkitError
-from toolkit.common.topology import boundary_faces
+from toolkit.common.fem.reference import REFERENCE_ELEMENTS
+from toolkit.common.topology import boundary_faces, rim_edges, unique_edges
 
 __all__ = ["MouthError", "MouthSlit", "cut_mouth"]
 
@@ -111,12 +112,8 @@ def cut_mouth(points: np.ndarray, tets: np.ndarray, commissures, behind_mm: floa
                          f"{c[1].round(1).tolist()} mm; expected the commissures on the skin at the corners "
                          "of the mouth (in the mesh's axes and units)")
     # the slit front inside the tissue: slit edges used by one slit face that are not on the tissue surface
-    edges = np.sort(np.concatenate([slit[:, [0, 1]], slit[:, [1, 2]], slit[:, [2, 0]]]), axis=1)
-    uniq, count = np.unique(edges, axis=0, return_counts=True)
-    rim = uniq[count == 1]
-    outer = boundary_faces("tet4", tets)
-    outer_edges = np.unique(np.sort(np.concatenate([outer[:, [0, 1]], outer[:, [1, 2]], outer[:, [2, 0]]]),
-                                    axis=1), axis=0)
+    rim = rim_edges(slit)
+    outer_edges = unique_edges(boundary_faces("tet4", tets), REFERENCE_ELEMENTS["tri3"].edges)[0]
     on_surface = _rows_in(rim, outer_edges)
     front = np.unique(rim[~on_surface])
     nodes = np.setdiff1d(np.unique(slit), front)

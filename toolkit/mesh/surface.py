@@ -62,11 +62,18 @@ def _where(points: np.ndarray) -> str:
     return "(" + ", ".join(f"{v:.1f}" for v in np.asarray(points, dtype=float).reshape(-1, 3).mean(axis=0)) + ") mm"
 
 
-def _merge(points: np.ndarray, tris: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray, int]:
+def _coincident(points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """One representative per group of points closer than ``tolerance`` x the extent (on a grid
+    of that step): (index of each group's first point, group of every point)."""
     tol = tolerance * max(float(np.ptp(points, axis=0).max()), 1e-12)
     _, first, inverse = np.unique(np.round(points / tol).astype(np.int64), axis=0, return_index=True,
                                   return_inverse=True)
-    return points[first], inverse.ravel()[tris], points.shape[0] - first.size
+    return first, inverse.ravel()
+
+
+def _merge(points: np.ndarray, tris: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray, int]:
+    first, inverse = _coincident(points, tolerance)
+    return points[first], inverse[tris], points.shape[0] - first.size
 
 
 def _without_degenerate(points: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, int]:
@@ -145,33 +152,20 @@ def _drop_small_pieces(tris: np.ndarray, fraction: float) -> tuple[np.ndarray, i
 
 
 def _orient(points: np.ndarray, tris: np.ndarray, name: str) -> tuple[np.ndarray, int]:
-    """Consistent orientation per piece, outward (positive signed volume)."""
-    t = tris.shape[0]
-    directed, owner, _, eid, counts = _edges(tris)
-    inner = counts[eid] == 2
-    order = np.argsort(eid[inner], kind="stable")
-    d, o = directed[inner][order], owner[inner][order]
-    a, b = o[0::2], o[1::2]
-    same = d[0::2, 0] == d[1::2, 0]  # both traverse the shared edge the same way: one must flip
-    rows = np.concatenate([a, a + t])
-    cols = np.concatenate([np.where(same, b + t, b), np.where(same, b, b + t)])
-    graph = sp.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(2 * t, 2 * t))
-    _, label = connected_components(graph, directed=False)
-    if np.any(label[:t] == label[t:]):
-        bad = np.flatnonzero(label[:t] == label[t:])
-        raise SurfaceError(f"{name} is not orientable ({bad.size} triangles near {_where(points[tris[bad[0]]])}); "
-                           "expected a surface with an inside and an outside")
-    piece = np.minimum(label[:t], label[t:])
-    out = tris.copy()
-    flip = label[:t] != piece
-    out[flip] = out[flip][:, [0, 2, 1]]
+    """Consistent orientation per piece, outward (positive signed volume); and how many
+    triangles turned."""
+    from toolkit.static.bones import consistent_orientation
+
+    try:
+        out, piece = consistent_orientation(tris, name)
+    except MeshError as exc:
+        raise SurfaceError(f"{exc}; expected a surface with an inside and an outside") from None
     x = points[out]
     vol = np.einsum("ij,ij->i", x[:, 0], np.cross(x[:, 1], x[:, 2])) / 6.0
     pieces, idx = np.unique(piece, return_inverse=True)
-    inward = np.bincount(idx, weights=vol, minlength=pieces.size) < 0
-    flip2 = inward[idx]
-    out[flip2] = out[flip2][:, [0, 2, 1]]
-    return out, int((flip ^ flip2).sum())
+    inward = (np.bincount(idx, weights=vol, minlength=pieces.size) < 0)[idx]
+    out[inward] = out[inward][:, [0, 2, 1]]
+    return out, int(np.any(out != tris, axis=1).sum())
 
 
 def _boundary_loops(tris: np.ndarray) -> list[np.ndarray]:
@@ -303,11 +297,8 @@ def tissue_surface_of(mesh: Mesh) -> Mesh:
     from toolkit.common.mesh import VOLUME_TYPES
     from toolkit.common.topology import triangulated_boundary
 
-    points, first = mesh.points, None
-    tol = 1e-6 * max(float(mesh.extent.max()), 1e-12)
-    _, first, inverse = np.unique(np.round(points / tol).astype(np.int64), axis=0, return_index=True,
-                                  return_inverse=True)
     # coincident nodes (the two faces of a mouth slit) become one: the slit's faces turn inner
-    cells = {t: inverse.ravel()[c] for t, c in mesh.cells.items() if t in VOLUME_TYPES}
-    surface, _ = closed_surface(points[first], triangulated_boundary(cells), name="boundary", max_hole_edges=0)
+    first, inverse = _coincident(mesh.points, 1e-6)
+    cells = {t: inverse[c] for t, c in mesh.cells.items() if t in VOLUME_TYPES}
+    surface, _ = closed_surface(mesh.points[first], triangulated_boundary(cells), name="boundary", max_hole_edges=0)
     return surface

@@ -21,7 +21,7 @@ import scipy.sparse as sp
 
 from toolkit.common.mesh import VOLUME_TYPES, Mesh, MeshError
 
-__all__ = ["read_surface", "orient_surface", "segments_from_files", "SURFACE_FORMATS"]
+__all__ = ["read_surface", "orient_surface", "consistent_orientation", "segments_from_files", "SURFACE_FORMATS"]
 
 #: suffixes :func:`read_surface` reads (through meshio)
 SURFACE_FORMATS = (".stl", ".obj", ".ply", ".vtk", ".vtu", ".off")
@@ -111,13 +111,39 @@ def _edge_relations(tris: np.ndarray):
     return a, b, same_direction
 
 
+def consistent_orientation(triangles, name: str = "surface") -> tuple[np.ndarray, np.ndarray]:
+    """Triangles ``(t, 3)`` oriented consistently within each connected piece, and each one's piece id.
+
+    Orientation is propagated across shared edges (two neighbours must traverse their common
+    edge in opposite directions) with a connected-components pass on the graph of triangle
+    orientations; each piece keeps the orientation of its lowest-numbered triangle. Raises
+    :class:`MeshError` naming ``name`` if a piece is not orientable (a Moebius strip).
+    """
+    from scipy.sparse.csgraph import connected_components
+
+    tris = np.array(triangles, dtype=np.int64)
+    t = tris.shape[0]
+    a, b, same = _edge_relations(tris)
+    # node i: triangle i as it is; node t + i: triangle i flipped
+    rows = np.concatenate([a, a + t])
+    cols = np.concatenate([np.where(same, b + t, b), np.where(same, b, b + t)])
+    graph = sp.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(2 * t, 2 * t))
+    _, label = connected_components(graph, directed=False)
+    if np.any(label[:t] == label[t:]):
+        bad = np.flatnonzero(label[:t] == label[t:])
+        raise MeshError(f"{name} is not orientable ({bad.size} triangles, first {bad[:5].tolist()}); "
+                        "expected a surface with two sides")
+    piece = np.minimum(label[:t], label[t:])
+    flip = label[:t] != piece
+    tris[flip] = tris[flip][:, [0, 2, 1]]
+    return tris, piece
+
+
 def orient_surface(surface: Mesh, toward: np.ndarray) -> Mesh:
     """The surface with every connected piece consistently oriented, normals towards ``toward``.
 
-    Orientation is propagated across shared edges (two neighbours must traverse their
-    common edge in opposite directions) with a connected-components pass on the graph of
-    triangle orientations; each piece is then flipped so that its area-weighted normals
-    point towards the nearest of the ``toward`` points (e.g. the face mesh's element
+    Each piece is oriented by :func:`consistent_orientation`, then flipped so that its
+    area-weighted normals point towards the nearest of the ``toward`` points (e.g. the face mesh's element
     centroids: the soft tissue; points on the surface itself decide nothing).
 
     Parameters
@@ -129,25 +155,9 @@ def orient_surface(surface: Mesh, toward: np.ndarray) -> Mesh:
     ------
     MeshError if a piece is not orientable (a Moebius strip)
     """
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
-    tris = np.array(surface.cells["tri3"], dtype=np.int64)
-    t = tris.shape[0]
-    a, b, same = _edge_relations(tris)
-    # node i: triangle i as it is; node t + i: triangle i flipped
-    rows = np.concatenate([np.where(same, a, a), np.where(same, a + t, a + t)])
-    cols = np.concatenate([np.where(same, b + t, b), np.where(same, b, b + t)])
-    graph = sp.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(2 * t, 2 * t))
-    _, label = connected_components(graph, directed=False)
-    if np.any(label[:t] == label[t:]):
-        bad = np.flatnonzero(label[:t] == label[t:])
-        raise MeshError(f"bone surface is not orientable ({bad.size} triangles, first {bad[:5].tolist()}); "
-                        "expected a surface with two sides")
-    # per piece keep the orientation of its lowest-numbered triangle, flip the others
-    piece_of = np.minimum(label[:t], label[t:])
-    flip = label[:t] != piece_of
-    tris[flip] = tris[flip][:, [0, 2, 1]]
+    tris, piece_of = consistent_orientation(surface.cells["tri3"], "bone surface")
     x = surface.points[tris]
     normal = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])  # area-weighted
     centroid = x.mean(axis=1)

@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import signal
-import threading
-from contextlib import contextmanager
-
 import numpy as np
 import scipy.sparse as sp
 
@@ -23,6 +19,8 @@ def fill_reducing_order(A: sp.spmatrix) -> np.ndarray:
     node's dofs kept together, which is half the cost of ordering the dof graph for the same
     fill. (Another layout still gets a valid, only poorer, ordering.)
     """
+    from toolkit.common.runtime import deferred_interrupt
+
     try:
         import pymetis
     except ImportError as exc:  # a declared dependency; a hand-made environment may lack it
@@ -38,29 +36,11 @@ def fill_reducing_order(A: sp.spmatrix) -> np.ndarray:
     graph = graph + graph.T  # the pattern of A + A^T
     graph.setdiag(0)
     graph.eliminate_zeros()
-    with _interrupt_after():
+    # pymetis (pybind11) aborts the process when a Ctrl-C reaches Python inside its call
+    with deferred_interrupt():
         perm, _ = pymetis.nested_dissection(pymetis.CSRAdjacency(graph.indptr, graph.indices))
     perm = np.asarray(perm, dtype=np.int64)
     return (block * perm[:, None] + np.arange(block)).ravel()
-
-
-@contextmanager
-def _interrupt_after():
-    """Hold a Ctrl-C (SIGINT) until the block ends, then raise KeyboardInterrupt: pymetis (pybind11)
-    aborts the whole process (``terminate called ... KeyboardInterrupt``) when the interrupt
-    reaches Python inside its call. The handler is restored after; outside the main thread nothing
-    changes."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    caught = []
-    previous = signal.signal(signal.SIGINT, lambda *_: caught.append(True))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if caught and previous not in (signal.SIG_IGN, None):
-        raise KeyboardInterrupt
 
 
 def estimate_factor_entries(node_graph: sp.spmatrix, block: int = 3) -> int:
