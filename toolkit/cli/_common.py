@@ -114,6 +114,27 @@ def floats(text: str) -> list[float]:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
 
 
+def two_points(text: str, option: str, example: str) -> tuple[tuple[float, float, float], ...]:
+    """``X,Y,Z:X,Y,Z`` (mm), or a file of two lines ``X,Y,Z`` -> two points; ``option`` and
+    ``example`` name the option and a valid value in the error."""
+    source = text
+    if ":" not in text and Path(text).is_file():
+        lines = [ln.strip() for ln in Path(text).read_text(errors="replace").splitlines() if ln.strip()]
+        source = ":".join(lines)
+    points = []
+    for part in source.split(":"):
+        try:
+            values = tuple(float(v) for v in part.split(","))
+        except ValueError:
+            values = ()
+        points.append(values)
+    if len(points) != 2 or any(len(p) != 3 for p in points):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected two points X,Y,Z:X,Y,Z in mm (e.g. {example}; write {option}=-X,... when the first "
+            "begins with a minus sign) or a file of two lines X,Y,Z")
+    return tuple(points)
+
+
 def ints(text: str) -> list[int]:
     """``"3,17"`` -> ``[3, 17]`` (an argparse type)."""
     try:

@@ -5,29 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from toolkit.cli._common import Command, positive_float
+from toolkit.cli._common import Command, positive_float, two_points
 
 FORMATS = (".vtu", ".inp")
 
 
 def commissures(text: str) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
     """``X,Y,Z:X,Y,Z`` (mm), or a file of two lines ``X,Y,Z`` -> two points."""
-    source = text
-    if ":" not in text and Path(text).is_file():
-        lines = [ln.strip() for ln in Path(text).read_text(errors="replace").splitlines() if ln.strip()]
-        source = ":".join(lines)
-    points = []
-    for part in source.split(":"):
-        try:
-            values = tuple(float(v) for v in part.split(","))
-        except ValueError:
-            values = ()
-        points.append(values)
-    if len(points) != 2 or any(len(p) != 3 for p in points):
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: expected two points X,Y,Z:X,Y,Z in mm (e.g. 16.8,57.7,0.3:-16.8,57.7,0.3; write "
-            "--commissures=-16.8,... when the first begins with a minus sign) or a file of two lines X,Y,Z")
-    return tuple(points)
+    return two_points(text, "--commissures", "16.8,57.7,0.3:-16.8,57.7,0.3")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -17,6 +17,7 @@ from toolkit.cli._common import (
     dask_client,
     positive_float,
     positive_int,
+    two_points,
     uninterruptible,
 )
 
@@ -73,8 +74,24 @@ def simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def condyles(text: str):
+    """``X,Y,Z:X,Y,Z`` (mm, left then right) or a file of two lines -> two points."""
+    return two_points(text, "--condyles", "52.9,-18,21.6:-52.9,-18,21.6")
+
+
 def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--resolution", default="coarse", choices=RESOLUTIONS, help="phantom resolution")
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--resolution", default="coarse", choices=RESOLUTIONS, help="phantom resolution")
+    source.add_argument("--mesh", type=Path,
+                        help="simulate on this meshed face (.vtu/.inp/.xdmf, e.g. from `toolkit mesh`) instead of "
+                             "the phantoms: one subject, plans placed by its landmarks (docs/own-face.md)")
+    parser.add_argument("--bone", action="append", default=[], metavar="SEGMENT=FILE",
+                        help="with --mesh: bone surface of a segment, as for simulate (default: the mesh's "
+                             "bone-side faces)")
+    parser.add_argument("--condyles", type=condyles, default=None, metavar="X,Y,Z:X,Y,Z",
+                        help="with --mesh: left (x > 0) and right condyle in mm, the pivots of the mandible "
+                             "(default: the top of each proximal segment's surface)")
+    add_units(parser)
     parser.add_argument("--subjects", type=int, default=1,
                         help="number of phantom subjects, >= 1: subject 0 is the default shape, subject k >= 1 "
                              "FaceShape.sample(k)")
@@ -96,9 +113,19 @@ def dataset(args: argparse.Namespace) -> int:
     from toolkit.static.dataset import DatasetConfig, generate
 
     check_output_file(args.out, what="database file")
-    config = DatasetConfig(resolution=args.resolution, subjects=args.subjects, plans=args.plans, mode=args.mode,
-                           increments=args.increments, material=args.material, sliding=args.sliding, seed=args.seed,
-                           poisson_range=tuple(args.poisson_range) if args.poisson_range else None)
+    settings = dict(subjects=args.subjects, plans=args.plans, mode=args.mode, increments=args.increments,
+                    material=args.material, sliding=args.sliding, seed=args.seed,
+                    poisson_range=tuple(args.poisson_range) if args.poisson_range else None)
+    if args.mesh is None:
+        if args.bone or args.condyles:
+            raise ValueError(f"{'--bone' if args.bone else '--condyles'} applies to a meshed face; give --mesh "
+                             "FACE.vtu, or leave it out for the phantoms")
+        config = DatasetConfig(resolution=args.resolution, **settings)
+    else:
+        from toolkit.static.dataset import database_subject
+
+        config = DatasetConfig.for_mesh(args.mesh, bones(args.bone), args.condyles, args.units, **settings)
+        database_subject(config, 0)  # reads the mesh and places the plans: its errors before any output
     with dask_client(args.dask, args.workers) as client:
         report = generate(args.out, config, executor=client, workers=args.workers, retry_failed=args.retry_failed)
     print(f"{len(report.done)} simulations done, {len(report.skipped)} already there, {len(report.failed)} failed "
@@ -144,7 +171,7 @@ def train(args: argparse.Namespace) -> int:
     config = SurrogateConfig(
         FeatureSpec(args.variant, args.extra_channels, args.material_channels, args.linear_prior),
         network=args.network,
-        coarse_radii=_database_resolution(args.data) == "coarse",
+        coarse_radii=_coarse_radii(args.data),
         split="subjects" if args.test_subjects else "plans", test_subjects=tuple(args.test_subjects or ()),
         epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
         max_seconds=None if args.max_minutes is None else 60 * args.max_minutes, lr_schedule=args.lr_schedule)
@@ -165,13 +192,13 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 def evaluate(args: argparse.Namespace) -> int:
     from toolkit.common.outputs import check_output_dir
-    from toolkit.static.dataset import subject_phantom
+    from toolkit.static.dataset import subject_mesh
     from toolkit.static.surrogate import Surrogate, evaluate_surrogate, write_evaluation
 
     check_output_dir(args.out)
     model = Surrogate.load(args.model, device=args.device)
     result = evaluate_surrogate(model, args.data)
-    mesh = None if args.no_render else subject_phantom(_database_resolution(args.data), 0).mesh
+    mesh = None if args.no_render else subject_mesh(args.data, 0)
     with uninterruptible():
         write_evaluation(result, args.out, mesh)
     m = result["metrics"]
@@ -209,7 +236,11 @@ def predict(args: argparse.Namespace) -> int:
 
     check_output_dir(args.out)
     model = Surrogate.load(args.model, device=args.device)
-    resolution = args.resolution or model.bundle.data["database"]["resolution"]
+    database = model.bundle.data["database"]
+    if args.mesh is None and database.get("mesh") is not None:
+        raise ValueError(f"the model was trained on the meshed face {database['mesh']}: give it with --mesh and a "
+                         "--plan (pivot_mm for every rotating segment)")
+    resolution = args.resolution or database["resolution"]
     case = load_case(args.mesh, resolution=resolution, plan=args.plan, bones=bones(args.bone), force=args.force,
                      units=args.units)
     result = model.predict_plan(case.subject, case.plan, segments=case.segments)
@@ -238,13 +269,23 @@ def bones(specs: list[str]) -> dict[str, Path]:
     return out
 
 
-def _database_resolution(path) -> str:
-    """The phantom resolution a static database was generated at (``paper`` when it does not say)."""
+#: meshes with fewer nodes take the coarse PointNet++ radii (the coarse phantom has ~800, the paper one ~4,000)
+COARSE_NODES = 2000
+
+
+def _coarse_radii(path) -> bool:
+    """Whether a database's meshes are coarse: the coarse phantom, or a meshed face under
+    :data:`COARSE_NODES` nodes (a database that does not say is the paper phantom's)."""
     import json
 
     from toolkit.common.database import Database
 
-    return json.loads(Database.open_attrs(Path(path)).get("config", "{}")).get("resolution", "paper")
+    config = json.loads(Database.open_attrs(Path(path)).get("config", "{}"))
+    if config.get("mesh") is None:
+        return config.get("resolution", "paper") == "coarse"
+    from toolkit.static.dataset import subject_mesh
+
+    return subject_mesh(path, 0).n_points < COARSE_NODES
 
 
 COMMANDS = {
@@ -257,9 +298,9 @@ COMMANDS = {
         interrupted=NOTHING_WRITTEN + " (the files are written after the last increment)"),
     "dataset": Command(
         help="generate the surrogate's learning database",
-        description="Simulate sampled plans on phantom subjects; every increment is a learning sample (the "
-                    "PointNet++ paper). Resumable: a rerun skips finished simulations; failures are recorded with "
-                    "their reason. Ctrl-C loses no finished simulation.",
+        description="Simulate sampled plans on phantom subjects or on a meshed face (--mesh); every increment is "
+                    "a learning sample (the PointNet++ paper). Resumable: a rerun skips finished simulations; "
+                    "failures are recorded with their reason. Ctrl-C loses no finished simulation.",
         add_arguments=add_dataset_arguments, run=dataset, interrupted=SIMULATIONS_KEPT),
     "train": Command(
         help="train the PointNet++ surrogate on a database",

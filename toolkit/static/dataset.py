@@ -2,8 +2,9 @@
 
 Each *simulation* runs one plan of :func:`~toolkit.static.plan.sample_plans` on one
 *subject* (a face phantom: subject 0 is the default :class:`~toolkit.common.phantom.FaceShape`,
-subject k > 0 is ``FaceShape.sample(k)``), and each of its increments is one learning
-*sample*, as in the PointNet++ paper:
+subject k > 0 is ``FaceShape.sample(k)``; or the one subject of a database on a meshed face,
+``DatasetConfig.for_mesh``, whose plans are placed by :func:`~toolkit.static.anatomy.face_anatomy`),
+and each of its increments is one learning *sample*, as in the PointNet++ paper:
 
 - the starting mesh ``x (n, 3)`` mm: the face at the start of the increment;
 - the boundary types ``(n,)`` (``free=0, moving=1, fixed=2, mucosa_sliding=3, lip_sliding=4``);
@@ -16,8 +17,10 @@ Storage (one HDF5 file through :mod:`toolkit.common.database`: crash-safe shards
 failures recorded with their reason, a configuration check that refuses a foreign file):
 ``/shared/subject_<k>/`` holds each subject's pre-operative points, boundary types and
 bone-segment ids (``/shared/cells/<type>`` and ``/shared/sets/<name>`` the topology and
-node sets, common to all subjects); ``/records/<key>/`` each simulation's cumulative
-displacement ``displacements (increments + 1, n, 3)`` and the increments' bone
+node sets, common to all subjects; a meshed face's database also keeps every node set,
+``/shared/element_sets/<name>`` and ``/shared/cell_data/<name>``, so that
+:meth:`StaticDatabase.subject_mesh` rebuilds the mesh without its file); ``/records/<key>/``
+each simulation's cumulative displacement ``displacements (increments + 1, n, 3)`` and the increments' bone
 displacements ``bone (increments, n, 3)`` (float32, mm); ``/index`` one row per
 simulation and ``/samples`` one row per increment (subject, plan, increment, plan
 parameters, largest input displacement, solver diagnostics), both read as DataFrames with
@@ -62,7 +65,8 @@ from toolkit.common.database import (
 from toolkit.common.papers import TISSUE_NU
 from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES
 
-__all__ = ["DatasetConfig", "generate", "StaticDatabase", "read_samples", "subject_phantom", "plan_features",
+__all__ = ["DatasetConfig", "generate", "StaticDatabase", "read_samples", "subject_phantom", "database_subject",
+           "subject_mesh", "plan_features",
            "jaw_side", "material_for", "simulate_job",
            "DATABASE_KIND", "DATABASE_VERSION", "PLAN_FEATURES"]
 
@@ -81,8 +85,9 @@ class DatasetConfig:
 
     Attributes
     ----------
-    resolution : phantom resolution (``coarse``, ``paper``, ``fine``)
-    subjects : number of phantom subjects (0 = default shape, k = ``FaceShape.sample(k)``)
+    resolution : phantom resolution (``coarse``, ``paper``, ``fine``); None for a meshed face
+    subjects : number of phantom subjects (0 = default shape, k = ``FaceShape.sample(k)``); 1
+        for a meshed face
     plans : plans per subject
     mode : ``sagittal`` or ``full`` (:func:`~toolkit.static.plan.sample_plans`)
     increments : increments per simulation (the lip-sliding paper: 3); each is a sample
@@ -93,6 +98,13 @@ class DatasetConfig:
     poisson_range : (lo, hi) — each simulation draws Poisson's ratio uniformly in it (the
         same for the whole face and the lip muscle; the lip-sliding paper's 0.47 when None), for models
         with material channels. A displacement-driven linear problem does not depend on E.
+    mesh : absolute path of a meshed face (``.vtu``/``.inp``/``.xdmf``, e.g. from ``toolkit mesh``)
+        to simulate instead of the phantoms, or None; ``mesh_sha1`` its content hash (a resumed
+        database refuses a changed file)
+    bones : ``((segment, absolute path, sha1), ...)`` bone surfaces replacing the mesh's own
+        bone-side faces (:func:`~toolkit.static.anatomy.face_anatomy`)
+    condyles : ``((x, y, z), (x, y, z))`` mm, left then right, instead of the anatomy's rule
+    units : length unit of the mesh and bone files
     """
 
     resolution: str = "coarse"
@@ -105,12 +117,25 @@ class DatasetConfig:
     seed: int = 0
     max_jaw_closing_mm: float | None = MAX_JAW_CLOSING_MM
     poisson_range: tuple[float, float] | None = None
+    mesh: str | None = None
+    mesh_sha1: str | None = None
+    bones: tuple = ()
+    condyles: tuple | None = None
+    units: str = "mm"
 
     def __post_init__(self):
         from toolkit.common.phantom import FACE_RESOLUTIONS
         from toolkit.static.simulate import MATERIALS, SLIDING_MODELS
 
-        if self.resolution not in FACE_RESOLUTIONS:
+        object.__setattr__(self, "bones", tuple(tuple(b) for b in self.bones))  # hashable, also from JSON lists
+        if self.condyles is not None:
+            object.__setattr__(self, "condyles", tuple(tuple(float(v) for v in c) for c in self.condyles))
+        if self.mesh is not None:
+            if self.subjects != 1:
+                raise ValueError(f"subjects = {self.subjects!r} with mesh {self.mesh!r}; a database on a meshed "
+                                 "face has one subject (command line: leave out --subjects)")
+            object.__setattr__(self, "resolution", None)
+        elif self.resolution not in FACE_RESOLUTIONS:
             raise ValueError(f"resolution = {self.resolution!r}; expected one of {list(FACE_RESOLUTIONS)}")
         for name, lo in (("subjects", 1), ("plans", 1), ("increments", 1)):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < lo:
@@ -130,6 +155,25 @@ class DatasetConfig:
     def as_dict(self) -> dict:
         return asdict(self)
 
+    @classmethod
+    def for_mesh(cls, mesh: str | os.PathLike, bones=None, condyles=None, units: str = "mm",
+                 **settings) -> DatasetConfig:
+        """A database on a meshed face: ``mesh`` and ``bones`` (segment -> surface file) are
+        recorded by absolute path and content hash; ``settings`` are the other attributes."""
+        bones = dict(bones or {})
+        for what, path in (("mesh", mesh), *((f"bone {k}", v) for k, v in bones.items())):
+            if not Path(path).is_file():
+                raise FileNotFoundError(f"{what} file {str(path)!r} does not exist")
+        return cls(**settings, mesh=str(Path(mesh).resolve()), mesh_sha1=_sha1(mesh), units=units,
+                   bones=tuple(sorted((k, str(Path(v).resolve()), _sha1(v)) for k, v in bones.items())),
+                   condyles=None if condyles is None else tuple(map(tuple, np.asarray(condyles, float).tolist())))
+
+
+def _sha1(path) -> str:
+    import hashlib
+
+    return hashlib.sha1(Path(path).read_bytes()).hexdigest()
+
 
 @lru_cache(maxsize=8)
 def subject_phantom(resolution: str, subject: int):
@@ -137,6 +181,27 @@ def subject_phantom(resolution: str, subject: int):
     from toolkit.common.phantom import FaceShape, face_hex
 
     return face_hex(resolution, FaceShape() if subject == 0 else FaceShape.sample(int(subject)))
+
+
+@lru_cache(maxsize=4)
+def database_subject(config: DatasetConfig, subject: int):
+    """What the database's ``subject`` is simulated on: the phantom of :func:`subject_phantom`,
+    or the meshed face's :class:`~toolkit.static.anatomy.FaceAnatomy` (both have ``mesh`` and
+    ``segments``)."""
+    if config.mesh is None:
+        return subject_phantom(config.resolution, subject)
+    from toolkit.common.io import read
+    from toolkit.static.anatomy import face_anatomy
+
+    for path, sha1 in ((config.mesh, config.mesh_sha1), *((p, h) for _, p, h in config.bones)):
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"{path} (a file of the database's configuration) does not exist; restore it "
+                                    "or start a new database")
+        if _sha1(path) != sha1:
+            raise ValueError(f"{path} changed since the database was made on it; restore it or start a new database")
+    mesh = read(config.mesh, units=config.units, require_node_sets=["fixed"])
+    return face_anatomy(mesh, {name: path for name, path, _ in config.bones}, condyles=config.condyles,
+                        units=config.units)
 
 
 def _boundary(phantom, sliding: str):
@@ -163,7 +228,7 @@ def _jobs(config: DatasetConfig) -> list[Job]:
 
     jobs = []
     for subject in range(config.subjects):
-        phantom = subject_phantom(config.resolution, subject)
+        phantom = database_subject(config, subject)
         plans = sample_plans(config.plans, np.random.default_rng([config.seed, subject]), config.mode,
                              phantom=phantom, max_jaw_closing_mm=config.max_jaw_closing_mm)
         nu_rng = np.random.default_rng([config.seed, subject, 1])
@@ -195,15 +260,17 @@ def simulate_job(params: dict) -> Record:
     from toolkit.static.simulate import SimulationOptions, simulate
 
     cfg = DatasetConfig(**params["config"])
-    phantom = subject_phantom(cfg.resolution, int(params["subject"]))
+    phantom = database_subject(cfg, int(params["subject"]))
+    face = phantom if cfg.mesh is None else phantom.mesh
     motions = {k: v for k, v in params["motions"].items() if k != "force"}
     plan = SurgicalPlan.from_dict(motions)
     t0 = time.perf_counter()
     # one release band and an intact cut for every plan: the database stores one set of boundary
     # types per subject, so a plan that would need a wider band or freed cut nodes is recorded as
     # failed rather than stored inconsistently
-    result = simulate(phantom, plan, cfg.increments, material_for(cfg.material, params.get("poisson"), phantom.mesh),
-                      cfg.sliding, options=SimulationOptions(wider_release=(), free_cut_radius=0.0))
+    result = simulate(face, plan, cfg.increments, material_for(cfg.material, params.get("poisson"), phantom.mesh),
+                      cfg.sliding, segments=phantom.segments,
+                      options=SimulationOptions(wider_release=(), free_cut_radius=0.0))
     seconds = time.perf_counter() - t0
     U = result.displacements
     bc = result.boundary
@@ -237,21 +304,46 @@ def _shared(config: DatasetConfig, first_subject: int = 0) -> dict:
     """Arrays common to the database: topology, node sets, each subject's points and types
     (only the subjects from ``first_subject`` on, without topology and sets, when > 0)."""
     out = {}
-    first = subject_phantom(config.resolution, 0)
+    first = database_subject(config, 0)
     if first_subject == 0:
         for ctype, cells in first.mesh.cells.items():
             out[f"cells/{ctype}"] = cells
-        for name in ("skin", "lip_sliding", "upper_lip_face", "lower_lip_face", "mucosa_sliding", "bone"):
+        kept = first.mesh.node_sets if config.mesh is not None else \
+            ("skin", "lip_sliding", "upper_lip_face", "lower_lip_face", "mucosa_sliding", "bone")
+        for name in kept:
             if name in first.mesh.node_sets:
                 out[f"sets/{name}"] = first.mesh.node_sets[name]
+        if config.mesh is not None:
+            out.update({f"element_sets/{k}": v for k, v in first.mesh.element_sets.items()})
+            out.update({f"cell_data/{k}": v for k, v in first.mesh.cell_data.items()})
     for subject in range(first_subject, config.subjects):
-        ph = subject_phantom(config.resolution, subject)
+        ph = database_subject(config, subject)
         bc = _boundary(ph, config.sliding)
         out[f"subject_{subject:03d}/points"] = ph.mesh.points
         out[f"subject_{subject:03d}/types"] = bc.types
         out[f"subject_{subject:03d}/segment"] = bc.segment
-        out[f"subject_{subject:03d}/shape"] = np.array([getattr(ph.shape, f) for f in _SHAPE_FIELDS])
+        out[f"subject_{subject:03d}/shape"] = np.array([getattr(ph.shape, f) for f in _SHAPE_FIELDS]) \
+            if config.mesh is None else np.full(len(_SHAPE_FIELDS), np.nan)
     return out
+
+
+def subject_mesh(path: str | os.PathLike, subject: int = 0):
+    """The pre-operative Mesh of a database's ``subject`` (mm), read from the file's ``/shared``
+    for a meshed face (with its sets and cell data) or rebuilt for a phantom."""
+    import h5py
+
+    from toolkit.common.mesh import Mesh
+
+    config = DatasetConfig(**json.loads(Database.open_attrs(Path(path)).get("config", "{}")))
+    if config.mesh is None:
+        return subject_phantom(config.resolution, subject).mesh
+    with h5py.File(path, "r") as f:
+        sh = f["shared"]
+        group = {name: {k: v[()] for k, v in sh[name].items()} if name in sh else {}
+                 for name in ("cells", "sets", "element_sets", "cell_data")}
+        points = sh[f"subject_{subject:03d}"]["points"][()]
+    return Mesh(points, group["cells"], node_sets=group["sets"], element_sets=group["element_sets"],
+                cell_data=group["cell_data"])
 
 
 def _add_subjects(path: Path, config: DatasetConfig, first_subject: int) -> None:
@@ -468,6 +560,10 @@ class StaticDatabase:
 
     def __len__(self) -> int:
         return len(self.samples)
+
+    def subject_mesh(self, subject: int):
+        """The pre-operative Mesh of ``subject`` (:func:`subject_mesh`)."""
+        return subject_mesh(self.path, subject)
 
     def sample(self, i: int) -> dict:
         """Sample ``i``: ``x`` starting mesh (n, 3), ``types`` (n,), ``s`` prescribed (n, 3),

@@ -55,6 +55,7 @@ if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
 
     from toolkit.common.phantom import FacePhantom
+    from toolkit.static.anatomy import FaceAnatomy
 
 __all__ = [
     "MotionRange",
@@ -464,7 +465,7 @@ class SurgicalPlan:
     @classmethod
     def for_phantom(
         cls,
-        phantom: FacePhantom,
+        phantom: FacePhantom | FaceAnatomy,
         *,
         lefort: RigidMotion | Mapping[str, Any] | None = None,
         distal: RigidMotion | Mapping[str, Any] | None = None,
@@ -475,7 +476,9 @@ class SurgicalPlan:
         """A plan on ``phantom``: each segment is a RigidMotion (kept as is) or a mapping
         in the file format whose missing ``pivot_mm`` is the phantom segment's pivot.
         Proximal segments not given follow the distal one (about the phantom's condyles,
-        at :func:`proximal_reference_points`)."""
+        at :func:`proximal_reference_points`). ``phantom`` may be a meshed face's
+        :class:`~toolkit.static.anatomy.FaceAnatomy`; one without proximal segments gets no
+        proximal motions."""
         given = {"lefort": lefort, "distal": distal, "proximal_left": proximal_left, "proximal_right": proximal_right}
         motions = {}
         for name, spec in given.items():
@@ -486,6 +489,8 @@ class SurgicalPlan:
                     raise PlanError(f"segment {name!r}: {exc}") from exc
             if spec is not None:
                 motions[name] = spec
+        if not {"proximal_left", "proximal_right"} <= set(phantom.segments):
+            return cls(motions, force=force)
         d = motions.get("distal", RigidMotion.identity())
         reference = proximal_reference_points(phantom)
         for side, name in enumerate(("proximal_left", "proximal_right")):
@@ -544,7 +549,7 @@ class SurgicalPlan:
         return {"force": self.force, **{k: m.as_dict() for k, m in self.motions.items()}}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any], phantom: FacePhantom | None = None) -> SurgicalPlan:
+    def from_dict(cls, d: Mapping[str, Any], phantom: FacePhantom | FaceAnatomy | None = None) -> SurgicalPlan:
         """Inverse of :meth:`as_dict` (optional ``force``); with a ``phantom``, missing
         pivots come from its segments and missing proximal segments follow the distal one."""
         force = d.get("force", False)
@@ -568,7 +573,7 @@ class SurgicalPlan:
         return cls(motions, force=force)
 
     @classmethod
-    def read(cls, path, phantom: FacePhantom | None = None, *, force: bool = False) -> SurgicalPlan:
+    def read(cls, path, phantom: FacePhantom | FaceAnatomy | None = None, *, force: bool = False) -> SurgicalPlan:
         """Read a ``.toml`` or ``.json`` plan (see the module docstring for the keys); ``force``
         accepts movements beyond twice the physiological range whatever the file says."""
         path = Path(path)
@@ -645,7 +650,7 @@ def _toml(d: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def default_plan(phantom: FacePhantom, force: bool = False) -> SurgicalPlan:
+def default_plan(phantom: FacePhantom | FaceAnatomy, force: bool = False) -> SurgicalPlan:
     """The packaged typical bimaxillary plan on ``phantom``.
 
     Le Fort I: advance 4 mm (+y), impaction 2 mm (-z), 3 degrees about +x; distal
@@ -675,9 +680,12 @@ def _directions(rng: np.random.Generator, n: int, mode: str) -> np.ndarray:
 MAX_JAW_CLOSING_MM = 10.0
 
 
-def dental_arch(phantom: FacePhantom) -> np.ndarray:
+def dental_arch(phantom: FacePhantom | FaceAnatomy) -> np.ndarray:
     """Bone-side points of the occlusal plane under the Le Fort I segment, ``(k, 3)`` mm:
-    where the upper and lower teeth meet (``z = 0`` in the phantoms' axes)."""
+    where the upper and lower teeth meet (``z = 0`` in the phantoms' axes; a meshed face's
+    :attr:`FaceAnatomy.arch <toolkit.static.anatomy.FaceAnatomy.arch>`)."""
+    if hasattr(phantom, "arch"):
+        return phantom.arch
     mesh = phantom.mesh
     bone = mesh.node_sets["bone"]
     pts = mesh.points[bone]
@@ -699,7 +707,8 @@ def jaw_closing(plan: SurgicalPlan, arch: np.ndarray) -> float:
 
 def sample_plans(n: int, seed: int | np.random.Generator, mode: str = "sagittal",
                  ranges: Mapping[str, MotionRange] = PHYSIOLOGICAL_RANGES, *,
-                 phantom: FacePhantom, max_jaw_closing_mm: float | None = MAX_JAW_CLOSING_MM) -> list[SurgicalPlan]:
+                 phantom: FacePhantom | FaceAnatomy,
+                 max_jaw_closing_mm: float | None = MAX_JAW_CLOSING_MM) -> list[SurgicalPlan]:
     """Random bimaxillary plans within ``ranges`` (the lip-sliding paper's physiological ranges by default).
 
     Both the Le Fort I and the distal mandibular segment move in every plan: the
@@ -720,7 +729,8 @@ def sample_plans(n: int, seed: int | np.random.Generator, mode: str = "sagittal"
     seed : int or numpy Generator (the only source of randomness)
     mode : ``sagittal`` or ``full``
     ranges : segment -> MotionRange for ``lefort`` and ``distal``
-    phantom : FacePhantom whose pivots, condyles and dental arch the plans use
+    phantom : FacePhantom, or a meshed face's FaceAnatomy (:func:`toolkit.static.anatomy.face_anatomy`),
+        whose pivots, condyles and dental arch the plans use
     max_jaw_closing_mm : mm, or None (see above; default :data:`MAX_JAW_CLOSING_MM`)
 
     Returns

@@ -443,10 +443,7 @@ class _Data:
 
 def _subject_priors(db, subjects) -> dict:
     """Influence matrix of each phantom subject of a database (its mesh and boundary types)."""
-    from toolkit.static.dataset import subject_phantom
-
-    return {int(sid): linear_prior(subject_phantom(db.config.resolution, int(sid)).mesh, db.types[int(sid)])
-            for sid in subjects}
+    return {int(sid): linear_prior(db.subject_mesh(int(sid)), db.types[int(sid)]) for sid in subjects}
 
 
 def _encode_database(db, spec: FeatureSpec, priors: dict | None = None) -> _Data:
@@ -610,7 +607,7 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
                  hint="Score the model on a database generated with its settings (`toolkit static dataset "
                       + " ".join(f"--{k} {trained_on.get(k)}" for k in MUST_MATCH) + "`)")
     model.check_mesh(db.points[0], db.cells)
-    same = asked == trained_on
+    same = json.loads(json.dumps(asked)) == trained_on  # tuples as the stored lists
     seen = model.bundle.extra.get("seen_simulations")
     identities = _simulation_identities(db) if seen is not None else {}
     seen = set(seen) if seen is not None else None
@@ -644,10 +641,7 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
     subjects = np.unique(db.samples.subject.to_numpy()[rows])
     priors = None
     if model.config.features.linear_prior:
-        from toolkit.static.dataset import subject_phantom
-
-        priors = {int(sid): model.prior(subject_phantom(db.config.resolution, int(sid)).mesh, db.types[int(sid)])
-                  for sid in subjects}
+        priors = {int(sid): model.prior(db.subject_mesh(int(sid)), db.types[int(sid)]) for sid in subjects}
     data = _encode_database(_Subset(db, rows), model.config.features, priors)
     preds = np.empty_like(data.target, dtype=np.float64)
     for sid in np.unique(data.subject):

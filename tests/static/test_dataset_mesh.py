@@ -1,0 +1,131 @@
+"""A learning database on a meshed face (``toolkit static dataset --mesh``), and train, evaluate and
+predict on it from the command line, as a user with their own face would run them."""
+
+import json
+
+import numpy as np
+import pytest
+
+from toolkit.cli import main
+from toolkit.common import face_hex, read, write
+from toolkit.mesh import mesh_face
+from toolkit.mesh.phantom import phantom_surfaces, write_surfaces
+from toolkit.static.dataset import DatasetConfig, StaticDatabase, database_subject, read_samples, subject_mesh
+from toolkit.static.plan import sample_plans
+
+SEGMENTS = ("lefort", "distal", "proximal_left", "proximal_right")
+
+
+@pytest.fixture(scope="module")
+def face(tmp_path_factory):
+    """The coarse phantom's surfaces meshed at 10 mm (tet10, ~4,300 nodes), written with its bone files."""
+    folder = tmp_path_factory.mktemp("face")
+    phantom = face_hex("coarse")
+    surfaces = phantom_surfaces(phantom)
+    files = write_surfaces(folder / "surfaces", surfaces)
+    meshed = mesh_face(surfaces.tissue, surfaces.bones, surfaces.commissures, size_mm=10.0, order=2)
+    write(folder / "face.vtu", meshed.mesh)
+    condyles = ":".join(",".join(repr(float(v)) for v in c) for c in phantom.condyles)
+    bones = [f"--bone={name}={files[name]}" for name in SEGMENTS]
+    return {"folder": folder, "mesh": folder / "face.vtu", "bones": bones, "condyles": f"--condyles={condyles}",
+            "files": files}
+
+
+@pytest.fixture(scope="module")
+def database(face):
+    out = face["folder"] / "db.h5"
+    assert main(["static", "dataset", "--mesh", str(face["mesh"]), *face["bones"], face["condyles"], "--plans", "4",
+                 "--workers", "0", "--out", str(out)]) == 0
+    return out
+
+
+def test_database_holds_the_meshed_face_and_its_plans(face, database):
+    db = StaticDatabase.open(database)
+    mesh = read(face["mesh"])
+    assert db.config.mesh == str(face["mesh"].resolve()) and db.config.resolution is None
+    # a 10 mm face is far coarser than a patient's: a plan may fail, and is then recorded with its reason
+    every = read_samples(database)
+    assert every.key.nunique() == 4 and db.samples.key.nunique() >= 3 and len(db) == 3 * db.samples.key.nunique()
+    assert every.status.str.match(r"ok$|failed: SimulationError").all()
+    np.testing.assert_array_equal(db.points[0], mesh.points)
+    # the mesh comes back from the file alone, with every set and the lip muscle
+    again = subject_mesh(database)
+    assert set(again.node_sets) == set(mesh.node_sets) and set(again.element_sets) == {"lip_muscle"}
+    np.testing.assert_array_equal(again.cells["tet10"], mesh.cells["tet10"])
+    # the plans are sample_plans on the face's anatomy: the distal pivot is the given condyles' midpoint
+    anatomy = database_subject(db.config, 0)
+    np.testing.assert_allclose(anatomy.segments["distal"].pivot, face_hex("coarse").segments["distal"].pivot)
+    first = sample_plans(1, np.random.default_rng([0, 0]), phantom=anatomy)[0]
+    from toolkit.static.dataset import plan_features
+
+    np.testing.assert_allclose(db.samples[db.samples.plan == 0].sort_values("increment")[
+        ["lefort_tx", "lefort_ty", "lefort_tz", "distal_tx", "distal_ty", "distal_tz"]].to_numpy(),
+        plan_features(first, 3)[:, [0, 1, 2, 6, 7, 8]], atol=1e-9)
+    # no element inverted in any simulation
+    assert (db.samples.min_scaled_jacobian > 0).all()
+
+
+def test_train_evaluate_and_predict_on_the_meshed_face(face, database, tmp_path, capsys):
+    model = tmp_path / "model"
+    assert main(["static", "train", "--data", str(database), "--out", str(model), "--network", "tiny",
+                 "--epochs", "3"]) == 0
+    assert main(["static", "evaluate", "--model", str(model), "--data", str(database), "--out",
+                 str(tmp_path / "ev")]) == 0
+    metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert metrics["scored"] == "test split of the training database"
+    # the linear prior carries a linear-material database: whatever 3 epochs did to the residual, the
+    # error stays well under the displacement itself (zero prediction)
+    db = StaticDatabase.open(database)
+    test = db.samples.key.isin(json.loads((model / "config.json").read_text())["extra"]["test_keys"]).to_numpy()
+    v = db.arrays(np.flatnonzero(test))["v"]
+    assert metrics["mean_error_mm"] < 0.5 * np.linalg.norm(v, axis=-1).mean()
+    plan = tmp_path / "plan.toml"
+    sample_plans(9, 3, phantom=database_subject(db.config, 0))[8].write(plan)
+    out = tmp_path / "predicted"
+    assert main(["static", "predict", "--model", str(model), "--mesh", str(face["mesh"]), "--plan", str(plan),
+                 "--out", str(out), "--no-preview"]) == 0
+    assert json.loads((out / "summary.json").read_text())["nodes"] == db.points[0].shape[0]
+    # the model knows its face: predicting on the phantom instead is refused before any output
+    assert main(["static", "predict", "--model", str(model), "--plan", str(plan), "--out",
+                 str(tmp_path / "wrong")]) == 2
+    assert "trained on the meshed face" in capsys.readouterr().err and not (tmp_path / "wrong").exists()
+
+
+def test_a_changed_mesh_file_is_refused_on_resume(face, database, tmp_path):
+    import shutil
+
+    mesh = tmp_path / "face.vtu"
+    shutil.copy(face["mesh"], mesh)
+    out = tmp_path / "db.h5"
+    args = ["static", "dataset", "--mesh", str(mesh), "--plans", "1", "--workers", "0", "--out", str(out)]
+    assert main(args) == 0
+    m = read(mesh)
+    write(mesh, type(m)(m.points + 0.1, m.cells, node_sets=m.node_sets, element_sets=m.element_sets))
+    before = out.read_bytes()
+    assert main(args[:-4] + ["--plans", "2", "--workers", "0", "--out", str(out)]) == 2
+    assert out.read_bytes() == before
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--subjects", "2"], "one subject"),
+    (["--condyles", "1,2,3"], "expected two points"),
+    (["--bone", "lefort=missing.stl"], "missing.stl"),
+])
+def test_bad_mesh_database_options_are_refused_before_any_output(face, tmp_path, capsys, extra, message):
+    out = tmp_path / "db.h5"
+    try:
+        code = main(["static", "dataset", "--mesh", str(face["mesh"]), "--plans", "1", *extra, "--out", str(out)])
+    except SystemExit as exc:  # argparse's own refusal of an option's value
+        code = exc.code
+    assert code == 2 and message in capsys.readouterr().err and not out.exists()
+
+
+def test_mesh_options_without_a_mesh_are_refused(face, tmp_path, capsys):
+    out = tmp_path / "db.h5"
+    assert main(["static", "dataset", face["bones"][0], "--plans", "1", "--out", str(out)]) == 2
+    assert "give --mesh" in capsys.readouterr().err and not out.exists()
+
+
+def test_a_mesh_database_config_has_one_subject():
+    with pytest.raises(ValueError, match="one subject"):
+        DatasetConfig(mesh="/face.vtu", subjects=2)
