@@ -89,6 +89,13 @@ def test_train_evaluate_and_predict_on_the_meshed_face(face, database, tmp_path,
     assert main(["static", "predict", "--model", str(model), "--plan", str(plan), "--out",
                  str(tmp_path / "wrong")]) == 2
     assert "trained on the meshed face" in capsys.readouterr().err and not (tmp_path / "wrong").exists()
+    # ... and the mesh of another topology likewise, unless asked: PointNet++ reads any point cloud
+    args = ["static", "predict", "--model", str(model), "--resolution", "coarse", "--no-preview"]
+    assert main([*args, "--out", str(tmp_path / "wrong")]) == 2
+    assert "--any-mesh" in capsys.readouterr().err and not (tmp_path / "wrong").exists()
+    assert main([*args, "--any-mesh", "--out", str(tmp_path / "phantom")]) == 0
+    summary = json.loads((tmp_path / "phantom" / "summary.json").read_text())
+    assert summary["nodes"] == face_hex("coarse").mesh.n_points and summary["max_displacement_mm"] > 1.0
 
 
 def test_a_changed_mesh_file_is_refused_on_resume(face, database, tmp_path):

@@ -221,6 +221,9 @@ def add_predict_arguments(parser: argparse.ArgumentParser) -> None:
                         help="built-in phantom (default: the training database's)")
     parser.add_argument("--bone", action="append", default=[], metavar="SEGMENT=FILE",
                         help="as for simulate (default: the phantom's surfaces, or the mesh's bone-side faces)")
+    parser.add_argument("--any-mesh", action="store_true",
+                        help="predict on a mesh of another topology than the training meshes (PointNet++ reads a "
+                             "point cloud; its accuracy on a remeshed face is in docs/own-face.md)")
     add_units(parser)
     parser.add_argument("--force", action="store_true",
                         help="accept movements beyond twice the physiological range (also for a --plan file)")
@@ -237,13 +240,14 @@ def predict(args: argparse.Namespace) -> int:
     check_output_dir(args.out)
     model = Surrogate.load(args.model, device=args.device)
     database = model.bundle.data["database"]
-    if args.mesh is None and database.get("mesh") is not None:
+    if args.mesh is None and database.get("mesh") is not None and not (args.any_mesh and args.resolution):
         raise ValueError(f"the model was trained on the meshed face {database['mesh']}: give it with --mesh and a "
-                         "--plan (pivot_mm for every rotating segment)")
+                         "--plan (pivot_mm for every rotating segment), or predict on a phantom anyway with "
+                         "--any-mesh --resolution R")
     resolution = args.resolution or database["resolution"]
     case = load_case(args.mesh, resolution=resolution, plan=args.plan, bones=bones(args.bone), force=args.force,
                      units=args.units)
-    result = model.predict_plan(case.subject, case.plan, segments=case.segments)
+    result = model.predict_plan(case.subject, case.plan, segments=case.segments, any_mesh=args.any_mesh)
     with uninterruptible():
         result.write(args.out, preview=not args.no_preview)
     s = result.summary()

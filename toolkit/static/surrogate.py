@@ -307,9 +307,10 @@ class Surrogate:
     def check_mesh(self, points: np.ndarray, cells: dict) -> None:
         """Refuse a mesh of another node count or topology than the training meshes."""
         trained = self.bundle.data.get("database", {}).get("resolution")
-        hint = None if trained is None else (
-            f"the model was trained on the {trained!r} phantom: predict on it (resolution={trained!r}; command "
-            f"line: --resolution {trained}), or train a model on a database of this mesh")
+        on = "" if trained is None else (f"the model was trained on the {trained!r} phantom: predict on it "
+                                         f"(resolution={trained!r}; command line: --resolution {trained}), ")
+        hint = (f"{on}train a model on a database of this mesh, or predict on it anyway (any_mesh=True; command "
+                "line: --any-mesh)")
         self.bundle.check_data({**self.bundle.data, "mesh": _mesh_signature(points, cells)}, "this mesh", hint=hint)
 
     def hierarchy(self, points: np.ndarray, subject: int | None = None):
@@ -361,7 +362,7 @@ class Surrogate:
         out = out.double().cpu().numpy() * self.out_scale
         return out + np.asarray(prior) if self.config.features.linear_prior else out
 
-    def predict_plan(self, face, plan, *, segments=None):
+    def predict_plan(self, face, plan, *, segments=None, any_mesh: bool = False):
         """Run ``plan`` on a face like :func:`~toolkit.static.simulate.simulate`, increment by
         increment with the network, with the increments and sliding model of the training
         database.
@@ -371,6 +372,9 @@ class Surrogate:
         face : FacePhantom, or a Mesh with the phantoms' node sets (then pass ``segments``)
         plan : SurgicalPlan
         segments : name -> BoneSegment (default the phantom's)
+        any_mesh : predict on a mesh of another node count or topology than the training meshes
+            (PointNet++ reads a point cloud; a face remeshed by ``toolkit mesh`` is measured in
+            ``docs/own-face.md``); by default such a mesh is refused
 
         Returns
         -------
@@ -383,7 +387,8 @@ class Surrogate:
         t0 = time.perf_counter()
         data = DatasetConfig(**self.bundle.data["database"])
         mesh, segments = face_mesh_and_segments(face, segments)
-        self.check_mesh(mesh.points, dict(mesh.cells))
+        if not any_mesh:
+            self.check_mesh(mesh.points, dict(mesh.cells))
         bc, _ = boundary_conditions(mesh, segments, data.sliding)
         X = mesh.points
         h = self.hierarchy(X)

@@ -1,0 +1,161 @@
+"""PointNet++ on a face it has never seen, meshed differently: an unseen phantom subject remeshed by
+``toolkit mesh``, against the FE on that mesh, beside the influence-matrix solution of that mesh alone.
+
+PointNet++ reads a point cloud, so unlike the node-indexed baselines (POD, linear + POD residual) it can
+predict on a mesh of another topology (``Surrogate.predict_plan(..., any_mesh=True)``, command line
+``toolkit static predict --any-mesh``). Stages (each resumable; rerun the same command to continue):
+
+1. ``database``: ``--plans`` sampled plans (sagittal, the lip-sliding paper's ranges) on each of
+   ``--subjects`` paper phantom subjects -> ``work/static_paper_subjects.h5`` (the file
+   ``static_surrogate.py`` makes with the same options);
+2. ``model``: the default PointNet++ (hard boundary values over the linear prior) trained on every
+   subject of it within ``--max-minutes`` -> ``work/remeshed_model/``;
+3. ``unseen``: subject ``--test-subject`` (``FaceShape.sample(k)``, outside the database), as its
+   hexahedral phantom and as its surfaces meshed by :func:`toolkit.mesh.mesh_face` (``--size``,
+   tet10); ``--test-plans`` plans on both, the FE of each cached in ``work/remeshed_fe/``;
+4. scores of the network and of its prior (the influence matrix of the same mesh) against the FE
+   of the same mesh: per plan the post-operative displacement's error at every node (mean, 95th
+   percentile) and at the lip nodes (mean), and the time per plan (the influence matrix built once
+   per mesh, its time in ``prior_build_s``).
+
+Writes ``benchmarks/results/surrogate_remeshed.csv`` (one row per mesh, method and plan) with its
+provenance sidecar; prints the summary.
+
+    python benchmarks/surrogate_remeshed.py                       # 4 x 25 plans, 8 min, 10 test plans
+    python benchmarks/surrogate_remeshed.py --subjects 2 --plans 5 --max-minutes 1 --test-plans 2 --size 9
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from _provenance import RESULTS, WORK, write_result
+
+
+def stage_database(args) -> Path:
+    from toolkit.static.dataset import DatasetConfig, generate
+
+    path = WORK / f"static_paper_subjects{args.suffix}.h5"
+    generate(path, DatasetConfig("paper", args.subjects, args.plans, "sagittal", seed=args.seed), workers=args.workers)
+    return path
+
+
+def stage_model(args, db_path: Path):
+    from toolkit.static.surrogate import Surrogate, SurrogateConfig, train_surrogate
+
+    out = WORK / f"remeshed_model{args.suffix}"
+    if (out / "model.pt").exists() and not (out / "checkpoint.pt").exists():
+        return Surrogate.load(out)
+    config = SurrogateConfig(max_seconds=60 * args.max_minutes, seed=args.seed)
+    return train_surrogate(db_path, out, config, resume=(out / "checkpoint.pt").exists())
+
+
+def prior_only(model, mesh, segments, plan, increments: int, sliding: str) -> tuple[np.ndarray, float, float]:
+    """The linear influence-matrix solution of ``mesh`` increment by increment, as the network's
+    prior sees it: cumulative displacement ``(n, 3)`` mm, seconds, and the seconds the matrix took
+    to build (once per mesh; the model's cache shares it with the network)."""
+    from toolkit.static.simulate import boundary_conditions
+
+    bc, _ = boundary_conditions(mesh, segments, sliding)
+    im = model.prior(mesh, bc.types)
+    t0 = time.perf_counter()
+    X, U, previous = mesh.points, np.zeros_like(mesh.points), None
+    driven = np.flatnonzero(bc.segment >= 0)
+    for p in plan.increments(increments):
+        x = X + U
+        prescribed = np.zeros_like(X)
+        for s, name in enumerate(bc.segment_names):
+            ids = driven[(bc.segment[driven] == s) & (bc.types[driven] == 1)]
+            step = p.motion(name) if previous is None else p.motion(name).after(previous.motion(name).inverted())
+            prescribed[ids] = step.apply(x[ids]) - x[ids]
+        U = U + im.predict(prescribed)
+        previous = p
+    return U, time.perf_counter() - t0, im.seconds
+
+
+def errors(pred: np.ndarray, fe: np.ndarray, lips: np.ndarray) -> dict:
+    e = np.linalg.norm(pred - fe, axis=1)
+    return {"mean_error_mm": float(e.mean()), "p95_error_mm": float(np.percentile(e, 95)),
+            "lips_mean_error_mm": float(e[lips].mean()),
+            "fe_mean_displacement_mm": float(np.linalg.norm(fe, axis=1).mean())}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--subjects", type=int, default=4, help="training phantom subjects")
+    ap.add_argument("--plans", type=int, default=25, help="plans per training subject")
+    ap.add_argument("--max-minutes", type=float, default=8.0, help="training time")
+    ap.add_argument("--test-subject", type=int, default=7, help="unseen subject k (FaceShape.sample(k))")
+    ap.add_argument("--test-plans", type=int, default=10)
+    ap.add_argument("--size", type=float, default=7.0, help="element size of the remeshed face, mm")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--suffix", default="", help="suffix of the work files (a small run beside the default one)")
+    ap.add_argument("--out", type=Path, default=RESULTS / "surrogate_remeshed.csv")
+    args = ap.parse_args(argv)
+
+    from toolkit.common.phantom import FaceShape, face_hex
+    from toolkit.common.runtime import set_threads
+    from toolkit.mesh import mesh_face
+    from toolkit.mesh.phantom import phantom_surfaces
+    from toolkit.static import load_case
+    from toolkit.static.plan import sample_plans
+
+    set_threads(1)
+    model = stage_model(args, stage_database(args))
+    data = model.bundle.data["database"]
+    phantom = face_hex("paper", FaceShape.sample(args.test_subject))
+    surfaces = phantom_surfaces(phantom)
+    face = mesh_face(surfaces.tissue, surfaces.bones, surfaces.commissures, size_mm=args.size, order=2)
+    bones = {k: v for k, v in face.bones.items() if k != "skull"}
+    plans = sample_plans(args.test_plans, np.random.default_rng([args.seed, args.test_subject]), "sagittal",
+                         phantom=phantom)
+    cache = WORK / f"remeshed_fe{args.suffix}"
+    cache.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for i, plan in enumerate(plans):
+        for mesh_name, case in (("phantom hex8", load_case(resolution="paper", shape=phantom.shape, plan=plan)),
+                                (f"remeshed tet10 {args.size:g} mm", load_case(face.mesh, plan=plan, bones=bones))):
+            file = cache / f"s{args.test_subject}-{mesh_name.split()[0]}-{args.size:g}-p{i}.npz"
+            if file.exists():
+                fe, fe_s = np.load(file)["u"], float(np.load(file)["seconds"])
+            else:
+                t0 = time.perf_counter()
+                try:
+                    res = case.simulate(increments=data["increments"], material=data["material"],
+                                        sliding=data["sliding"])
+                except Exception as exc:  # noqa: BLE001 - recorded
+                    rows.append({"mesh": mesh_name, "plan": i, "method": "FE", "status": type(exc).__name__})
+                    continue
+                fe, fe_s = res.displacement, time.perf_counter() - t0
+                np.savez(file, u=fe, seconds=fe_s)
+            mesh = case.mesh
+            lips = np.unique(np.concatenate([mesh.node_sets[k] for k in ("lip_sliding", "upper_lip_face",
+                                                                        "lower_lip_face") if k in mesh.node_sets]))
+            base = {"mesh": mesh_name, "nodes": mesh.n_points, "plan": i, "status": "ok"}
+            rows.append({**base, "method": "FE", "seconds": fe_s})
+            prior, prior_s, build_s = prior_only(model, mesh, case.segments, plan, data["increments"],
+                                                 data["sliding"])
+            t0 = time.perf_counter()
+            net = model.predict_plan(case.subject, plan, segments=case.segments, any_mesh=True).displacement
+            rows.append({**base, "method": "PointNet++ (hard + prior)", "seconds": time.perf_counter() - t0,
+                         "prior_build_s": build_s, **errors(net, fe, lips)})
+            rows.append({**base, "method": "influence matrix (the prior alone)", "seconds": prior_s,
+                         "prior_build_s": build_s, **errors(prior, fe, lips)})
+            print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in rows[-2].items()}, flush=True)
+    table = pd.DataFrame(rows)
+    write_result(args.out, table, argv=argv)
+    summary = table[table.status == "ok"].groupby(["mesh", "method"], sort=False).agg(
+        plans=("plan", "size"), mean_error_mm=("mean_error_mm", "mean"), p95_error_mm=("p95_error_mm", "mean"),
+        lips_mean_error_mm=("lips_mean_error_mm", "mean"), seconds=("seconds", "median"))
+    with pd.option_context("display.width", 200):
+        print(summary.to_string(float_format=lambda v: f"{v:.3g}"))
+    return table
+
+
+if __name__ == "__main__":
+    main()
