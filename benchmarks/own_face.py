@@ -64,6 +64,32 @@ def label_agreement(face_mesh, phantom_mesh) -> list[dict]:
     return rows
 
 
+#: the bone-side sets the static boundary conditions read, carried over by --labels phantom
+CARRIED = ("fixed", "maxilla", "mandible", "mucosa_sliding", "mucosa_lefort", "mucosa_distal", "mucosa_proximal_left",
+           "mucosa_proximal_right", "mucosa_skull")
+
+
+def phantom_labels(face_mesh, phantom_mesh):
+    """``face_mesh`` whose :data:`CARRIED` sets are the phantom's: each boundary node takes the
+    membership of the nearest boundary node of the phantom (bone-side sets only on its bone nodes)."""
+    from scipy.spatial import cKDTree
+
+    from toolkit.common.topology import boundary_faces
+
+    ours, theirs = (np.unique(boundary_faces(m.volume_type, m.volume_cells)) for m in (face_mesh, phantom_mesh))
+    nearest = theirs[cKDTree(phantom_mesh.points[theirs]).query(face_mesh.points[ours])[1]]
+    on_bone = np.isin(ours, face_mesh.node_sets["bone"])
+    sets = dict(face_mesh.node_sets)
+    for name in CARRIED:
+        if name not in phantom_mesh.node_sets:
+            sets.pop(name, None)
+            continue
+        member = np.isin(nearest, phantom_mesh.node_sets[name]) & (on_bone | (name == "fixed"))
+        sets[name] = ours[member]
+    return type(face_mesh)(face_mesh.points, face_mesh.cells, node_sets=sets, element_sets=face_mesh.element_sets,
+                           cell_data=face_mesh.cell_data)
+
+
 def skin_difference(face_mesh, u_face, phantom_mesh, u_phantom) -> dict:
     from toolkit.common.surface_distance import closest_points, interpolate_on_surface
     from toolkit.common.topology import boundary_faces
@@ -93,6 +119,9 @@ def main(argv=None):
     ap.add_argument("--simulate-sizes", type=float, nargs="+", default=None,
                     help="compare the default plan at these sizes only (default: every size)")
     ap.add_argument("--plans", type=int, default=0, help="sampled plans per mode on the first size's mesh")
+    ap.add_argument("--labels", nargs="+", default=["rules"], choices=["rules", "phantom"],
+                    help="simulate the meshed face with its labelling rules' sets, and/or with the phantom's "
+                         "bone-side sets carried over (what the labels account for in the difference)")
     ap.add_argument("--out", type=Path, default=RESULTS / "own_face.csv")
     args = ap.parse_args(argv)
 
@@ -122,24 +151,30 @@ def main(argv=None):
                    "max_dihedral_deg": face.report["quality"]["max_dihedral_deg"]}
             for r in label_agreement(face.mesh, phantom.mesh):
                 label_rows.append({"size_mm": size, "order": order, **r})
-            if not args.no_simulate and (args.simulate_sizes is None or size in args.simulate_sizes):
-                if reference is None:
-                    case = load_case(resolution=args.resolution)
+            simulated = not args.no_simulate and (args.simulate_sizes is None or size in args.simulate_sizes)
+            for labels in args.labels if simulated else ("rules",):
+                row = {**row, "labels": labels}
+                if simulated:
+                    if reference is None:
+                        case = load_case(resolution=args.resolution)
+                        t1 = time.perf_counter()
+                        reference = case.simulate(increments=3, material="linear", sliding="mucosa+lip")
+                        ref_s = time.perf_counter() - t1
+                    mesh = face.mesh if labels == "rules" else phantom_labels(face.mesh, phantom.mesh)
+                    meshed = load_case(mesh, plan=case.plan, bones={k: v for k, v in face.bones.items()
+                                                                    if k != "skull"})
                     t1 = time.perf_counter()
-                    reference = case.simulate(increments=3, material="linear", sliding="mucosa+lip")
-                    ref_s = time.perf_counter() - t1
-                meshed = load_case(face.mesh, plan=case.plan,
-                                   bones={k: v for k, v in face.bones.items() if k != "skull"})
-                t1 = time.perf_counter()
-                try:
-                    res = meshed.simulate(increments=3, material="linear", sliding="mucosa+lip")
-                    row.update(status="ok", simulate_s=time.perf_counter() - t1, phantom_simulate_s=ref_s,
-                               min_sj_after=res.summary()["min_scaled_jacobian"],
-                               **skin_difference(face.mesh, res.displacement, phantom.mesh, reference.displacement))
-                except Exception as exc:  # noqa: BLE001 - recorded
-                    row.update(status=f"{type(exc).__name__}: {str(exc)[:200]}", simulate_s=time.perf_counter() - t1)
-            rows.append(row)
-            print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+                    try:
+                        res = meshed.simulate(increments=3, material="linear", sliding="mucosa+lip")
+                        row.update(status="ok", simulate_s=time.perf_counter() - t1, phantom_simulate_s=ref_s,
+                                   min_sj_after=res.summary()["min_scaled_jacobian"],
+                                   **skin_difference(face.mesh, res.displacement, phantom.mesh,
+                                                     reference.displacement))
+                    except Exception as exc:  # noqa: BLE001 - recorded
+                        row.update(status=f"{type(exc).__name__}: {str(exc)[:200]}",
+                                   simulate_s=time.perf_counter() - t1)
+                rows.append(row)
+                print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
     if args.plans:
         robustness(args, phantom, surfaces, backend)
         if args.no_simulate:

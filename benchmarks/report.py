@@ -500,12 +500,14 @@ def _own_face(data):
     parts = []
     if "own_face" in data:
         df = data["own_face"][0].copy()
+        if "labels" not in df:
+            df["labels"] = "rules"
         df["stages"] = df.apply(lambda r: ", ".join(f"{k} {r[k + '_s']:.1f}" for k in
                                                      ("read_repair", "mesh", "mouth", "label", "order", "quality")),
                                 axis=1)
         parts.append(table(df, [
-            ("size_mm", "size (mm)", "{:g}"), ("order", "order"), ("nodes", "nodes"), ("elements", "elements"),
-            ("mesh_face_s", "toolkit mesh (s)", "{:.1f}"), ("stages", "stages (s)"),
+            ("size_mm", "size (mm)", "{:g}"), ("order", "order"), ("labels", "labels"), ("nodes", "nodes"),
+            ("elements", "elements"), ("mesh_face_s", "toolkit mesh (s)", "{:.1f}"), ("stages", "stages (s)"),
             ("min_scaled_jacobian", "min scaled Jacobian", "{:.3f}"),
             ("min_dihedral_deg", "min dihedral (deg)", "{:.1f}"),
             ("simulate_s", "simulation (s)", "{:.0f}"), ("phantom_simulate_s", "phantom hex (s)", "{:.1f}"),
@@ -531,6 +533,20 @@ def _own_face(data):
             ("completed", "completed"), ("median_s", "median time (s)", "{:.0f}"), ("max_s", "max time (s)", "{:.0f}"),
             ("min_sj", "min scaled Jacobian", "{:.3f}")]))
     return "\n\n".join(parts)
+
+
+def _own_face_impact(data):
+    df = data["own_face_impact"][0]
+    return table(df, [
+        ("velocity_mm_s", "velocity (mm/s)", "{:g}"), ("phantom_nodes", "phantom nodes"),
+        ("meshed_nodes", "meshed nodes"), ("phantom_s", "phantom (s)", "{:.0f}"), ("meshed_s", "meshed (s)", "{:.0f}"),
+        ("phantom_max_skin_displacement_mm", "phantom max skin |u| (mm)", "{:.2f}"),
+        ("meshed_max_skin_displacement_mm", "meshed max skin |u| (mm)", "{:.2f}"),
+        ("phantom_peak_force_n", "phantom peak force (N)", "{:.2f}"),
+        ("meshed_peak_force_n", "meshed peak force (N)", "{:.2f}"),
+        ("phantom_yielded_share", "phantom yielded", "{:.1%}"), ("meshed_yielded_share", "meshed yielded", "{:.1%}"),
+        ("diff_mean_mm", "skin difference mean (mm)", "{:.2f}"), ("diff_p95_mm", "p95 (mm)", "{:.2f}"),
+        ("diff_max_mm", "max (mm)", "{:.2f}")])
 
 
 def _surrogate_remeshed(data):
@@ -583,10 +599,13 @@ SOURCES = {s.stem: s for s in (
     Source("off_bone_far", "python benchmarks/off_bone.py --resolution coarse --median 5 --p90 15 --max-offset 20 "
            "--modes full --plans 8 --materials linear --thresholds inf 10 5 3 "
            "--out benchmarks/results/off_bone_far.csv", 1),
-    Source("own_face", "python benchmarks/own_face.py --sizes 7 5 3.5 --simulate-sizes 7 5", 12),
-    Source("own_face_labels", "python benchmarks/own_face.py --sizes 7 5 3.5 --simulate-sizes 7 5", 12),
+    Source("own_face", "python benchmarks/own_face.py --sizes 7 5 3.5 --orders 1 2 --simulate-sizes 7 5 "
+           "--labels rules phantom", 25),
+    Source("own_face_labels", "python benchmarks/own_face.py --sizes 7 5 3.5 --orders 1 2 --simulate-sizes 7 5 "
+           "--labels rules phantom", 25),
     Source("own_face_robustness", "python benchmarks/own_face.py --sizes 7 --plans 25 --no-simulate", 55),
     Source("surrogate_remeshed", "python benchmarks/surrogate_remeshed.py", 40),
+    Source("own_face_impact", "python benchmarks/own_face_impact.py", 20),
     Source("static_robustness", "python benchmarks/static_robustness.py --resolutions coarse paper --materials "
            "linear --slidings mucosa+lip --modes full --plans 20", 2),
 )}
@@ -658,6 +677,12 @@ BLOCKS = {b.name: b for b in (
           "the meshed face against the phantom's hexahedral run: its time, and the skin displacement differences "
           "at the phantom's skin nodes.",
           (SOURCES["own_face"], SOURCES["own_face_labels"], SOURCES["own_face_robustness"]), _own_face),
+    Block("own_face_impact", "The impact on a meshed face against the phantom",
+          "The ball impact (deformable ball, quasi-static path) on the paper phantom's surfaces meshed by "
+          "`toolkit mesh` (tet10, 7 mm, held by the tissue on its bones) and on the skull-held phantom (tet10), "
+          "same aim, at each velocity: the largest skin displacement, the peak contact force, the yielded share "
+          "of the volume at the end, and the skin displacement at the last frame at the phantom's skin nodes.",
+          (SOURCES["own_face_impact"],), _own_face_impact),
     Block("surrogate_remeshed", "A surrogate on a face it has never seen",
           "PointNet++ (hard boundary values over the linear prior) trained on four paper phantom subjects, "
           "predicting sampled plans on an unseen subject as its hexahedral phantom and as its surfaces meshed by "

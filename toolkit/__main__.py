@@ -8,4 +8,8 @@ if __name__ == "__main__":
     except KeyboardInterrupt:  # Ctrl-C while the command line loads: nothing has started
         print("interrupted: nothing was done; rerun the same command", file=sys.stderr)
         sys.exit(130)
-    sys.exit(main())
+    try:
+        code = main()
+    except KeyboardInterrupt:  # a Ctrl-C that reached Python twice (a library re-raising it): said once already
+        code = 130
+    sys.exit(code)

@@ -59,12 +59,12 @@ def main(argv: list[str] | None = None) -> int:
         set_threads(args.threads)
         code = int(args.func(args) or 0)
     except KeyboardInterrupt:
+        if program:  # one Ctrl-C is enough: a second one while this is said or at shutdown changes nothing
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
         _close_progress_bars()
         left = "nothing was started; rerun the same command" if args is None else \
             args.interrupted.format(out=getattr(args, "out", None))
         print(f"interrupted: {left}", file=sys.stderr)
-        if program:  # said and done: a second Ctrl-C while the interpreter shuts down changes nothing
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
         return 130
     except (ToolkitError, ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
         _close_progress_bars()
