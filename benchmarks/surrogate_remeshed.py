@@ -13,7 +13,9 @@ predict on a mesh of another topology (``Surrogate.predict_plan(..., any_mesh=Tr
 3. ``unseen``: subject ``--test-subject`` (``FaceShape.sample(k)``, outside the database), as its
    hexahedral phantom and as its surfaces meshed by :func:`toolkit.mesh.mesh_face` (``--size``,
    tet10); ``--test-plans`` plans on both, the FE of each cached in ``work/remeshed_fe/``;
-4. scores of the network and of its prior (the influence matrix of the same mesh) against the FE
+4. ``face``: ``--face-plans`` plans on the remeshed face itself -> a database and the default
+   PointNet++ trained on it (``--face-minutes``): what a surrogate of the patient's own face gives;
+5. scores of the networks and of the prior (the influence matrix of the same mesh) against the FE
    of the same mesh: per plan the post-operative displacement's error at every node (mean, 95th
    percentile) and at the lip nodes (mean), and the time per plan (the influence matrix built once
    per mesh, its time in ``prior_build_s``).
@@ -28,6 +30,7 @@ provenance sidecar; prints the summary.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import time
 from pathlib import Path
 
@@ -48,10 +51,43 @@ def stage_model(args, db_path: Path):
     from toolkit.static.surrogate import Surrogate, SurrogateConfig, train_surrogate
 
     out = WORK / f"remeshed_model{args.suffix}"
-    if (out / "model.pt").exists() and not (out / "checkpoint.pt").exists():
+    if (out / "model.pt").exists():
         return Surrogate.load(out)
     config = SurrogateConfig(max_seconds=60 * args.max_minutes, seed=args.seed)
     return train_surrogate(db_path, out, config, resume=(out / "checkpoint.pt").exists())
+
+
+def stage_face(args, phantom) -> tuple[Path, dict]:
+    """The unseen subject's surfaces meshed once and kept (fTetWild differs from run to run):
+    ``work/remeshed_face_s<k>_<size>/face.vtu`` and its bone files."""
+    from toolkit.common import write
+    from toolkit.mesh import mesh_face
+    from toolkit.mesh.phantom import phantom_surfaces, write_surfaces
+
+    folder = WORK / f"remeshed_face_s{args.test_subject}_{args.size:g}{args.suffix}"
+    face_file = folder / "face.vtu"
+    surfaces = phantom_surfaces(phantom)
+    files = write_surfaces(folder / "surfaces", surfaces)
+    if not face_file.exists():
+        face = mesh_face(surfaces.tissue, surfaces.bones, surfaces.commissures, size_mm=args.size, order=2)
+        write(face_file, face.mesh)
+    return face_file, {k: files[k] for k in ("lefort", "distal", "proximal_left", "proximal_right")}
+
+
+def stage_face_model(args, face_file: Path, bones: dict, phantom):
+    """A database of ``--face-plans`` plans on the remeshed face itself (the phantom's condyles, which
+    lie outside its tissue) and the default PointNet++ trained on it within ``--face-minutes``."""
+    from toolkit.static.dataset import DatasetConfig, generate
+    from toolkit.static.surrogate import Surrogate, SurrogateConfig, train_surrogate
+
+    db = WORK / f"remeshed_face_db_s{args.test_subject}_{args.size:g}{args.suffix}.h5"
+    generate(db, DatasetConfig.for_mesh(face_file, bones, phantom.condyles, plans=args.face_plans, mode="sagittal",
+                                        seed=args.seed), workers=args.workers)
+    out = WORK / f"remeshed_face_model{args.suffix}"
+    if (out / "model.pt").exists():
+        return Surrogate.load(out)
+    config = SurrogateConfig(max_seconds=60 * args.face_minutes, seed=args.seed)
+    return train_surrogate(db, out, config, resume=(out / "checkpoint.pt").exists())
 
 
 def prior_only(model, mesh, segments, plan, increments: int, sliding: str) -> tuple[np.ndarray, float, float]:
@@ -92,6 +128,9 @@ def main(argv=None):
     ap.add_argument("--test-subject", type=int, default=7, help="unseen subject k (FaceShape.sample(k))")
     ap.add_argument("--test-plans", type=int, default=10)
     ap.add_argument("--size", type=float, default=7.0, help="element size of the remeshed face, mm")
+    ap.add_argument("--face-plans", type=int, default=20,
+                    help="plans of a database on the remeshed face itself, for a model trained on that face (0: none)")
+    ap.add_argument("--face-minutes", type=float, default=8.0, help="training time of that model")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--suffix", default="", help="suffix of the work files (a small run beside the default one)")
@@ -100,8 +139,6 @@ def main(argv=None):
 
     from toolkit.common.phantom import FaceShape, face_hex
     from toolkit.common.runtime import set_threads
-    from toolkit.mesh import mesh_face
-    from toolkit.mesh.phantom import phantom_surfaces
     from toolkit.static import load_case
     from toolkit.static.plan import sample_plans
 
@@ -109,18 +146,20 @@ def main(argv=None):
     model = stage_model(args, stage_database(args))
     data = model.bundle.data["database"]
     phantom = face_hex("paper", FaceShape.sample(args.test_subject))
-    surfaces = phantom_surfaces(phantom)
-    face = mesh_face(surfaces.tissue, surfaces.bones, surfaces.commissures, size_mm=args.size, order=2)
-    bones = {k: v for k, v in face.bones.items() if k != "skull"}
+    face_file, bones = stage_face(args, phantom)
+    face_model = stage_face_model(args, face_file, bones, phantom) if args.face_plans else None
     plans = sample_plans(args.test_plans, np.random.default_rng([args.seed, args.test_subject]), "sagittal",
                          phantom=phantom)
     cache = WORK / f"remeshed_fe{args.suffix}"
     cache.mkdir(parents=True, exist_ok=True)
+    tag = hashlib.sha1(face_file.read_bytes()).hexdigest()[:8]
     rows = []
     for i, plan in enumerate(plans):
         for mesh_name, case in (("phantom hex8", load_case(resolution="paper", shape=phantom.shape, plan=plan)),
-                                (f"remeshed tet10 {args.size:g} mm", load_case(face.mesh, plan=plan, bones=bones))):
-            file = cache / f"s{args.test_subject}-{mesh_name.split()[0]}-{args.size:g}-p{i}.npz"
+                                (f"remeshed tet10 {args.size:g} mm", load_case(face_file, plan=plan, bones=bones))):
+            own = mesh_name.startswith("remeshed")
+            kind = f"remeshed-{args.size:g}-{tag}" if own else "phantom"
+            file = cache / f"s{args.test_subject}-{kind}-p{i}.npz"
             if file.exists():
                 fe, fe_s = np.load(file)["u"], float(np.load(file)["seconds"])
             else:
@@ -146,6 +185,11 @@ def main(argv=None):
                          "prior_build_s": build_s, **errors(net, fe, lips)})
             rows.append({**base, "method": "influence matrix (the prior alone)", "seconds": prior_s,
                          "prior_build_s": build_s, **errors(prior, fe, lips)})
+            if own and face_model is not None:
+                t0 = time.perf_counter()
+                net = face_model.predict_plan(case.subject, plan, segments=case.segments).displacement
+                rows.append({**base, "method": f"PointNet++ trained on this face ({args.face_plans} plans)",
+                             "seconds": time.perf_counter() - t0, **errors(net, fe, lips)})
             print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in rows[-2].items()}, flush=True)
     table = pd.DataFrame(rows)
     write_result(args.out, table, argv=argv)
