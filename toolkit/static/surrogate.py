@@ -389,6 +389,10 @@ class Surrogate:
         mesh, segments = face_mesh_and_segments(face, segments)
         if not any_mesh:
             self.check_mesh(mesh.points, dict(mesh.cells))
+        elif self.bundle.data.get("mesh") != _mesh_signature(mesh.points, dict(mesh.cells)):
+            warnings.warn("predicting on a mesh of another topology than the training meshes: on a face remeshed "
+                          "by `toolkit mesh`, a network trained on the phantoms was measured less accurate than its "
+                          "linear prior alone (docs/own-face.md); train on a database of this face", stacklevel=2)
         bc, _ = boundary_conditions(mesh, segments, data.sliding)
         X = mesh.points
         h = self.hierarchy(X)
