@@ -537,6 +537,9 @@ def _own_face(data):
 
 def _own_face_impact(data):
     df = data["own_face_impact"][0]
+    failed = [f"{r.velocity_mm_s:g} mm/s {face}: {status.split(' (')[0]}" for r in df.itertuples()
+              for face, status in (("phantom", r.phantom_status), ("meshed", r.meshed_status)) if status != "ok"]
+    note = ("\n\nRuns that did not finish: " + "; ".join(failed) + ".") if failed else ""
     return table(df, [
         ("velocity_mm_s", "velocity (mm/s)", "{:g}"), ("phantom_nodes", "phantom nodes"),
         ("meshed_nodes", "meshed nodes"), ("phantom_s", "phantom (s)", "{:.0f}"), ("meshed_s", "meshed (s)", "{:.0f}"),
@@ -546,7 +549,7 @@ def _own_face_impact(data):
         ("meshed_peak_force_n", "meshed peak force (N)", "{:.2f}"),
         ("phantom_yielded_share", "phantom yielded", "{:.1%}"), ("meshed_yielded_share", "meshed yielded", "{:.1%}"),
         ("diff_mean_mm", "skin difference mean (mm)", "{:.2f}"), ("diff_p95_mm", "p95 (mm)", "{:.2f}"),
-        ("diff_max_mm", "max (mm)", "{:.2f}")])
+        ("diff_max_mm", "max (mm)", "{:.2f}")]) + note
 
 
 def _surrogate_remeshed(data):

@@ -27,6 +27,7 @@ from toolkit.mesh.face import FaceInputError
 from toolkit.mesh.mouth import MouthError
 from toolkit.mesh.rules import RulesError
 from toolkit.mesh.surface import SurfaceError
+from toolkit.static.anatomy import AnatomyError
 from toolkit.static.boundary import BoundaryError
 from toolkit.static.plan import PlanError, RigidMotion, SurgicalPlan
 from toolkit.static.simulate import SimulationError
@@ -56,6 +57,7 @@ BUILTIN_BASES = {
     RulesError: ValueError,
     MouthError: ValueError,
     MeshingError: RuntimeError,
+    AnatomyError: ValueError,
 }
 
 

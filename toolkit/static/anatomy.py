@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common.errors import ToolkitError
 from toolkit.common.mesh import Mesh
 
 __all__ = ["FaceAnatomy", "face_anatomy", "AnatomyError", "CONDYLE_BAND_MM", "ARCH_BAND_MM"]
@@ -37,7 +38,7 @@ CONDYLE_BAND_MM = 5.0
 ARCH_BAND_MM = 2.0
 
 
-class AnatomyError(ValueError):
+class AnatomyError(ToolkitError, ValueError):
     """A meshed face lacks what plans are placed by (a segment, the ``maxilla`` set)."""
 
 
