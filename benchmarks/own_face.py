@@ -152,8 +152,9 @@ def main(argv=None):
             for r in label_agreement(face.mesh, phantom.mesh):
                 label_rows.append({"size_mm": size, "order": order, **r})
             simulated = not args.no_simulate and (args.simulate_sizes is None or size in args.simulate_sizes)
+            base = row
             for labels in args.labels if simulated else ("rules",):
-                row = {**row, "labels": labels}
+                row = {**base, "labels": labels}
                 if simulated:
                     if reference is None:
                         case = load_case(resolution=args.resolution)

@@ -514,6 +514,11 @@ def _own_face(data):
             ("phantom_mean_mm", "phantom skin mean |u| (mm)", "{:.2f}"),
             ("diff_mean_mm", "difference mean (mm)", "{:.2f}"), ("diff_p95_mm", "p95 (mm)", "{:.2f}"),
             ("diff_max_mm", "max (mm)", "{:.2f}")]))
+        failed = df[df.get("status", pd.Series("ok", index=df.index)).fillna("ok") != "ok"]
+        if len(failed):
+            parts.append("Simulations that did not complete: " + "; ".join(
+                f"{r.size_mm:g} mm, order {r.order}, {r.labels} labels: {str(r.status).split(' (')[0]}"
+                for r in failed.itertuples()) + ".")
     if "own_face_labels" in data:
         parts.append("Labels against the phantom's own sets: the share of the meshed face's nodes of each set "
                      "whose nearest phantom node carries it, and the other way round.")
