@@ -94,20 +94,15 @@ def prior_only(model, mesh, segments, plan, increments: int, sliding: str) -> tu
     """The linear influence-matrix solution of ``mesh`` increment by increment, as the network's
     prior sees it: cumulative displacement ``(n, 3)`` mm, seconds, and the seconds the matrix took
     to build (once per mesh; the model's cache shares it with the network)."""
+    from toolkit.static.dataset import bone_increment
     from toolkit.static.simulate import boundary_conditions
 
     bc, _ = boundary_conditions(mesh, segments, sliding)
     im = model.prior(mesh, bc.types)
     t0 = time.perf_counter()
     X, U, previous = mesh.points, np.zeros_like(mesh.points), None
-    driven = np.flatnonzero(bc.segment >= 0)
     for p in plan.increments(increments):
-        x = X + U
-        prescribed = np.zeros_like(X)
-        for s, name in enumerate(bc.segment_names):
-            ids = driven[(bc.segment[driven] == s) & (bc.types[driven] == 1)]
-            step = p.motion(name) if previous is None else p.motion(name).after(previous.motion(name).inverted())
-            prescribed[ids] = step.apply(x[ids]) - x[ids]
+        prescribed = np.where((bc.types == 1)[:, None], bone_increment(X + U, bc, p, previous), 0.0)
         U = U + im.predict(prescribed)
         previous = p
     return U, time.perf_counter() - t0, im.seconds

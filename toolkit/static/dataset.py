@@ -66,7 +66,7 @@ from toolkit.common.papers import TISSUE_NU
 from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES
 
 __all__ = ["DatasetConfig", "generate", "StaticDatabase", "read_samples", "subject_phantom", "database_subject",
-           "subject_mesh", "plan_features",
+           "subject_mesh", "bone_increment", "plan_features",
            "jaw_side", "material_for", "simulate_job",
            "DATABASE_KIND", "DATABASE_VERSION", "PLAN_FEATURES"]
 
@@ -278,14 +278,9 @@ def simulate_job(params: dict) -> Record:
     # what following its bone would do to each bone-driven node in each increment: the
     # increment's rigid motion of the bone (M_k after M_{k-1}^-1) at the node's current place
     bone = np.zeros((cfg.increments, X.shape[0], 3))
-    driven = np.flatnonzero(bc.segment >= 0)
     previous = None
     for k, p in enumerate(plan.increments(cfg.increments)):
-        for s, name in enumerate(bc.segment_names):
-            ids = driven[bc.segment[driven] == s]
-            step = p.motion(name) if previous is None else p.motion(name).after(previous.motion(name).inverted())
-            x = X[ids] + U[k, ids]
-            bone[k, ids] = step.apply(x) - x
+        bone[k] = bone_increment(X + U[k], bc, p, previous)
         previous = p
     moving = bc.types == 1
     s = summary = result.summary()
@@ -298,6 +293,20 @@ def simulate_job(params: dict) -> Record:
     return Record({"displacements": U.astype(np.float32), "bone": bone.astype(np.float32),
                    "seconds_per_increment": np.array(summary["seconds_per_increment"]),
                    "features": plan_features(plan, cfg.increments)}, attrs)
+
+
+def bone_increment(x: np.ndarray, bc, step, previous=None) -> np.ndarray:
+    """What following its bone does to each bone-driven node in one increment, ``(n, 3)`` mm:
+    the rigid motion of the node's segment from plan increment ``previous`` (None: the start) to
+    ``step``, at the node's current place ``x (n, 3)`` mm; zero for the nodes on no bone
+    (``bc.segment < 0``)."""
+    out = np.zeros_like(x)
+    driven = np.flatnonzero(bc.segment >= 0)
+    for s, name in enumerate(bc.segment_names):
+        ids = driven[bc.segment[driven] == s]
+        motion = step.motion(name) if previous is None else step.motion(name).after(previous.motion(name).inverted())
+        out[ids] = motion.apply(x[ids]) - x[ids]
+    return out
 
 
 def _shared(config: DatasetConfig, first_subject: int = 0) -> dict:

@@ -381,7 +381,7 @@ class Surrogate:
         PlanPrediction (``.write(out)`` gives the files of ``toolkit static simulate``; its summary's
         ``extrapolation`` names the plan parameters outside the training plans)
         """
-        from toolkit.static.dataset import DatasetConfig, jaw_side
+        from toolkit.static.dataset import DatasetConfig, bone_increment, jaw_side
         from toolkit.static.simulate import IncrementReport, boundary_conditions, face_mesh_and_segments
 
         t0 = time.perf_counter()
@@ -398,7 +398,6 @@ class Surrogate:
         h = self.hierarchy(X)
         sets = {k: mesh.node_sets[k] for k in ("upper_lip_face", "lower_lip_face") if k in mesh.node_sets}
         side = jaw_side(bc.segment, sets, X.shape[0], tuple(bc.segment_names))
-        driven = np.flatnonzero(bc.segment >= 0)
         mask = np.isin(bc.types, (1, 2))
         im = self.prior(mesh, bc.types) if self.config.features.linear_prior else None
         U, previous, quality = [np.zeros_like(X)], None, []
@@ -407,11 +406,7 @@ class Surrogate:
             steps = plan.increments(data.increments)
         for p in steps:
             x = X + U[-1]
-            bone = np.zeros_like(X)
-            for s, name in enumerate(bc.segment_names):
-                ids = driven[bc.segment[driven] == s]
-                step = p.motion(name) if previous is None else p.motion(name).after(previous.motion(name).inverted())
-                bone[ids] = step.apply(x[ids]) - x[ids]
+            bone = bone_increment(x, bc, p, previous)
             prescribed = np.where((bc.types == 1)[:, None], bone, 0.0)
             prior = im.predict(prescribed) if im is not None else None
             feats = encode(self.config.features, x, bc.types, prescribed, bone, side, TISSUE_NU, prior)
