@@ -9,13 +9,16 @@
 - :class:`ModelBundle` (``bundle``): ``model.pt`` + ``config.json`` model directories that refuse
   data or configurations they were not built for;
 - :func:`extrapolation`, :func:`describe_extrapolation` (``extrapolation``): whether an input lies
-  outside the training data's range, per parameter.
+  outside the training data's range, per parameter;
+- :func:`calibrate`, :class:`ConformalBound` (``conformal``): split-conformal calibration of an
+  error estimate to a stated coverage.
 
 Importing this package imports torch lazily (only the functions that need it do).
 """
 
 from toolkit.common.config_diff import IncompatibleError
 from toolkit.common.training.bundle import BUNDLE_FORMAT, ModelBundle
+from toolkit.common.training.conformal import ConformalBound, calibrate
 from toolkit.common.training.device import resolve_device
 from toolkit.common.training.extrapolation import describe_extrapolation, extrapolation
 from toolkit.common.training.loop import LR_SCHEDULES, TrainConfig, TrainResult, evaluate_loss, stop_reason, train
@@ -42,4 +45,6 @@ __all__ = [
     "IncompatibleError",
     "extrapolation",
     "describe_extrapolation",
+    "ConformalBound",
+    "calibrate",
 ]
