@@ -13,22 +13,6 @@ from toolkit.static.features import FeatureSpec
 from toolkit.static.surrogate import Surrogate, SurrogateConfig, evaluate_surrogate, train_surrogate
 
 
-@pytest.fixture(scope="module")
-def db100(tmp_path_factory):
-    """34 sagittal plans on the coarse face: 102 samples (~20 s)."""
-    path = tmp_path_factory.mktemp("surrogate") / "db.h5"
-    generate(path, DatasetConfig(resolution="coarse", plans=34), workers=0, progress=False)
-    return path
-
-
-@pytest.fixture(scope="module")
-def hard_model(db100, tmp_path_factory):
-    out = tmp_path_factory.mktemp("model") / "hard"
-    config = SurrogateConfig(FeatureSpec("hard"), network="tiny", coarse_radii=True, epochs=200, lr=3e-3,
-                             max_seconds=45.0)
-    return train_surrogate(db100, out, config, progress=False)
-
-
 def test_training_reaches_the_error_bound(db100, hard_model):
     """102 coarse samples, 45 s of training (tiny network, hard boundaries): on the test
     simulations (20 %, never seen) the mean nodal error is below half the mean displacement

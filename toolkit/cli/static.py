@@ -210,6 +210,48 @@ def evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def probability(text: str) -> float:
+    """argparse type: a probability in (0, 1)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a probability in (0, 1), e.g. 0.9")
+    return value
+
+
+def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
+    from toolkit.static.trust import SCALES
+
+    parser.add_argument("--model", required=True, type=Path, help="model directory (the calibration is saved in it)")
+    parser.add_argument("--data", required=True, type=Path,
+                        help="the model's training database (its test plans are used) or another of its settings "
+                             "(every plan the model did not see)")
+    parser.add_argument("--train-data", type=Path, default=None,
+                        help="the database the model was trained on, when --data is another one (default: --data)")
+    parser.add_argument("--coverage", type=probability, default=0.9,
+                        help="probability that the error bound holds for a plan like these")
+    parser.add_argument("--scale", choices=SCALES, default=SCALES[0],
+                        help="disagreement: with the linear + POD residual baseline; constant: one bound for all")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
+
+
+def calibrate(args: argparse.Namespace) -> int:
+    from toolkit.static.surrogate import Surrogate
+    from toolkit.static.trust import calibrate_surrogate
+
+    model = Surrogate.load(args.model, device=args.device)
+    cal = calibrate_surrogate(model, args.data, coverage=args.coverage, scale=args.scale, training=args.train_data)
+    with uninterruptible():
+        cal.save(args.model)
+    errors = sorted(c["error_mm"] for c in cal.cases)
+    print(f"{cal.bound.n} held-out plans ({cal.source['plans']}): answer error (p95 over nodes) median "
+          f"{errors[len(errors) // 2]:.2f} mm, max {errors[-1]:.2f} mm; {args.scale} scale x {cal.bound.factor:.3g} "
+          f"bounds it at {cal.bound.coverage:.0%} -> {args.model}/calibration.json")
+    return 0
+
+
 def add_predict_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", required=True, type=Path, help="model directory")
     parser.add_argument("--plan", type=Path,
@@ -227,6 +269,15 @@ def add_predict_arguments(parser: argparse.ArgumentParser) -> None:
     add_units(parser)
     parser.add_argument("--force", action="store_true",
                         help="accept movements beyond twice the physiological range (also for a --plan file)")
+    parser.add_argument("--tolerance", type=positive_float, default=None, metavar="MM",
+                        help="answer within this error (mm, 95th percentile of the nodal error): the surrogate's "
+                             "prediction when its calibrated estimate is within it and the inputs are like its "
+                             "training data, else the FE of the same plan (needs `toolkit static calibrate`)")
+    parser.add_argument("--coverage", type=probability, default=None,
+                        help="with --tolerance: the estimate's coverage (default: the calibration's)")
+    parser.add_argument("--material", choices=MATERIALS, default=None,
+                        help="with --tolerance: the tissue material (default: the training database's; another "
+                             "one is answered by the FE)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
@@ -247,7 +298,12 @@ def predict(args: argparse.Namespace) -> int:
     resolution = args.resolution or database["resolution"]
     case = load_case(args.mesh, resolution=resolution, plan=args.plan, bones=bones(args.bone), force=args.force,
                      units=args.units)
-    result = model.predict_plan(case.subject, case.plan, segments=case.segments, any_mesh=args.any_mesh)
+    if args.tolerance is None:
+        if args.coverage is not None or args.material is not None:
+            raise ValueError("--coverage and --material go with --tolerance (an answer within a tolerance)")
+        result = model.predict_plan(case.subject, case.plan, segments=case.segments, any_mesh=args.any_mesh)
+    else:
+        return _predict_within(args, model, case)
     with uninterruptible():
         result.write(args.out, preview=not args.no_preview)
     s = result.summary()
@@ -257,6 +313,27 @@ def predict(args: argparse.Namespace) -> int:
     from toolkit.common.training import describe_extrapolation
 
     print(f"plan: {describe_extrapolation(s['extrapolation'])}")
+    return 0
+
+
+def _predict_within(args, model, case) -> int:
+    from toolkit.common.training import describe_extrapolation
+    from toolkit.static.trust import Calibration, answer
+
+    calibration = Calibration.load(args.model)
+    if args.coverage is not None:
+        calibration = calibration.at(args.coverage)
+    result = answer(model, case.subject, case.plan, args.tolerance, segments=case.segments, calibration=calibration,
+                    material=args.material, any_mesh=args.any_mesh)
+    with uninterruptible():
+        result.write(args.out, preview=not args.no_preview)
+    s = result.summary()
+    a, sec = s["answer"], result.seconds
+    print(f"answered by {'the surrogate' if a['answered_by'] == 'surrogate' else 'the FE'}: {a['reason']}")
+    print(f"plan: {describe_extrapolation(a['out_of_distribution']['plan'])}")
+    print(f"{s['nodes']} nodes: max displacement {s['max_displacement_mm']:.2f} mm; surrogate "
+          f"{sec['surrogate']:.2f} s, estimate {sec['estimate']:.2f} s, FE {sec['fe']:.2f} s -> {args.out}/ "
+          "(result.vtu, postop.vtu, increments.xdmf, summary.json)")
     return 0
 
 
@@ -316,8 +393,16 @@ COMMANDS = {
         description="Mean Euclidean nodal error per sample (all, free, lips), inference and FE times; writes "
                     "metrics.json, per_sample.csv and error_map.png.",
         add_arguments=add_evaluate_arguments, run=evaluate, interrupted=NOTHING_WRITTEN),
+    "calibrate": Command(
+        help="calibrate a surrogate's error estimate",
+        description="Measure the surrogate's answer error on whole plans of a database it did not see and calibrate "
+                    "an error bound at a stated coverage (split-conformal); writes calibration.json and "
+                    "calibration.npz into the model directory, which `predict --tolerance` reads.",
+        add_arguments=add_calibrate_arguments, run=calibrate, interrupted=NOTHING_WRITTEN),
     "predict": Command(
         help="predict a plan with a surrogate",
-        description="Run a plan with the surrogate instead of the FE; writes the files of `toolkit static simulate`.",
+        description="Run a plan with the surrogate instead of the FE; writes the files of `toolkit static simulate`. "
+                    "With --tolerance, the FE answers instead when the calibrated error estimate exceeds it or the "
+                    "inputs lie beyond the training data; summary.json says which answered and why.",
         add_arguments=add_predict_arguments, run=predict, interrupted=NOTHING_WRITTEN),
 }

@@ -587,6 +587,26 @@ class StaticDatabase:
                 "v": U[k] - U[k - 1], "subject": subject, "side": self.side[subject], "poisson": float(row.poisson),
                 "row": row}
 
+    def displacements(self, key: str) -> np.ndarray:
+        """Cumulative FE displacement of simulation ``key`` after each increment,
+        ``(increments + 1, n, 3)`` mm (row 0 is zero)."""
+        if key not in self._U:
+            raise KeyError(f"no completed simulation {key!r} in {self.path}; it holds {len(self._U)}")
+        return self._U[key]
+
+    def plan(self, key: str):
+        """The SurgicalPlan of simulation ``key`` (drawn again from the configuration's seed)."""
+        from toolkit.static.plan import SurgicalPlan
+
+        job = next((j for j in _jobs(self.config) if j.key == key), None)
+        if job is None:
+            raise KeyError(f"no simulation {key!r} in the configuration of {self.path}")
+        return SurgicalPlan.from_dict({k: v for k, v in job.params["motions"].items() if k != "force"})
+
+    def subject(self, subject: int):
+        """What ``subject`` is simulated on (:func:`database_subject`): ``mesh`` and ``segments``."""
+        return database_subject(self.config, int(subject))
+
     def arrays(self, indices=None) -> dict:
         """Stacked samples: ``x``, ``s``, ``bone``, ``v`` (m, n, 3) mm, ``types`` (m, n), ``subject`` (m,)."""
         idx = range(len(self)) if indices is None else indices

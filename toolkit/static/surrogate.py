@@ -226,9 +226,12 @@ def _mesh_signature(points: np.ndarray, cells: dict) -> dict:
 @dataclass(frozen=True, eq=False)
 class PlanPrediction(SimulationResult):
     """A surrogate's prediction of a plan: a SimulationResult whose summary also holds
-    ``extrapolation`` (:func:`plan_extrapolation`: the plan parameters outside the training plans)."""
+    ``extrapolation`` (:func:`plan_extrapolation`: the plan parameters outside the training plans).
+    ``prescribed`` ``(increments, n, 3)`` mm holds each increment's prescribed bone motion (zero
+    off the bone-driven nodes), as the network saw it."""
 
     extrapolation: dict = field(default_factory=dict)
+    prescribed: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))
 
     def summary(self) -> dict:
         return {**super().summary(), "extrapolation": self.extrapolation}
@@ -274,12 +277,14 @@ class Surrogate:
     bundle : the ModelBundle (weights, scalers, data signature, training facts)
     module : the torch module (eval mode)
     device : torch device
+    directory : the model directory it was loaded from
     """
 
     config: SurrogateConfig
     bundle: ModelBundle
     module: object
     device: object
+    directory: Path | None = None
     _hierarchy_cache: dict = field(default_factory=dict, repr=False)
     _prior_cache: dict = field(default_factory=dict, repr=False)
 
@@ -302,7 +307,7 @@ class Surrogate:
         module.net.load_state_dict(bundle.state_dict["net"])
         module.to(dev).eval()
         module.net = module.net.fold_batch_norm()  # inference only: the batch norms become part of the weights
-        return cls(config, bundle, module, dev)
+        return cls(config, bundle, module, dev, Path(directory))
 
     def check_mesh(self, points: np.ndarray, cells: dict) -> None:
         """Refuse a mesh of another node count or topology than the training meshes."""
@@ -400,7 +405,7 @@ class Surrogate:
         side = jaw_side(bc.segment, sets, X.shape[0], tuple(bc.segment_names))
         mask = np.isin(bc.types, (1, 2))
         im = self.prior(mesh, bc.types) if self.config.features.linear_prior else None
-        U, previous, quality = [np.zeros_like(X)], None, []
+        U, previous, quality, given = [np.zeros_like(X)], None, [], []
         with warnings.catch_warnings():  # the plan warned of its range where it was built
             warnings.simplefilter("ignore", PlanRangeWarning)
             steps = plan.increments(data.increments)
@@ -408,6 +413,7 @@ class Surrogate:
             x = X + U[-1]
             bone = bone_increment(x, bc, p, previous)
             prescribed = np.where((bc.types == 1)[:, None], bone, 0.0)
+            given.append(prescribed)
             prior = im.predict(prescribed) if im is not None else None
             feats = encode(self.config.features, x, bc.types, prescribed, bone, side, TISSUE_NU, prior)
             U.append(U[-1] + self.predict(feats[None], prescribed[None], mask[None], h,
@@ -418,7 +424,7 @@ class Surrogate:
         reports = [IncrementReport(k, wall / len(quality), 0.0, 0, 0, 0, float(q.min()), int(np.argmin(q)),
                                    0.0, 0.0, 0.0, 0) for k, q in enumerate(quality, start=1)]
         return PlanPrediction(mesh, np.stack(U), bc, reports, wall, f"surrogate ({self.config.features.variant})",
-                              data.sliding, extrapolation=self.extrapolation(plan))
+                              data.sliding, extrapolation=self.extrapolation(plan), prescribed=np.stack(given))
 
     def extrapolation(self, plan) -> dict:
         """How far ``plan`` lies outside the plans the model was trained on (:func:`plan_extrapolation`)."""
@@ -579,31 +585,17 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
     return Surrogate.load(out, device=config.device)
 
 
-# ------------------------------------------------------------------ evaluation
-def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_samples: int = 20) -> dict:
-    """Score ``model`` on a database's samples it has not seen.
+def evaluation_keys(model: Surrogate, db, keys=None) -> tuple[list, str]:
+    """The simulations of ``db`` a model is scored (or calibrated) on, and how they were chosen
+    in words: ``keys`` as given; the model's test simulations on its training database; on
+    another database, every simulation the model did not train or validate on."""
+    keys, how, _, _ = _scored_keys(model, db, keys)
+    return list(keys), how
 
-    By default: the model's test simulations when the database is the one it was trained on;
-    on another database, every simulation except those the model trained or validated on (the
-    same subject shape, plan parameters and Poisson's ratio, whatever their keys). ``keys``
-    scores the given simulations as they are (training ones are counted, not excluded). A
-    database of another resolution, material, sliding model or increment count than the
-    training one is refused with :class:`~toolkit.common.config_diff.IncompatibleError`.
 
-    Returns a dict: ``per_sample`` DataFrame (key, subject, increment, errors in mm),
-    ``metrics`` (mean/median/p95/max of the per-sample mean nodal error on all nodes, free
-    nodes, lips; ``inference_ms`` per prediction; ``fe_ms`` FE time per increment; ``scored``
-    which samples were scored, in words; ``training_samples_excluded`` and
-    ``training_samples_scored``, None where unknown), and ``predictions`` ``(m, n, 3)`` mm with
-    ``targets``.
-    """
-    import pandas as pd
-
+def _scored_keys(model: Surrogate, db, keys=None):
     from toolkit.common.config_diff import require_same
-    from toolkit.common.metrics import nodal_errors
-    from toolkit.static.dataset import StaticDatabase
 
-    db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
     trained_on = model.bundle.data["database"]
     asked = db.config.as_dict()
     require_same({k: trained_on.get(k) for k in MUST_MATCH}, {k: asked[k] for k in MUST_MATCH},
@@ -638,6 +630,34 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
             raise ValueError(f"every simulation of {db.path} ({len(everything)}) is one the model trained on; "
                              "nothing is left to score: generate a database with another --seed")
         scored = f"all samples of another database, {excluded} training samples excluded"
+    return keys, scored, excluded, scored_training
+
+
+# ------------------------------------------------------------------ evaluation
+def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_samples: int = 20) -> dict:
+    """Score ``model`` on a database's samples it has not seen.
+
+    By default: the model's test simulations when the database is the one it was trained on;
+    on another database, every simulation except those the model trained or validated on (the
+    same subject shape, plan parameters and Poisson's ratio, whatever their keys). ``keys``
+    scores the given simulations as they are (training ones are counted, not excluded). A
+    database of another resolution, material, sliding model or increment count than the
+    training one is refused with :class:`~toolkit.common.config_diff.IncompatibleError`.
+
+    Returns a dict: ``per_sample`` DataFrame (key, subject, increment, errors in mm),
+    ``metrics`` (mean/median/p95/max of the per-sample mean nodal error on all nodes, free
+    nodes, lips; ``inference_ms`` per prediction; ``fe_ms`` FE time per increment; ``scored``
+    which samples were scored, in words; ``training_samples_excluded`` and
+    ``training_samples_scored``, None where unknown), and ``predictions`` ``(m, n, 3)`` mm with
+    ``targets``.
+    """
+    import pandas as pd
+
+    from toolkit.common.metrics import nodal_errors
+    from toolkit.static.dataset import StaticDatabase
+
+    db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
+    keys, scored, excluded, scored_training = _scored_keys(model, db, keys)
     rows = np.flatnonzero(db.samples.key.isin(list(keys)).to_numpy())
     if not rows.size:
         raise ValueError(f"no sample of {db.path} belongs to the requested simulations {sorted(keys)[:5]}...; "

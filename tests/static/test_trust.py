@@ -1,0 +1,136 @@
+"""Answers within a tolerance: the calibration, the out-of-distribution check, and the FE
+fallback whose answer is the FE's own."""
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from toolkit.static import load_case
+from toolkit.static.dataset import StaticDatabase
+from toolkit.static.plan import SurgicalPlan
+from toolkit.static.simulate import simulate
+from toolkit.static.surrogate import Surrogate
+from toolkit.static.trust import Calibration, answer, answer_error, calibrate_surrogate, out_of_distribution
+
+COVERAGE = 0.8  # the coarse database's 7 test plans allow at most 1 - 1/8 = 87.5 %
+
+
+@pytest.fixture(scope="module")
+def calibrated(hard_model, db100, tmp_path_factory):
+    """The session's coarse model, copied, calibrated on its 7 test plans."""
+    out = tmp_path_factory.mktemp("trust") / "model"
+    shutil.copytree(hard_model.directory, out)
+    model = Surrogate.load(out)
+    cal = calibrate_surrogate(model, db100, coverage=COVERAGE, progress=False)
+    cal.save(out)
+    return model, cal
+
+
+def test_calibration_measures_held_out_plans_and_round_trips(calibrated, db100):
+    model, cal = calibrated
+    db = StaticDatabase.open(db100)
+    assert sorted(c["key"] for c in cal.cases) == sorted(model.bundle.extra["test_keys"])
+    # each case's error is the answer error of the network against the FE of that plan
+    case = cal.cases[0]
+    subject = db.subject(case["subject"])
+    pred = model.predict_plan(subject, db.plan(case["key"]))
+    assert answer_error(pred.displacement, db.displacements(case["key"])[-1]) == pytest.approx(case["error_mm"])
+    # the factor is the ceil((n + 1) c)-th smallest ratio: with n = 7 and c = 0.8, the 7th
+    ratios = sorted(c["error_mm"] / c["scale_mm"] for c in cal.cases)
+    assert cal.bound.factor == pytest.approx(ratios[math.ceil(8 * COVERAGE) - 1])
+    loaded = Calibration.load(model.directory)
+    assert loaded.bound == cal.bound and loaded.scale == "disagreement"
+    np.testing.assert_array_equal(loaded.residual.residual.modes, cal.residual.residual.modes)
+    assert loaded.plan_ranges == cal.plan_ranges
+
+
+def test_too_few_plans_for_the_coverage_are_refused(hard_model, db100):
+    with pytest.raises(ValueError, match="needs at least 19"):
+        calibrate_surrogate(hard_model, db100, coverage=0.95, progress=False)
+
+
+def test_a_plan_far_outside_the_training_data_falls_back_to_the_fe_and_is_the_fe(calibrated):
+    model, cal = calibrated
+    case = load_case(resolution="coarse")
+    far = SurgicalPlan.from_dict({"lefort": {"translation_mm": [0.0, 9.0, 0.0]},
+                                  "distal": {"translation_mm": [0.0, 12.0, 0.0]}}, phantom=case.subject)
+    ood = out_of_distribution(cal, case.subject.mesh, far)
+    assert ood["outside"] and any(r.startswith("plan:") for r in ood["reasons"])
+    got = answer(model, case.subject, far, 100.0, calibration=cal)  # any estimate: the inputs decide
+    assert got.answered_by == "fe" and got.reason.startswith("out of distribution")
+    fe = simulate(case.subject, far, 3, "linear", "mucosa+lip")
+    np.testing.assert_array_equal(got.result.displacements, fe.displacements)
+    assert got.seconds["fe"] > 0 and got.seconds["surrogate"] > 0
+
+
+def test_in_distribution_plan_answered_by_whichever_the_tolerance_allows(calibrated, db100):
+    model, cal = calibrated
+    db = StaticDatabase.open(db100)
+    key = model.bundle.extra["test_keys"][0]
+    subject, plan = db.subject(0), db.plan(key)
+    assert not out_of_distribution(cal, subject.mesh, plan)["outside"]
+    loose = answer(model, subject, plan, 100.0, calibration=cal)
+    assert loose.answered_by == "surrogate" and loose.seconds["fe"] == 0.0
+    est = loose.estimate
+    assert est["bound_mm"] == pytest.approx(cal.bound.factor * est["scale_mm"])
+    assert est["node_mm"].shape == (subject.mesh.n_points,)
+    assert np.percentile(est["node_mm"], 95) == pytest.approx(est["bound_mm"])
+    tight = answer(model, subject, plan, est["bound_mm"] / 2, calibration=cal)
+    assert tight.answered_by == "fe" and "above the tolerance" in tight.reason
+    assert answer_error(tight.result.displacement, db.displacements(key)[-1]) < 1e-6
+
+
+def test_another_material_or_face_is_out_of_distribution(calibrated):
+    model, cal = calibrated
+    case = load_case(resolution="coarse")
+    ood = out_of_distribution(cal, case.subject.mesh, case.plan, material="neo-hookean")
+    assert ood["outside"] and ood["reasons"][-1].startswith("material")
+    moved = case.subject.mesh.with_points(case.subject.mesh.points * 1.3)
+    ood = out_of_distribution(cal, moved, case.plan)
+    assert ood["outside"] and "from the nearest training subject" in ood["reasons"][0]
+    # a face close on average but wider at its edges: outside the box the training subjects span
+    X = case.subject.mesh.points
+    wider = case.subject.mesh.with_points(X + np.where(np.abs(X[:, :1]) > 0.9 * np.abs(X[:, 0]).max(),
+                                                       np.sign(X[:, :1]) * [[3.0, 0.0, 0.0]], 0.0))
+    ood = out_of_distribution(cal, wider, case.plan)
+    assert ood["shape"]["rms_to_nearest_subject_mm"] < cal.shape_spread_mm
+    assert ood["outside"] and "outside the box" in ood["reasons"][0]
+    assert ood["shape"]["outside_envelope_mm"] == pytest.approx(3.0)
+
+
+@pytest.mark.parametrize("tolerance", [0.0, -1.0, float("nan"), float("inf"), "0.5"])
+def test_a_tolerance_that_is_not_a_positive_number_is_refused(calibrated, tolerance):
+    model, cal = calibrated
+    case = load_case(resolution="coarse")
+    with pytest.raises(ValueError, match="expected a positive number of mm"):
+        answer(model, case.subject, case.plan, tolerance, calibration=cal)
+
+
+def test_cli_calibrate_and_predict_within_a_tolerance(hard_model, db100, tmp_path):
+    model = tmp_path / "model"
+    shutil.copytree(hard_model.directory, model)
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "toolkit", "static", *args], capture_output=True, text=True)
+
+    r = run("predict", "--model", str(model), "--resolution", "coarse", "--tolerance", "0.5", "--out",
+            str(tmp_path / "p0"))
+    assert r.returncode != 0 and "toolkit static calibrate --model" in r.stderr
+    assert not (tmp_path / "p0").exists()
+    r = run("calibrate", "--model", str(model), "--data", str(db100), "--coverage", "0.8")
+    assert r.returncode == 0, r.stderr
+    assert "bounds it at 80%" in r.stdout
+    r = run("predict", "--model", str(model), "--resolution", "coarse", "--tolerance", "1000", "--out",
+            str(tmp_path / "p1"), "--no-preview")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((tmp_path / "p1" / "summary.json").read_text())
+    assert summary["answer"]["answered_by"] in ("surrogate", "fe")  # the packaged plan may lie outside
+    assert "answered by" in r.stdout
+    r = run("predict", "--model", str(model), "--resolution", "coarse", "--tolerance", "0.5", "--coverage", "0.99",
+            "--out", str(tmp_path / "p2"))
+    assert r.returncode != 0 and "at least 99" in r.stderr and not (tmp_path / "p2").exists()

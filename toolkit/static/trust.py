@@ -1,0 +1,432 @@
+"""Static surrogate answers within a tolerance: a calibrated error estimate, an
+out-of-distribution check, and the finite elements when either says the surrogate may miss.
+
+An answer's error is the 95th percentile over all nodes of its nodal displacement error (mm)
+against the FE of the same plan on the same face. :func:`calibrate_surrogate` measures, on
+whole simulations of a database the model neither trained nor validated on, the ratio of that
+error to a *scale* the model can compute without the FE:
+
+- ``disagreement`` (default): the 95th percentile over nodes of the distance between the
+  network's prediction and the linear + POD residual baseline (:class:`~toolkit.static.baselines.LinearPlusPOD`,
+  fit here on the simulations the model was trained and validated on) along the same increments,
+  plus 0.01 mm. Two models built differently seldom miss the same way; where they disagree, at
+  least one is wrong;
+- ``constant``: 1 mm for every plan (plain split-conformal: one bound for every answer).
+
+Split-conformal calibration (:mod:`toolkit.common.training.conformal`) turns the ratios into a
+factor whose bound holds at the stated coverage for a new plan exchangeable with the
+calibration ones. Inputs unlike them void that guarantee, so :func:`out_of_distribution`
+checks the inputs first (plan parameters outside the training ranges, a face mesh of another
+topology or farther from every training subject than they lie from each other, another
+material), and :func:`answer` runs the FE for such inputs whatever the estimate says.
+
+The calibration is saved beside the model (``calibration.json`` and ``calibration.npz``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from toolkit.common.training.conformal import ConformalBound, calibrate
+
+__all__ = ["SCALES", "Calibration", "calibrate_surrogate", "estimate", "out_of_distribution", "answer",
+           "TrustedAnswer"]
+
+#: how the error estimate's scale is computed (see the module)
+SCALES = ("disagreement", "constant")
+#: mm added to the disagreement so that a scale is never zero
+SCALE_FLOOR_MM = 0.01
+#: mm: a face farther (RMS over nodes) from every training subject than they lie from each other,
+#: and at least this far, or with a node farther than this outside the box (per coordinate) its
+#: training subjects span, is another shape
+MIN_SHAPE_SPREAD_MM = 1.0
+
+
+def answer_error(predicted: np.ndarray, reference: np.ndarray) -> float:
+    """An answer's error: the 95th percentile over nodes of ``|predicted - reference|`` (mm);
+    both ``(n, 3)`` mm."""
+    return float(np.percentile(np.linalg.norm(np.asarray(predicted) - np.asarray(reference), axis=1), 95))
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """A surrogate's calibrated error estimate and what it was calibrated on.
+
+    scale : one of :data:`SCALES`
+    bound : ConformalBound (its ``factor`` times a plan's scale bounds that plan's answer error)
+    residual : the linear + POD residual companion (``disagreement``), else None
+    train_plans : (m, 12) the plan parameters (last increment) of the simulations the model saw
+    plan_ranges : parameter -> [min, max] over them
+    subjects : (s, n, 3) mm, the training subjects' pre-operative points
+    shape_spread_mm : the largest RMS distance between two training subjects (at least
+        :data:`MIN_SHAPE_SPREAD_MM`)
+    material : the training database's material
+    cases : per calibration plan: ``key``, ``error_mm``, ``scale_mm``, ``fe_s``, ``surrogate_s``
+    source : database path and how its plans were chosen
+    """
+
+    scale: str
+    bound: ConformalBound
+    residual: object | None
+    train_plans: np.ndarray
+    plan_ranges: dict
+    subjects: np.ndarray
+    shape_spread_mm: float
+    material: str
+    cases: list = field(default_factory=list)
+    source: dict = field(default_factory=dict)
+
+    def save(self, directory) -> Path:
+        """Write ``calibration.json`` and ``calibration.npz`` into the model directory."""
+        from toolkit.common.io import atomic_path
+
+        directory = Path(directory)
+        arrays = {"train_plans": self.train_plans, "subjects": self.subjects}
+        if self.residual is not None:
+            r = self.residual.residual
+            arrays.update(mean=r.mean, modes=r.modes, coef=r.coef, x_scale=r.x_scale,
+                          energy=np.array(r.energy))
+        with atomic_path(directory / "calibration.npz") as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
+        meta = {"scale": self.scale, "bound": self.bound.to_dict(), "plan_ranges": self.plan_ranges,
+                "shape_spread_mm": self.shape_spread_mm, "material": self.material, "cases": self.cases,
+                "source": self.source}
+        with atomic_path(directory / "calibration.json") as tmp:
+            tmp.write_text(json.dumps(meta, indent=2))
+        return directory
+
+    @classmethod
+    def load(cls, directory) -> Calibration:
+        """Read the calibration of a model directory (FileNotFoundError naming the command that
+        makes one)."""
+        from toolkit.static.baselines import LinearPlusPOD, PODRegression
+
+        directory = Path(directory)
+        if not (directory / "calibration.json").is_file() or not (directory / "calibration.npz").is_file():
+            raise FileNotFoundError(f"{directory} holds no calibration (calibration.json, calibration.npz): make one "
+                                    f"with `toolkit static calibrate --model {directory} --data DB.h5`")
+        meta = json.loads((directory / "calibration.json").read_text())
+        with np.load(directory / "calibration.npz") as z:
+            arrays = {k: z[k] for k in z.files}
+        residual = None
+        if "modes" in arrays:
+            residual = LinearPlusPOD(PODRegression(arrays["mean"], arrays["modes"], arrays["coef"],
+                                                   arrays["x_scale"], float(arrays["energy"])))
+        return cls(meta["scale"], ConformalBound.from_dict(meta["bound"]), residual, arrays["train_plans"],
+                   meta["plan_ranges"], arrays["subjects"], float(meta["shape_spread_mm"]), meta["material"],
+                   meta["cases"], meta["source"])
+
+    def at(self, coverage: float) -> Calibration:
+        """The same calibration with its bound at another coverage."""
+        from dataclasses import replace
+
+        return replace(self, bound=self.bound.at(coverage))
+
+
+def _scale_field(model, calibration_scale: str, residual, prediction, plan, increments: int) -> np.ndarray:
+    """Per-node scale ``(n,)`` mm of a PlanPrediction (see the module)."""
+    from toolkit.static.dataset import plan_features
+
+    n = prediction.displacement.shape[0]
+    if calibration_scale == "constant":
+        return np.ones(n)
+    im = model.prior(prediction.reference, prediction.boundary.types)
+    with warnings.catch_warnings():  # the plan warned of its range where it was built
+        warnings.simplefilter("ignore")
+        params = plan_features(plan, increments)
+    companion = sum(im.predict(p) for p in prediction.prescribed) + residual.residual.predict(params).sum(axis=0)
+    return np.linalg.norm(prediction.displacement - companion, axis=1) + SCALE_FLOOR_MM
+
+
+def _case_scale(node_scale: np.ndarray) -> float:
+    return float(np.percentile(node_scale, 95))
+
+
+def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = "disagreement", keys=None,
+                        training=None, progress: bool = True) -> Calibration:
+    """Calibrate ``model``'s error estimate on whole simulations of ``database`` it has not seen.
+
+    Parameters
+    ----------
+    model : :class:`~toolkit.static.surrogate.Surrogate`
+    database : path of a static database or a StaticDatabase: the model's training database
+        (its test simulations are used) or another one of the same settings (every simulation
+        the model did not train or validate on)
+    coverage : probability the bound holds for a new plan like these (at least
+        :func:`~toolkit.common.training.conformal.min_calibration_cases` plans are needed)
+    scale : one of :data:`SCALES`
+    keys : calibrate on these simulations instead
+    training : the database the model was trained on (default ``database``): the linear + POD
+        residual companion, the training plans and subjects come from its simulations the model
+        trained or validated on
+    progress : tqdm over the plans
+
+    Returns
+    -------
+    Calibration (not saved: ``.save(model_directory)``)
+    """
+    from tqdm import tqdm
+
+    from toolkit.static.baselines import LinearPlusPOD
+    from toolkit.static.dataset import PLAN_FEATURES, StaticDatabase
+    from toolkit.static.surrogate import (
+        PLAN_PARAMETERS,
+        _encode_database,
+        _simulation_identities,
+        _Subset,
+        evaluation_keys,
+    )
+
+    if scale not in SCALES:
+        raise ValueError(f"scale = {scale!r}; expected one of {SCALES}")
+    db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
+    keys, how = evaluation_keys(model, db, keys)
+    train_db = db if training is None else (training if isinstance(training, StaticDatabase)
+                                            else StaticDatabase.open(training))
+    if train_db is not db:
+        evaluation_keys(model, train_db, [])  # the same settings and mesh, or a clear refusal
+    identities = _simulation_identities(train_db)
+    seen = set(model.bundle.extra.get("seen_simulations") or [])
+    seen_keys = [k for k in train_db.samples.key.unique() if identities[str(k)] in seen]
+    if not seen_keys:
+        raise ValueError(f"{train_db.path} holds none of the simulations the model trained on: give its training "
+                         "database too (training=...; command line: --train-data DB.h5)")
+    from toolkit.common.training.conformal import min_calibration_cases
+
+    need = min_calibration_cases(coverage)
+    if len(keys) < need:
+        raise ValueError(f"{len(keys)} held-out simulation(s) in {db.path} ({how}); a bound at {coverage:.0%} needs "
+                         f"at least {need}: generate more plans (`toolkit static dataset --plans`) or lower --coverage")
+    residual = None
+    if scale == "disagreement":
+        rows = np.flatnonzero(train_db.samples.key.isin(seen_keys).to_numpy())
+        subjects = np.unique(train_db.samples.subject.to_numpy()[rows])
+        priors = {int(s): model.prior(train_db.subject_mesh(int(s)), train_db.types[int(s)]) for s in subjects}
+        spec = model.config.features
+        from dataclasses import replace
+
+        data = _encode_database(_Subset(train_db, rows), replace(spec, linear_prior=True), priors)
+        params = train_db.samples[list(PLAN_FEATURES)].to_numpy(np.float64)[rows]
+        residual = LinearPlusPOD.fit(params, data.target, data.prior)
+    last = train_db.samples[train_db.samples.key.isin(seen_keys)].sort_values("increment").groupby("key").tail(1)
+    train_plans = last[list(PLAN_FEATURES[:len(PLAN_PARAMETERS)])].to_numpy(np.float64)
+    plan_ranges = {n: [float(train_plans[:, j].min()), float(train_plans[:, j].max())]
+                   for j, n in enumerate(PLAN_PARAMETERS)}
+    seen_subjects = sorted({int(s) for s in train_db.samples.subject[train_db.samples.key.isin(seen_keys)]})
+    pts = np.stack([train_db.points[s] for s in seen_subjects])
+    spread = max([_rms(a, b) for i, a in enumerate(pts) for b in pts[i + 1:]] + [MIN_SHAPE_SPREAD_MM])
+    cases = []
+    fe_s = db.samples.groupby("key").seconds.sum()
+    for key in tqdm(keys, desc="calibration plans", disable=not progress):
+        sid = int(db.samples.subject[db.samples.key == key].iloc[0])
+        subject, plan = db.subject(sid), db.plan(key)
+        t0 = time.perf_counter()
+        pred = model.predict_plan(_face(subject), plan, segments=subject.segments)
+        node_scale = _scale_field(model, scale, residual, pred, plan, db.config.increments)
+        cases.append({"key": str(key), "subject": sid,
+                      "error_mm": answer_error(pred.displacement, db.displacements(key)[-1]),
+                      "scale_mm": _case_scale(node_scale), "surrogate_s": time.perf_counter() - t0,
+                      "fe_s": float(fe_s[key])})
+    bound = calibrate([c["error_mm"] for c in cases], [c["scale_mm"] for c in cases], coverage)
+    return Calibration(scale, bound, residual, train_plans, plan_ranges, pts, float(spread), db.config.material,
+                       cases, {"database": str(Path(db.path).resolve()), "plans": how,
+                               "training_database": str(Path(train_db.path).resolve())})
+
+
+def _face(subject):
+    """What predict_plan and simulate take for a database subject: the phantom, or the mesh."""
+    from toolkit.common.phantom import FacePhantom
+
+    return subject if isinstance(subject, FacePhantom) else subject.mesh
+
+
+def _rms(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+
+
+def estimate(model, calibration: Calibration, prediction, plan) -> dict:
+    """The calibrated error estimate of a PlanPrediction.
+
+    Returns ``{"bound_mm", "coverage", "scale", "scale_mm", "node_mm"}``: ``bound_mm`` bounds
+    the answer's error (95th percentile of the nodal error) with probability ``coverage`` for
+    a plan like the calibration ones; ``node_mm`` ``(n,)`` is the per-node estimate (the factor
+    times each node's scale; its 95th percentile is ``bound_mm``).
+    """
+    from toolkit.static.dataset import DatasetConfig
+
+    increments = DatasetConfig(**model.bundle.data["database"]).increments
+    node = _scale_field(model, calibration.scale, calibration.residual, prediction, plan, increments)
+    return {"bound_mm": float(calibration.bound.bound(_case_scale(node))), "coverage": calibration.bound.coverage,
+            "scale": calibration.scale, "scale_mm": _case_scale(node), "node_mm": calibration.bound.bound(node)}
+
+
+def out_of_distribution(calibration: Calibration, mesh, plan, material: str | None = None,
+                        same_topology: bool = True) -> dict:
+    """Whether the inputs lie beyond what the model learned.
+
+    Returns ``{"outside": bool, "reasons": [str], "plan": extrapolation dict with
+    ``nearest_plan_distance`` (the distance to the nearest training plan, each parameter over
+    its training span), "shape": {"rms_to_nearest_subject_mm", "training_spread_mm",
+    "outside_envelope_mm"}, "material": {"asked", "trained"}}``. The face is another shape when it
+    lies farther (RMS) from every training subject than they lie from each other, or when one of
+    its nodes lies more than :data:`MIN_SHAPE_SPREAD_MM` outside the per-coordinate box of that
+    node over the training subjects.
+    """
+    from toolkit.common.training.extrapolation import describe_extrapolation
+    from toolkit.static.surrogate import PLAN_PARAMETERS, plan_extrapolation
+
+    reasons = []
+    ex = plan_extrapolation(plan, calibration.plan_ranges)
+    values = np.array(_plan_values(plan))
+    lo = np.array([calibration.plan_ranges[n][0] for n in PLAN_PARAMETERS])
+    span = np.array([calibration.plan_ranges[n][1] for n in PLAN_PARAMETERS]) - lo
+    span[span <= 0] = 1.0
+    ex["nearest_plan_distance"] = float(np.min(np.linalg.norm((calibration.train_plans - values) / span, axis=1)))
+    if ex["outside"]:
+        reasons.append("plan: " + describe_extrapolation(ex))
+    shape = {"training_spread_mm": calibration.shape_spread_mm}
+    if not same_topology or mesh.points.shape != calibration.subjects.shape[1:]:
+        shape.update(rms_to_nearest_subject_mm=None, outside_envelope_mm=None)
+        reasons.append("face: a mesh of another topology than the training subjects")
+    else:
+        d = min(_rms(mesh.points, s) for s in calibration.subjects)
+        lo, hi = calibration.subjects.min(axis=0), calibration.subjects.max(axis=0)
+        beyond = float(np.linalg.norm(np.maximum(lo - mesh.points, 0) + np.maximum(mesh.points - hi, 0),
+                                      axis=1).max())
+        shape.update(rms_to_nearest_subject_mm=d, outside_envelope_mm=beyond)
+        if d > calibration.shape_spread_mm:
+            reasons.append(f"face: {d:.2f} mm (RMS over nodes) from the nearest training subject, farther than the "
+                           f"training subjects lie from each other ({calibration.shape_spread_mm:.2f} mm)")
+        elif beyond > MIN_SHAPE_SPREAD_MM:
+            reasons.append(f"face: a node lies {beyond:.2f} mm outside the box its training subjects span")
+    mat = {"asked": material or calibration.material, "trained": calibration.material}
+    if mat["asked"] != mat["trained"]:
+        reasons.append(f"material: {mat['asked']}, the model was trained on {mat['trained']}")
+    return {"outside": bool(reasons), "reasons": reasons, "plan": ex, "shape": shape, "material": mat}
+
+
+def _plan_values(plan) -> list[float]:
+    from toolkit.static.dataset import plan_features
+    from toolkit.static.surrogate import PLAN_PARAMETERS
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return plan_features(plan, 1)[0][:len(PLAN_PARAMETERS)].tolist()
+
+
+@dataclass(frozen=True, eq=False)
+class TrustedAnswer:
+    """An answer within a tolerance: the surrogate's prediction or the FE's result.
+
+    result : PlanPrediction (``answered_by == "surrogate"``) or SimulationResult (``"fe"``)
+    answered_by : ``surrogate`` or ``fe``
+    reason : why (one line)
+    tolerance_mm : the tolerance asked
+    estimate : :func:`estimate` of the surrogate's prediction (``node_mm`` left out of the summary)
+    ood : :func:`out_of_distribution`
+    seconds : ``surrogate``, ``estimate``, ``fe`` (0 when not run), ``total``
+    """
+
+    result: object
+    answered_by: str
+    reason: str
+    tolerance_mm: float
+    estimate: dict
+    ood: dict
+    seconds: dict
+
+    def summary(self) -> dict:
+        est = {k: v for k, v in self.estimate.items() if k != "node_mm"}
+        return {**self.result.summary(), "answer": {
+            "answered_by": self.answered_by, "reason": self.reason, "tolerance_mm": self.tolerance_mm,
+            "estimate": est, "out_of_distribution": self.ood, "seconds": self.seconds}}
+
+    def write(self, out, preview: bool = True) -> Path:
+        """The result's files (``toolkit static simulate``'s), ``summary.json`` with ``answer``,
+        and ``error_estimate`` (mm, per node) in ``result.vtu`` when the surrogate answered."""
+        from toolkit.common.io import atomic_path, write
+
+        out = self.result.write(out, preview=preview)
+        if self.answered_by == "surrogate":
+            mesh = self.result.reference_mesh.with_point_data(error_estimate=self.estimate["node_mm"])
+            write(out / "result.vtu", mesh)
+        with atomic_path(out / "summary.json") as tmp:
+            tmp.write_text(json.dumps(self.summary(), indent=2, default=_json_default))
+        return out
+
+
+def _json_default(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration: Calibration | None = None,
+           coverage: float | None = None, material: str | None = None, any_mesh: bool = False,
+           options=None) -> TrustedAnswer:
+    """The surrogate's answer when its calibrated estimate is within ``tolerance_mm`` and the
+    inputs are like its training data; otherwise the FE of the same plan.
+
+    Parameters
+    ----------
+    model : Surrogate (its directory must hold a calibration, or pass ``calibration``)
+    face, plan, segments, any_mesh : as for :meth:`~toolkit.static.surrogate.Surrogate.predict_plan`
+    tolerance_mm : mm, > 0: the largest answer error (95th percentile of the nodal error) accepted
+    calibration : default :meth:`Calibration.load` of the model's directory
+    coverage : the estimate's coverage (default the calibration's)
+    material : the tissue material asked (default the training database's); another one is
+        out of distribution, so the FE answers with it
+    options : SimulationOptions for the FE (default its defaults, release-band retries included)
+    """
+    from toolkit.static.dataset import DatasetConfig
+    from toolkit.static.simulate import face_mesh_and_segments, simulate
+
+    if not (isinstance(tolerance_mm, (int, float)) and np.isfinite(tolerance_mm) and tolerance_mm > 0):
+        raise ValueError(f"tolerance = {tolerance_mm!r} mm; expected a positive number of mm (e.g. 0.5)")
+    calibration = calibration or Calibration.load(model.directory)
+    if coverage is not None:
+        calibration = calibration.at(coverage)
+    data = DatasetConfig(**model.bundle.data["database"])
+    mesh, segments = face_mesh_and_segments(face, segments)
+    same = _same_topology(model, mesh)
+    ood = out_of_distribution(calibration, mesh, plan, material, same_topology=same)
+    t0 = time.perf_counter()
+    est, pred = {}, None
+    seconds = {"surrogate": 0.0, "estimate": 0.0, "fe": 0.0}
+    if same or any_mesh:
+        pred = model.predict_plan(face, plan, segments=segments, any_mesh=any_mesh or not same)
+        seconds["surrogate"] = time.perf_counter() - t0
+        if calibration.scale == "constant" or same:
+            t1 = time.perf_counter()
+            est = estimate(model, calibration, pred, plan)
+            seconds["estimate"] = time.perf_counter() - t1
+    if ood["outside"]:
+        reason = "out of distribution: " + "; ".join(ood["reasons"])
+    elif not est:
+        reason = "no error estimate for this face"
+    elif est["bound_mm"] > tolerance_mm:
+        reason = (f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) is above the tolerance "
+                  f"{tolerance_mm:g} mm")
+    else:
+        seconds["total"] = time.perf_counter() - t0
+        return TrustedAnswer(pred, "surrogate", f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) "
+                             f"is within the tolerance {tolerance_mm:g} mm", float(tolerance_mm), est, ood, seconds)
+    t1 = time.perf_counter()
+    fe = simulate(face, plan, data.increments, material or data.material, data.sliding, segments=segments,
+                  **({"options": options} if options is not None else {}))
+    seconds["fe"] = time.perf_counter() - t1
+    seconds["total"] = time.perf_counter() - t0
+    return TrustedAnswer(fe, "fe", reason, float(tolerance_mm), est, ood, seconds)
+
+
+def _same_topology(model, mesh) -> bool:
+    from toolkit.static.surrogate import _mesh_signature
+
+    return model.bundle.data.get("mesh") == _mesh_signature(mesh.points, dict(mesh.cells))
