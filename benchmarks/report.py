@@ -576,6 +576,50 @@ def _surrogate_remeshed(data):
     return "\n\n".join(parts)
 
 
+def _surrogate_trust(data):
+    df, side = data["surrogate_trust_static"]
+    extra = side.get("extra", {})
+    d = df[df.scale == "disagreement"].assign(ok=lambda x: x.fe_status == "ok")
+    kinds = d.groupby("kind", sort=False).agg(
+        cases=("case", "size"), fe_ok=("ok", "sum"), error=("error_mm", "median"),
+        error_max=("error_mm", "max"), flagged=("ood", "mean"), bound=("bound_90_mm", "median"),
+        network_s=("surrogate_s", "median"), fe_s=("fe_s", "median")).reset_index()
+    parts = ["Cases by kind (PointNet++ answers; error: 95th percentile over nodes against the FE of the case; "
+             "bound: the disagreement estimate at 90 %):",
+             table(kinds, [("kind", "cases"), ("cases", "plans"), ("fe_ok", "FE completed"),
+                           ("error", "median error (mm)", "{:.2f}"), ("error_max", "max error (mm)", "{:.2f}"),
+                           ("bound", "median bound (mm)", "{:.2f}"), ("flagged", "flagged out of distribution",
+                                                                        "{:.0%}"),
+                           ("network_s", "network (s)", "{:.2f}"), ("fe_s", "FE (s)", "{:.2f}")])]
+    cal = extra.get("calibration", {})
+    if cal:
+        parts.append("Calibration: " + "; ".join(f"{k} on {v['plans']} held-out plans, factor {v['factor_90']:.3g} "
+                                                 "at 90 %" for k, v in cal.items()) + ".")
+    if extra.get("methods"):
+        parts.append("Estimates (coverage: share of cases whose error is within the bound; AUROC: flagging errors "
+                     "above 1, 2 and 4 mm; at 0.5 mm where both classes occur):")
+        parts.append(table(pd.DataFrame(extra["methods"]), [
+            ("scale", "scale"), ("coverage_90_in", "coverage 90 %, in", "{:.0%}"),
+            ("coverage_90_out", "90 %, out", "{:.0%}"), ("coverage_95_in", "95 %, in", "{:.0%}"),
+            ("coverage_95_out", "95 %, out", "{:.0%}"), ("width_90_in_mm", "mean bound 90 %, in (mm)", "{:.2f}"),
+            ("auroc_0.5mm", "AUROC 0.5 mm", "{:.2f}"), ("auroc_1mm", "1 mm", "{:.2f}"),
+            ("auroc_2mm", "2 mm", "{:.2f}"), ("auroc_4mm", "4 mm", "{:.2f}"),
+            ("estimate_s", "estimate (s)", "{:.3f}")]))
+    if extra.get("policies"):
+        parts.append("`predict --tolerance` over every case (the FE answers out-of-distribution inputs and "
+                     "estimates above the tolerance; its answer is the reference):")
+        parts.append(table(pd.DataFrame(extra["policies"]), [
+            ("tolerance_mm", "tolerance (mm)", "{:g}"), ("scale", "scale"), ("coverage", "coverage", "{:.0%}"),
+            ("cases", "cases"),
+            ("answered_by_surrogate", "answered by the surrogate", "{:.0%}"),
+            ("in_distribution_answered_by_surrogate", "in-distribution answered by it", "{:.0%}"),
+            ("delivered_within_tolerance", "answers within tolerance", "{:.0%}"),
+            ("mean_answer_s", "mean time per answer (s)", "{:.2f}"), ("mean_fe_s", "mean FE (s)", "{:.2f}"),
+            ("speedup_vs_fe", "speed-up vs FE", "{:.2f}")]))
+    parts.append("![Estimated bound against true error](figures/surrogate_trust_static.png)")
+    return "\n\n".join(parts)
+
+
 def _source(stem: str) -> Source:
     return SOURCES[stem]
 
@@ -614,6 +658,7 @@ SOURCES = {s.stem: s for s in (
     Source("own_face_robustness", "python benchmarks/own_face.py --sizes 7 --plans 25 --no-simulate", 55),
     Source("surrogate_remeshed", "python benchmarks/surrogate_remeshed.py", 40),
     Source("own_face_impact", "python benchmarks/own_face_impact.py", 20),
+    Source("surrogate_trust_static", "python benchmarks/surrogate_trust.py", 10),
     Source("static_robustness", "python benchmarks/static_robustness.py --resolutions coarse paper --materials "
            "linear --slidings mucosa+lip --modes full --plans 20", 2),
 )}
@@ -697,6 +742,12 @@ BLOCKS = {b.name: b for b in (
           "`toolkit mesh` (tet10, 7 mm), against the FE of the same mesh, beside the influence matrix of that mesh "
           "alone: errors of the post-operative displacement per plan, averaged over the plans.",
           (SOURCES["surrogate_remeshed"],), _surrogate_remeshed),
+    Block("surrogate_trust", "Static answers within a tolerance",
+          "The default PointNet++ trained on four paper phantom subjects (25 sagittal plans each), its error "
+          "estimate calibrated on its 20 test plans, then run on new cases: in-range plans on the training "
+          "subjects, plans with translations 1.2-2 times the physiological range, an unseen subject beyond the "
+          "training shapes, and Neo-Hookean FE for the linear-trained model.",
+          (SOURCES["surrogate_trust_static"],), _surrogate_trust),
     Block("off_bone", "Mucosa off the bone",
           "The paper phantom with its bone surfaces moved away from the tissue (`toolkit.common.off_bone`, "
           "mucosa 2.3 mm median and 4.3 mm at most off its bone): a 5 mm mandibular advance and plans drawn by "

@@ -1,0 +1,282 @@
+"""Static surrogate answers within a tolerance: the calibrated error estimates and the FE fallback
+(:mod:`toolkit.static.trust`) on in-distribution and out-of-distribution cases, against the FE of
+each case.
+
+Stages (each resumable: rerun the same command to continue):
+
+1. the paper-size database and default PointNet++ of ``surrogate_remeshed.py`` (``--subjects``
+   paper phantom subjects x ``--plans`` sagittal plans, ``--max-minutes`` of training), shared
+   with it in ``benchmarks/work/``;
+2. calibration of each scale (``disagreement``, ``constant``) on the model's test plans;
+3. cases, the FE of each cached in ``work/trust_fe/``:
+
+   - ``in``: ``--cases`` sampled plans (the physiological ranges) on the training subjects, drawn
+     with another seed than the database's;
+   - ``plan 1.2-2x``: plans whose translations lie between 1.2 and 2 times the top of the
+     physiological range (rotations within it);
+   - ``shape``: an unseen subject whose face width, height and tissue thickness lie beyond those
+     of every training subject (at the end of the phantom's validated range farthest from them);
+   - ``neo-hookean``: in-range plans on subject 0 whose FE uses the Neo-Hookean material (the
+     model was trained on the linear one);
+
+4. per case and scale: the answer error (95th percentile over all nodes of the network's nodal
+   error against the FE), the bound at 90 % and 95 %, the out-of-distribution check, the time of
+   the network, the estimate and the FE; and the policy of ``toolkit static predict --tolerance``
+   at each of ``--tolerances`` mm: the share of delivered answers within it, the share of
+   in-distribution cases the surrogate answers, and the mean time per answer against always running the FE.
+
+Writes ``benchmarks/results/surrogate_trust_static.csv`` (one row per case and scale), the
+summary in its sidecar's ``extra``, and ``docs/figures/surrogate_trust_static.png`` (estimated
+bound against true error).
+
+    python benchmarks/surrogate_trust.py                      # 4 x 25 plans, 8 min, 20 + 20 + 10 + 10 cases
+    python benchmarks/surrogate_trust.py --subjects 2 --plans 10 --max-minutes 1 --cases 4 --suffix _smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from _provenance import RESULTS, WORK, write_result
+
+FIGURES = Path(__file__).resolve().parent.parent / "docs" / "figures"
+COVERAGES = (0.9, 0.95)
+#: mm: the AUROC of each estimate for flagging answers whose error exceeds these
+AUROC_AT_MM = (0.5, 1.0, 2.0, 4.0)
+
+
+def auroc(flag: np.ndarray, score: np.ndarray) -> float:
+    """Area under the ROC curve of ``score`` for ``flag`` (Mann-Whitney, ties averaged); nan
+    when one class is empty."""
+    from scipy.stats import rankdata
+
+    flag = np.asarray(flag, bool)
+    n1, n0 = int(flag.sum()), int((~flag).sum())
+    if not n1 or not n0:
+        return float("nan")
+    r = rankdata(score)
+    return float((r[flag].sum() - n1 * (n1 + 1) / 2) / (n1 * n0))
+
+
+def extreme_shape(subjects: list[int]):
+    """A FaceShape beyond every training subject in width, height and tissue thickness."""
+    from toolkit.common.phantom import FaceShape
+
+    shapes = [FaceShape() if s == 0 else FaceShape.sample(s) for s in subjects]
+    values = {}
+    for name in ("face_width", "face_height", "tissue_thickness"):
+        lo, hi = FaceShape.RANGES[name]
+        seen = [getattr(s, name) for s in shapes]
+        values[name] = lo if min(seen) - lo > hi - max(seen) else hi
+    return FaceShape(**values)
+
+
+def beyond_ranges(factor_lo: float, factor_hi: float):
+    """Ranges whose translations lie between ``factor_lo`` and ``factor_hi`` times the top of the
+    physiological range, rotations within it."""
+    from toolkit.static.plan import PHYSIOLOGICAL_RANGES, MotionRange
+
+    return {k: MotionRange((factor_lo * r.translation_mm[1], factor_hi * r.translation_mm[1]), r.rotation_deg)
+            for k, r in PHYSIOLOGICAL_RANGES.items()}
+
+
+def make_cases(args, subjects: list[int]) -> list[dict]:
+    from toolkit.common.phantom import face_hex
+    from toolkit.static.dataset import subject_phantom
+    from toolkit.static.plan import sample_plans
+
+    cases = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for i in range(args.cases):
+            s = subjects[i % len(subjects)]
+            plan = sample_plans(i // len(subjects) + 1, np.random.default_rng([args.seed, 1000 + s]), "sagittal",
+                                phantom=subject_phantom("paper", s))[-1]
+            cases.append({"kind": "in", "subject": s, "shape": None, "plan": plan, "material": "linear"})
+        for i in range(args.cases):
+            s = subjects[i % len(subjects)]
+            plan = sample_plans(i // len(subjects) + 1, np.random.default_rng([args.seed, 2000 + s]), "sagittal",
+                                beyond_ranges(1.2, 2.0), phantom=subject_phantom("paper", s))[-1]
+            cases.append({"kind": "plan 1.2-2x", "subject": s, "shape": None, "plan": plan, "material": "linear"})
+        shape = extreme_shape(subjects)
+        phantom = face_hex("paper", shape)
+        for plan in sample_plans(max(args.cases // 2, 1), np.random.default_rng([args.seed, 3000]), "sagittal",
+                                 phantom=phantom):
+            cases.append({"kind": "shape", "subject": None, "shape": shape, "plan": plan, "material": "linear"})
+        for plan in sample_plans(max(args.cases // 2, 1), np.random.default_rng([args.seed, 4000]), "sagittal",
+                                 phantom=subject_phantom("paper", 0)):
+            cases.append({"kind": "neo-hookean", "subject": 0, "shape": None, "plan": plan,
+                          "material": "neo-hookean"})
+    return cases
+
+
+def case_face(case):
+    from toolkit.common.phantom import face_hex
+    from toolkit.static.dataset import subject_phantom
+
+    return face_hex("paper", case["shape"]) if case["shape"] is not None else subject_phantom("paper", case["subject"])
+
+
+def fe_of(case, face, data: dict, cache: Path) -> tuple[np.ndarray | None, float, str]:
+    """The FE's final displacement (cached), its time and status."""
+    from toolkit.static.simulate import simulate
+
+    tag = hashlib.sha1(json.dumps([case["plan"].as_dict(), case["material"], case["subject"],
+                                   None if case["shape"] is None else str(case["shape"]), data["increments"],
+                                   data["sliding"]], sort_keys=True, default=str).encode()).hexdigest()[:16]
+    file = cache / f"{tag}.npz"
+    if file.exists():
+        z = np.load(file)
+        return (z["u"] if z["u"].size else None), float(z["seconds"]), str(z["status"])
+    t0 = time.perf_counter()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            u = simulate(face, case["plan"], data["increments"], case["material"], data["sliding"]).displacement
+        status = "ok"
+    except Exception as exc:  # noqa: BLE001 - recorded
+        u, status = None, f"{type(exc).__name__}: {str(exc)[:160]}"
+    seconds = time.perf_counter() - t0
+    np.savez(file, u=np.zeros(0) if u is None else u, seconds=seconds, status=status)
+    return u, seconds, status
+
+
+def policy(df: pd.DataFrame, scale: str, coverage: float, tolerance: float) -> dict:
+    """What ``predict --tolerance`` does over the cases with one scale and coverage."""
+    d = df[(df.scale == scale) & (df.fe_status == "ok")]
+    bound = d[f"bound_{int(coverage * 100)}_mm"]
+    by_surrogate = ~d.ood & (bound <= tolerance)
+    delivered_error = np.where(by_surrogate, d.error_mm, 0.0)  # the FE's answer is the reference itself
+    seconds = d.surrogate_s + d.estimate_s + np.where(by_surrogate, 0.0, d.fe_s)
+    inside = d.kind == "in"
+    return {"scale": scale, "coverage": coverage, "tolerance_mm": tolerance, "cases": int(len(d)),
+            "answered_by_surrogate": float(by_surrogate.mean()),
+            "in_distribution_answered_by_surrogate": float(by_surrogate[inside].mean()) if inside.any() else None,
+            "delivered_within_tolerance": float(np.mean(delivered_error <= tolerance)),
+            "mean_answer_s": float(seconds.mean()), "mean_fe_s": float(d.fe_s.mean()),
+            "speedup_vs_fe": float(d.fe_s.mean() / seconds.mean())}
+
+
+def method_scores(df: pd.DataFrame, scale: str) -> dict:
+    d = df[(df.scale == scale) & (df.fe_status == "ok")]
+    out = {"scale": scale, "estimate_s": float(d.estimate_s.mean())}
+    for at in AUROC_AT_MM:
+        out[f"auroc_{at:g}mm"] = auroc(d.error_mm > at, d.scale_mm) if scale != "constant" else 0.5
+    for c in COVERAGES:
+        b = d[f"bound_{int(c * 100)}_mm"]
+        for name, part in (("in", d.kind == "in"), ("out", d.kind != "in")):
+            out[f"coverage_{int(c * 100)}_{name}"] = float((d.error_mm[part] <= b[part]).mean()) if part.any() else None
+        out[f"width_{int(c * 100)}_in_mm"] = float(b[d.kind == "in"].mean())
+    return out
+
+
+def plot(df: pd.DataFrame, tolerance: float, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = df[(df.scale == "disagreement") & (df.fe_status == "ok")]
+    fig, ax = plt.subplots(figsize=(5.2, 4.4), dpi=120)
+    for kind, marker in (("in", "o"), ("plan 1.2-2x", "^"), ("shape", "s"), ("neo-hookean", "D")):
+        k = d[d.kind == kind]
+        ax.scatter(k.bound_90_mm, k.error_mm, marker=marker, s=22, label=kind, alpha=0.8)
+    top = float(max(d.bound_90_mm.max(), d.error_mm.max()) * 1.05)
+    ax.plot([0, top], [0, top], "k-", lw=0.8, label="error = bound")
+    ax.axhline(tolerance, color="grey", ls="--", lw=0.8)
+    ax.axvline(tolerance, color="grey", ls="--", lw=0.8)
+    ax.set(xlabel="estimated bound at 90 % (mm)", ylabel="true answer error, p95 over nodes (mm)",
+           title="PointNet++ error estimate (disagreement)", xlim=(0, top), ylim=(0, top))
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(out)
+    plt.close(fig)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--subjects", type=int, default=4, help="training phantom subjects")
+    ap.add_argument("--plans", type=int, default=25, help="plans per training subject")
+    ap.add_argument("--max-minutes", type=float, default=8.0, help="training time")
+    ap.add_argument("--cases", type=int, default=20, help="in-distribution and beyond-range cases (half as many "
+                                                          "for the unseen shape and for Neo-Hookean)")
+    ap.add_argument("--tolerances", type=float, nargs="+", default=[0.5, 2.0, 4.0],
+                    help="mm: the policy of predict --tolerance at each")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--suffix", default="", help="suffix of the work files (a small run beside the default one)")
+    ap.add_argument("--out", type=Path, default=RESULTS / "surrogate_trust_static.csv")
+    args = ap.parse_args(argv)
+
+    from surrogate_remeshed import stage_database, stage_model
+    from tqdm import tqdm
+
+    from toolkit.common.runtime import set_threads
+    from toolkit.common.training.conformal import min_calibration_cases
+    from toolkit.static.trust import SCALES, answer_error, calibrate_surrogate, estimate, out_of_distribution
+
+    set_threads(1)
+    db_path = stage_database(args)
+    model = stage_model(args, db_path)
+    data = model.bundle.data["database"]
+    calibrations = {}
+    for scale in SCALES:
+        t0 = time.perf_counter()
+        calibrations[scale] = calibrate_surrogate(model, db_path, coverage=COVERAGES[0], scale=scale)
+        print(f"calibration {scale}: {calibrations[scale].bound.n} plans, factor {calibrations[scale].bound.factor:.3g}"
+              f" ({time.perf_counter() - t0:.0f} s)", flush=True)
+    cache = WORK / f"trust_fe{args.suffix}"
+    cache.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for i, case in enumerate(tqdm(make_cases(args, list(range(args.subjects))), desc="cases")):
+        face = case_face(case)
+        fe, fe_s, status = fe_of(case, face, data, cache)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            t0 = time.perf_counter()
+            pred = model.predict_plan(face, case["plan"])
+            surrogate_s = time.perf_counter() - t0
+        base = {"case": i, "kind": case["kind"], "subject": case["subject"], "material": case["material"],
+                "fe_status": status, "fe_s": fe_s, "surrogate_s": surrogate_s,
+                "error_mm": answer_error(pred.displacement, fe) if fe is not None else np.nan}
+        for scale, cal in calibrations.items():
+            ood = out_of_distribution(cal, face.mesh, case["plan"], case["material"])
+            t0 = time.perf_counter()
+            est = estimate(model, cal, pred, case["plan"])
+            row = {**base, "scale": scale, "estimate_s": time.perf_counter() - t0, "scale_mm": est["scale_mm"],
+                   "ood": ood["outside"], "ood_reasons": " | ".join(ood["reasons"]),
+                   "nearest_plan_distance": ood["plan"]["nearest_plan_distance"],
+                   "shape_rms_mm": ood["shape"]["rms_to_nearest_subject_mm"],
+                   "shape_outside_envelope_mm": ood["shape"]["outside_envelope_mm"]}
+            for c in COVERAGES:
+                try:
+                    row[f"bound_{int(c * 100)}_mm"] = float(cal.at(c).bound.bound(est["scale_mm"]))
+                except ValueError:  # too few calibration plans for this coverage
+                    row[f"bound_{int(c * 100)}_mm"] = np.nan
+            rows.append(row)
+    table = pd.DataFrame(rows)
+    methods = [method_scores(table, s) for s in SCALES]
+    policies = [policy(table, s, c, t) for t in args.tolerances for s in SCALES for c in COVERAGES]
+    calib = {s: {"plans": c.bound.n, "factor_90": c.bound.factor,
+                 "factor_95": c.at(0.95).bound.factor if c.bound.n >= min_calibration_cases(0.95) else None}
+             for s, c in calibrations.items()}
+    write_result(args.out, table, argv=argv, extra={"methods": methods, "policies": policies,
+                                                    "calibration": calib, "tolerances_mm": args.tolerances})
+    if args.out.resolve().parent == RESULTS.resolve():
+        FIGURES.mkdir(parents=True, exist_ok=True)
+        plot(table, args.tolerances[0], FIGURES / "surrogate_trust_static.png")
+    with pd.option_context("display.width", 200):
+        print(pd.DataFrame(methods).to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+        print(pd.DataFrame(policies).to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+    return table
+
+
+if __name__ == "__main__":
+    main()
