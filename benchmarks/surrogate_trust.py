@@ -8,7 +8,7 @@ Stages (each resumable: rerun the same command to continue):
    paper phantom subjects x ``--plans`` sagittal plans, ``--max-minutes`` of training), shared
    with it in ``benchmarks/work/``;
 2. calibration of each scale (``disagreement``, ``constant``) on the model's test plans;
-3. cases, the FE of each cached in ``work/trust_fe/``:
+3. cases, the FE of each cached in ``work/trust_fe/`` (with the time of the run that computed it):
 
    - ``in``: ``--cases`` sampled plans (the physiological ranges) on the training subjects, drawn
      with another seed than the database's;
