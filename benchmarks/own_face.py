@@ -25,6 +25,7 @@ Usage::
     python benchmarks/own_face.py --sizes 5 --orders 1 2 --resolution paper
     python benchmarks/own_face.py --sizes 7 5 3.5 --simulate-sizes 7 5
     python benchmarks/own_face.py --sizes 7 --plans 25 --no-simulate    # 50 sampled plans
+    python benchmarks/own_face.py --sizes 3.5 --merge  # add a size to the committed tables
 """
 
 from __future__ import annotations
@@ -123,6 +124,8 @@ def main(argv=None):
                     help="simulate the meshed face with its labelling rules' sets, and/or with the phantom's "
                          "bone-side sets carried over (what the labels account for in the difference)")
     ap.add_argument("--out", type=Path, default=RESULTS / "own_face.csv")
+    ap.add_argument("--merge", action="store_true",
+                    help="keep the rows of --out (and its labels table) for the sizes, orders and labels not run now")
     args = ap.parse_args(argv)
 
     from toolkit.common.phantom import face_hex
@@ -180,14 +183,27 @@ def main(argv=None):
         robustness(args, phantom, surfaces, backend)
         if args.no_simulate:
             return None
-    table = pd.DataFrame(rows)
-    write_result(args.out, table, argv=argv)
-    labels = pd.DataFrame(label_rows)
-    write_result(args.out.with_name(args.out.stem + "_labels.csv"), labels, argv=argv)
+    table = _merged(args.out, pd.DataFrame(rows), ["size_mm", "order", "labels"], args.merge)
+    write_result(args.out, table, argv=argv, resumed=args.merge)
+    labels_out = args.out.with_name(args.out.stem + "_labels.csv")
+    labels = _merged(labels_out, pd.DataFrame(label_rows), ["size_mm", "order", "set"], args.merge)
+    write_result(labels_out, labels, argv=argv, resumed=args.merge)
     with pd.option_context("display.width", 200):
         print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
         print(labels.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
     return table
+
+
+def _merged(path: Path, new: pd.DataFrame, key: list[str], merge: bool) -> pd.DataFrame:
+    """``new``, with (``merge``) the rows of the table at ``path`` whose ``key`` is not in ``new``:
+    sizes from coarse to fine, then element order."""
+    if not merge or not path.exists():
+        return new
+    old = pd.read_csv(path)
+    done = set(map(tuple, new[key].astype(str).to_numpy()))
+    keep = old[[tuple(r) not in done for r in old[key].astype(str).to_numpy()]]
+    out = pd.concat([keep, new], ignore_index=True)
+    return out.sort_values(key[:2], ascending=[False, True], kind="stable").reset_index(drop=True)
 
 
 def robustness(args, phantom, surfaces, backend) -> pd.DataFrame:
