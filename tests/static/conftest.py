@@ -1,4 +1,4 @@
-"""Fixtures shared by the static surrogate's tests (built once per session)."""
+"""Fixtures shared by the static surrogate's tests (built once per pytest run)."""
 
 import pytest
 

@@ -22,7 +22,7 @@ COVERAGE = 0.8  # the coarse database's 7 test plans allow at most 1 - 1/8 = 87.
 
 @pytest.fixture(scope="module")
 def calibrated(hard_model, db100, tmp_path_factory):
-    """The session's coarse model, copied, calibrated on its 7 test plans."""
+    """The shared coarse model, copied, calibrated on its 7 test plans."""
     out = tmp_path_factory.mktemp("trust") / "model"
     shutil.copytree(hard_model.directory, out)
     model = Surrogate.load(out)
