@@ -658,7 +658,7 @@ SOURCES = {s.stem: s for s in (
     Source("own_face_robustness", "python benchmarks/own_face.py --sizes 7 --plans 25 --no-simulate", 55),
     Source("surrogate_remeshed", "python benchmarks/surrogate_remeshed.py", 40),
     Source("own_face_impact", "python benchmarks/own_face_impact.py", 20),
-    Source("surrogate_trust_static", "python benchmarks/surrogate_trust.py", 10),
+    Source("surrogate_trust_static", "python benchmarks/surrogate_trust.py --cases 40", 15),
     Source("static_robustness", "python benchmarks/static_robustness.py --resolutions coarse paper --materials "
            "linear --slidings mucosa+lip --modes full --plans 20", 2),
 )}

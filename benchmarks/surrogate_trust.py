@@ -29,7 +29,7 @@ Writes ``benchmarks/results/surrogate_trust_static.csv`` (one row per case and s
 summary in its sidecar's ``extra``, and ``docs/figures/surrogate_trust_static.png`` (estimated
 bound against true error).
 
-    python benchmarks/surrogate_trust.py                      # 4 x 25 plans, 8 min, 20 + 20 + 10 + 10 cases
+    python benchmarks/surrogate_trust.py --cases 40           # 4 x 25 plans, 8 min, 40 + 40 + 20 + 20 cases
     python benchmarks/surrogate_trust.py --subjects 2 --plans 10 --max-minutes 1 --cases 4 --suffix _smoke
 """
 
