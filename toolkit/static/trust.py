@@ -28,12 +28,12 @@ from __future__ import annotations
 import json
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.training.conformal import ConformalBound, calibrate
+from toolkit.common.training.conformal import ConformalBound, calibrate, min_calibration_cases
 
 __all__ = ["SCALES", "Calibration", "calibrate_surrogate", "estimate", "out_of_distribution", "answer",
            "TrustedAnswer"]
@@ -125,8 +125,6 @@ class Calibration:
 
     def at(self, coverage: float) -> Calibration:
         """The same calibration with its bound at another coverage."""
-        from dataclasses import replace
-
         return replace(self, bound=self.bound.at(coverage))
 
 
@@ -198,8 +196,6 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     if not seen_keys:
         raise ValueError(f"{train_db.path} holds none of the simulations the model trained on: give its training "
                          "database too (training=...; command line: --train-data DB.h5)")
-    from toolkit.common.training.conformal import min_calibration_cases
-
     need = min_calibration_cases(coverage)
     if len(keys) < need:
         raise ValueError(f"{len(keys)} held-out simulation(s) in {db.path} ({how}); a bound at {coverage:.0%} needs "
@@ -209,10 +205,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
         rows = np.flatnonzero(train_db.samples.key.isin(seen_keys).to_numpy())
         subjects = np.unique(train_db.samples.subject.to_numpy()[rows])
         priors = {int(s): model.prior(train_db.subject_mesh(int(s)), train_db.types[int(s)]) for s in subjects}
-        spec = model.config.features
-        from dataclasses import replace
-
-        data = _encode_database(_Subset(train_db, rows), replace(spec, linear_prior=True), priors)
+        data = _encode_database(_Subset(train_db, rows), replace(model.config.features, linear_prior=True), priors)
         params = train_db.samples[list(PLAN_FEATURES)].to_numpy(np.float64)[rows]
         residual = LinearPlusPOD.fit(params, data.target, data.prior)
     last = train_db.samples[train_db.samples.key.isin(seen_keys)].sort_values("increment").groupby("key").tail(1)
