@@ -64,7 +64,8 @@ def test_a_plan_far_outside_the_training_data_falls_back_to_the_fe_and_is_the_fe
     got = answer(model, case.subject, far, 100.0, calibration=cal)  # any estimate: the inputs decide
     assert got.answered_by == "fe" and got.reason.startswith("out of distribution")
     fe = simulate(case.subject, far, 3, "linear", "mucosa+lip")
-    np.testing.assert_array_equal(got.result.displacements, fe.displacements)
+    # the same simulation: equal up to the run-to-run rounding of the threaded sparse solve
+    np.testing.assert_allclose(got.result.displacements, fe.displacements, rtol=0, atol=1e-9)
     assert got.seconds["fe"] > 0 and got.seconds["surrogate"] > 0
 
 
