@@ -65,8 +65,12 @@ def test_sampled_plans_on_the_meshed_phantom_keep_the_jaws_apart(face):
     assert all(jaw_closing(p, dental_arch(a)) <= 10.0 for p in plans)
     # the same draws as on the phantom: only the Le Fort I pivot differs, by the labelled attachment's centroid
     on_phantom = sample_plans(30, 1, "full", phantom=phantom)
+    maxilla = face.mesh.points[face.mesh.node_sets["maxilla"]]
+    np.testing.assert_allclose(a.segments["lefort"].pivot, maxilla.mean(axis=0))
+    # the labelled attachment is resolved to about one element (12 mm here; fTetWild's meshes vary
+    # from run to run, and the centroid with them: 10.7 mm was seen)
     gap = np.linalg.norm(a.segments["lefort"].pivot - phantom.segments["lefort"].pivot)
-    assert gap < 10.0
+    assert gap < 12.0
     same_distal = [np.allclose(p.motions["distal"].translation, q.motions["distal"].translation)
                    for p, q in zip(plans, on_phantom, strict=True)]
     assert np.mean(same_distal) > 0.5  # rejection redraws differ where the arches do
