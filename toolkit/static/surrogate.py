@@ -593,7 +593,9 @@ def evaluation_keys(model: Surrogate, db, keys=None) -> tuple[list, str]:
     return list(keys), how
 
 
-def _scored_keys(model: Surrogate, db, keys=None):
+def check_database(model: Surrogate, db) -> None:
+    """Refuse a database of other settings (:data:`MUST_MATCH`) or another mesh than the model's
+    training database, with :class:`~toolkit.common.config_diff.IncompatibleError`."""
     from toolkit.common.config_diff import require_same
 
     trained_on = model.bundle.data["database"]
@@ -603,6 +605,12 @@ def _scored_keys(model: Surrogate, db, keys=None):
                  hint="Score the model on a database generated with its settings (`toolkit static dataset "
                       + " ".join(f"--{k} {trained_on.get(k)}" for k in MUST_MATCH) + "`)")
     model.check_mesh(db.points[0], db.cells)
+
+
+def _scored_keys(model: Surrogate, db, keys=None):
+    check_database(model, db)
+    trained_on = model.bundle.data["database"]
+    asked = db.config.as_dict()
     same = json.loads(json.dumps(asked)) == trained_on  # tuples as the stored lists
     seen = model.bundle.extra.get("seen_simulations")
     identities = _simulation_identities(db) if seen is not None else {}

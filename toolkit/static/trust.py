@@ -174,13 +174,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
 
     from toolkit.static.baselines import LinearPlusPOD
     from toolkit.static.dataset import PLAN_FEATURES, StaticDatabase
-    from toolkit.static.surrogate import (
-        PLAN_PARAMETERS,
-        _encode_database,
-        _simulation_identities,
-        _Subset,
-        evaluation_keys,
-    )
+    from toolkit.static.surrogate import PLAN_PARAMETERS, _simulation_identities, check_database, evaluation_keys
 
     if scale not in SCALES:
         raise ValueError(f"scale = {scale!r}; expected one of {SCALES}")
@@ -189,7 +183,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     train_db = db if training is None else (training if isinstance(training, StaticDatabase)
                                             else StaticDatabase.open(training))
     if train_db is not db:
-        evaluation_keys(model, train_db, [])  # the same settings and mesh, or a clear refusal
+        check_database(model, train_db)
     identities = _simulation_identities(train_db)
     seen = set(model.bundle.extra.get("seen_simulations") or [])
     seen_keys = [k for k in train_db.samples.key.unique() if identities[str(k)] in seen]
@@ -203,11 +197,12 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     residual = None
     if scale == "disagreement":
         rows = np.flatnonzero(train_db.samples.key.isin(seen_keys).to_numpy())
-        subjects = np.unique(train_db.samples.subject.to_numpy()[rows])
-        priors = {int(s): model.prior(train_db.subject_mesh(int(s)), train_db.types[int(s)]) for s in subjects}
-        data = _encode_database(_Subset(train_db, rows), replace(model.config.features, linear_prior=True), priors)
+        seen_data = train_db.arrays(rows)
+        priors = {int(s): model.prior(train_db.subject_mesh(int(s)), train_db.types[int(s)])
+                  for s in np.unique(seen_data["subject"])}
+        linear = np.stack([priors[int(sid)].predict(s) for sid, s in zip(seen_data["subject"], seen_data["s"])])
         params = train_db.samples[list(PLAN_FEATURES)].to_numpy(np.float64)[rows]
-        residual = LinearPlusPOD.fit(params, data.target, data.prior)
+        residual = LinearPlusPOD.fit(params, seen_data["v"], linear)
     last = train_db.samples[train_db.samples.key.isin(seen_keys)].sort_values("increment").groupby("key").tail(1)
     train_plans = last[list(PLAN_FEATURES[:len(PLAN_PARAMETERS)])].to_numpy(np.float64)
     plan_ranges = {n: [float(train_plans[:, j].min()), float(train_plans[:, j].max())]
@@ -344,12 +339,10 @@ class TrustedAnswer:
     def write(self, out, preview: bool = True) -> Path:
         """The result's files (``toolkit static simulate``'s), ``summary.json`` with ``answer``,
         and ``error_estimate`` (mm, per node) in ``result.vtu`` when the surrogate answered."""
-        from toolkit.common.io import atomic_path, write
+        from toolkit.common.io import atomic_path
 
-        out = self.result.write(out, preview=preview)
-        if self.answered_by == "surrogate":
-            mesh = self.result.reference_mesh.with_point_data(error_estimate=self.estimate["node_mm"])
-            write(out / "result.vtu", mesh)
+        fields = {"error_estimate": self.estimate["node_mm"]} if self.answered_by == "surrogate" else {}
+        out = self.result.write(out, preview=preview, point_data=fields)
         with atomic_path(out / "summary.json") as tmp:
             tmp.write_text(json.dumps(self.summary(), indent=2, default=_json_default))
         return out
