@@ -536,6 +536,7 @@ class StaticDatabase:
     sets: dict
     _U: dict = field(default_factory=dict, repr=False)
     _bone: dict = field(default_factory=dict, repr=False)
+    _motions: dict = field(default_factory=dict, repr=False)  # key -> plan dict, drawn on first use
 
     @classmethod
     def open(cls, path: str | os.PathLike) -> StaticDatabase:
@@ -598,10 +599,11 @@ class StaticDatabase:
         """The SurgicalPlan of simulation ``key`` (drawn again from the configuration's seed)."""
         from toolkit.static.plan import SurgicalPlan
 
-        job = next((j for j in _jobs(self.config) if j.key == key), None)
-        if job is None:
+        if not self._motions:
+            self._motions.update({j.key: j.params["motions"] for j in _jobs(self.config)})
+        if key not in self._motions:
             raise KeyError(f"no simulation {key!r} in the configuration of {self.path}")
-        return SurgicalPlan.from_dict({k: v for k, v in job.params["motions"].items() if k != "force"})
+        return SurgicalPlan.from_dict({k: v for k, v in self._motions[key].items() if k != "force"})
 
     def subject(self, subject: int):
         """What ``subject`` is simulated on (:func:`database_subject`): ``mesh`` and ``segments``."""

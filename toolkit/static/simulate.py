@@ -283,15 +283,16 @@ class SimulationResult:
             "increments_report": [asdict(r) for r in self.reports],
         }
 
-    def write(self, out: str | Path, preview: bool = True) -> Path:
-        """Write ``result.vtu`` (pre-operative face with ``displacement``), ``postop.vtu`` (the
-        post-operative face), ``summary.json``, ``increments.xdmf`` (+ .h5, one XDMF ``Mixed``
-        topology for a mesh of several cell types) and ``preview.png``."""
+    def write(self, out: str | Path, preview: bool = True, point_data: Mapping | None = None) -> Path:
+        """Write ``result.vtu`` (pre-operative face with ``displacement`` and any ``point_data``,
+        name -> ``(n, ...)`` array), ``postop.vtu`` (the post-operative face), ``summary.json``,
+        ``increments.xdmf`` (+ .h5, one XDMF ``Mixed`` topology for a mesh of several cell types)
+        and ``preview.png``."""
         from toolkit.common.io import atomic_path, write, write_time_series
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        write(out / "result.vtu", self.reference_mesh)
+        write(out / "result.vtu", self.reference_mesh.with_point_data(**(point_data or {})))
         write(out / "postop.vtu", self.final_mesh)
         with atomic_path(out / "summary.json") as tmp:
             tmp.write_text(json.dumps(self.summary(), indent=2))
