@@ -39,6 +39,16 @@ import pandas as pd
 from _provenance import RESULTS, WORK, write_result
 
 
+def add_training_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options :func:`stage_database` and :func:`stage_model` read (``surrogate_trust.py`` shares them)."""
+    ap.add_argument("--subjects", type=int, default=4, help="training phantom subjects")
+    ap.add_argument("--plans", type=int, default=25, help="plans per training subject")
+    ap.add_argument("--max-minutes", type=float, default=8.0, help="training time")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--suffix", default="", help="suffix of the work files (a small run beside the default one)")
+
+
 def stage_database(args) -> Path:
     from toolkit.static.dataset import DatasetConfig, generate
 
@@ -117,18 +127,13 @@ def errors(pred: np.ndarray, fe: np.ndarray, lips: np.ndarray) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--subjects", type=int, default=4, help="training phantom subjects")
-    ap.add_argument("--plans", type=int, default=25, help="plans per training subject")
-    ap.add_argument("--max-minutes", type=float, default=8.0, help="training time")
+    add_training_arguments(ap)
     ap.add_argument("--test-subject", type=int, default=7, help="unseen subject k (FaceShape.sample(k))")
     ap.add_argument("--test-plans", type=int, default=10)
     ap.add_argument("--size", type=float, default=7.0, help="element size of the remeshed face, mm")
     ap.add_argument("--face-plans", type=int, default=20,
                     help="plans of a database on the remeshed face itself, for a model trained on that face (0: none)")
     ap.add_argument("--face-minutes", type=float, default=8.0, help="training time of that model")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--workers", type=int, default=1)
-    ap.add_argument("--suffix", default="", help="suffix of the work files (a small run beside the default one)")
     ap.add_argument("--out", type=Path, default=RESULTS / "surrogate_remeshed.csv")
     args = ap.parse_args(argv)
 

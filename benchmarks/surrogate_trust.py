@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from _provenance import RESULTS, WORK, write_result
+from surrogate_remeshed import add_training_arguments, stage_database, stage_model
 
 FIGURES = Path(__file__).resolve().parent.parent / "docs" / "figures"
 COVERAGES = (0.9, 0.95)
@@ -90,21 +91,20 @@ def beyond_ranges(factor_lo: float, factor_hi: float):
 def make_cases(args, subjects: list[int]) -> list[dict]:
     from toolkit.common.phantom import face_hex
     from toolkit.static.dataset import subject_phantom
-    from toolkit.static.plan import sample_plans
+    from toolkit.static.plan import PHYSIOLOGICAL_RANGES, sample_plans
 
     cases = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for i in range(args.cases):
-            s = subjects[i % len(subjects)]
-            plan = sample_plans(i // len(subjects) + 1, np.random.default_rng([args.seed, 1000 + s]), "sagittal",
-                                phantom=subject_phantom("paper", s))[-1]
-            cases.append({"kind": "in", "subject": s, "shape": None, "plan": plan, "material": "linear"})
-        for i in range(args.cases):
-            s = subjects[i % len(subjects)]
-            plan = sample_plans(i // len(subjects) + 1, np.random.default_rng([args.seed, 2000 + s]), "sagittal",
-                                beyond_ranges(1.2, 2.0), phantom=subject_phantom("paper", s))[-1]
-            cases.append({"kind": "plan 1.2-2x", "subject": s, "shape": None, "plan": plan, "material": "linear"})
+        per_subject = -(-args.cases // len(subjects))
+        draws = (("in", 1000, PHYSIOLOGICAL_RANGES), ("plan 1.2-2x", 2000, beyond_ranges(1.2, 2.0)))
+        for kind, stream, ranges in draws:
+            drawn = {s: sample_plans(per_subject, np.random.default_rng([args.seed, stream + s]), "sagittal", ranges,
+                                     phantom=subject_phantom("paper", s)) for s in subjects}
+            for i in range(args.cases):
+                s = subjects[i % len(subjects)]
+                cases.append({"kind": kind, "subject": s, "shape": None, "plan": drawn[s][i // len(subjects)],
+                              "material": "linear"})
         shape = extreme_shape(subjects)
         phantom = face_hex("paper", shape)
         for plan in sample_plans(max(args.cases // 2, 1), np.random.default_rng([args.seed, 3000]), "sagittal",
@@ -202,20 +202,14 @@ def plot(df: pd.DataFrame, tolerance: float, out: Path) -> None:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--subjects", type=int, default=4, help="training phantom subjects")
-    ap.add_argument("--plans", type=int, default=25, help="plans per training subject")
-    ap.add_argument("--max-minutes", type=float, default=8.0, help="training time")
+    add_training_arguments(ap)
     ap.add_argument("--cases", type=int, default=20, help="in-distribution and beyond-range cases (half as many "
                                                           "for the unseen shape and for Neo-Hookean)")
     ap.add_argument("--tolerances", type=float, nargs="+", default=[0.5, 2.0, 4.0],
                     help="mm: the policy of predict --tolerance at each")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--workers", type=int, default=1)
-    ap.add_argument("--suffix", default="", help="suffix of the work files (a small run beside the default one)")
     ap.add_argument("--out", type=Path, default=RESULTS / "surrogate_trust_static.csv")
     args = ap.parse_args(argv)
 
-    from surrogate_remeshed import stage_database, stage_model
     from tqdm import tqdm
 
     from toolkit.common.runtime import set_threads
