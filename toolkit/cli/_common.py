@@ -106,6 +106,17 @@ def positive_float(text: str) -> float:
     return value
 
 
+def probability(text: str) -> float:
+    """A probability in (0, 1) (an argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a probability in (0, 1), e.g. 0.9")
+    return value
+
+
 def floats(text: str) -> list[float]:
     """``"20,26.5"`` -> ``[20.0, 26.5]`` (an argparse type)."""
     try:

@@ -19,6 +19,7 @@ from toolkit.cli._common import (
     ints,
     positive_float,
     positive_int,
+    probability,
     torch_threads,
     uninterruptible,
 )
@@ -111,6 +112,10 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
                         help="held-out velocities, mm/s (default: midpoints of every other gap, 23,35,47); '' for "
                              "none")
     _add_scene_options(parser, "the skull-held yielding scene, 0.36 s")
+    parser.add_argument("--integrator", choices=["explicit", "implicit"],
+                        help="explicit dynamics or quasi-static load steps (implicit: the FE that answers "
+                             "`toolkit impact predict --tolerance` when the surrogate may miss) (default: the "
+                             "scene's, explicit)")
     parser.add_argument("--duration", type=float, help="simulated time, s (default: the scene's, 0.36)")
     add_database_run(parser, "velocities")
 
@@ -230,7 +235,18 @@ def evaluate(args: argparse.Namespace) -> int:
 def add_predict_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", required=True, type=Path, help="model directory")
     parser.add_argument("--velocity", required=True, type=float, help="ball velocity, mm/s")
+    parser.add_argument("--tolerance", type=positive_float, default=None, metavar="MM",
+                        help="answer within this error (mm, 95th percentile of the nodal error over nodes and "
+                             "frames): the surrogate's prediction when its calibrated estimate is within it and the "
+                             "scene is like its training data, else the quasi-static FE of the same scene (needs "
+                             "`toolkit impact calibrate`)")
+    parser.add_argument("--coverage", type=probability, default=None,
+                        help="with --tolerance: the estimate's coverage (default: the calibration's)")
+    parser.add_argument("--target", type=_point, metavar="X,Y,Z", default=None,
+                        help="with --tolerance: skin point (mm) the ball aims at (default: the training scene's aim; "
+                             "another aim is answered by the FE)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
 
 
 def predict(args: argparse.Namespace) -> int:
@@ -240,9 +256,14 @@ def predict(args: argparse.Namespace) -> int:
     torch_threads(args)
     from toolkit.impact.surrogate import ImpactSurrogate, predict_scene
 
+    if args.tolerance is None:
+        if args.coverage is not None or args.target is not None:
+            raise ValueError("--coverage and --target go with --tolerance (an answer within a tolerance)")
+    else:
+        return _predict_within(args)
     pred = predict_scene(ImpactSurrogate.load(args.model), args.velocity)
     with uninterruptible():
-        pred.write(args.out)
+        pred.write(args.out, preview=not args.no_preview)
     s = pred.summary()
     print(f"{s['face_nodes']} face nodes at {s['velocity_mm_s']} mm/s, {pred.times.size} frames in "
           f"{s['wall_time_s']:.2f} s: max displacement {s['max_displacement_mm']:.2f} mm, max von Mises "
@@ -251,6 +272,62 @@ def predict(args: argparse.Namespace) -> int:
 
     print(f"velocity: {describe_extrapolation(s['extrapolation'])}")
     print(f"wrote {args.out}/ (face.xdmf, summary.json, scene.toml)")
+    return 0
+
+
+def _predict_within(args: argparse.Namespace) -> int:
+    from toolkit.impact.scene import Scene
+    from toolkit.impact.surrogate import ImpactSurrogate
+    from toolkit.impact.trust import ImpactCalibration, answer
+
+    model = ImpactSurrogate.load(args.model)
+    calibration = ImpactCalibration.load(args.model)
+    if args.coverage is not None:
+        calibration = calibration.at(args.coverage)
+    scene = Scene.from_dict(model.bundle.data["scene"]).with_ball(velocity=args.velocity)
+    if args.target is not None:
+        scene = scene.with_ball(target=args.target, target_offset=(0.0, 0.0, 0.0))
+    result = answer(model, None, args.tolerance, scene=scene, calibration=calibration, out=args.out, progress=True,
+                    preview=not args.no_preview)
+    s = result.summary()
+    a, sec = s["answer"], result.seconds
+    print(f"answered by {'the surrogate' if a['answered_by'] == 'surrogate' else 'the quasi-static FE'}: "
+          f"{a['reason']}")
+    print(f"{s['face_nodes']} face nodes at {s['velocity_mm_s']} mm/s: max displacement "
+          f"{s['max_displacement_mm']:.2f} mm; surrogate {sec['surrogate']:.2f} s, estimate {sec['estimate']:.2f} s, "
+          f"FE {sec['fe']:.1f} s -> {args.out}/ (face.xdmf, summary.json)")
+    return 0
+
+
+def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
+    from toolkit.impact.trust import SCALES
+
+    parser.add_argument("--model", required=True, type=Path, help="model directory (the calibration is saved in it)")
+    parser.add_argument("--data", required=True, type=Path,
+                        help="a database of the model's scene: its simulations at velocities the model did not "
+                             "train on are the calibration cases")
+    parser.add_argument("--train-data", type=Path, default=None,
+                        help="the database the model was trained on, when --data is another one (default: --data)")
+    parser.add_argument("--coverage", type=probability, default=0.9,
+                        help="probability that the error bound holds for a velocity like these")
+    parser.add_argument("--scale", choices=SCALES, default=SCALES[0],
+                        help="interpolation: the distance to the training simulations interpolated in velocity; "
+                             "constant: one bound for all")
+
+
+def calibrate(args: argparse.Namespace) -> int:
+    torch_threads(args)
+    from toolkit.impact.surrogate import ImpactSurrogate
+    from toolkit.impact.trust import calibrate_impact
+
+    model = ImpactSurrogate.load(args.model)
+    cal = calibrate_impact(model, args.data, coverage=args.coverage, scale=args.scale, training=args.train_data)
+    with uninterruptible():
+        cal.save(args.model)
+    errors = sorted(c["error_mm"] for c in cal.cases)
+    print(f"{cal.bound.n} velocities the model did not train on: answer error (p95 over nodes and frames) median "
+          f"{errors[len(errors) // 2]:.3f} mm, max {errors[-1]:.3f} mm; {args.scale} scale x {cal.bound.factor:.3g} "
+          f"bounds it at {cal.bound.coverage:.0%} -> {args.model}/calibration.json")
     return 0
 
 
@@ -329,9 +406,20 @@ COMMANDS = {
         description="RMSE, Pearson and NRMSE of displacement and von Mises on the model's test split; writes "
                     "metrics.json, timeseries.png and fields.png.",
         add_arguments=add_evaluate_arguments, run=evaluate, interrupted=NOTHING_WRITTEN),
+    "calibrate": Command(
+        help="calibrate a model's error estimate",
+        description="Predict the simulations of a database at velocities the model did not train on, compare with "
+                    "their FE and save the split-conformal error bound in the model directory (calibration.json, "
+                    "calibration.npz), which `toolkit impact predict --tolerance` uses.",
+        add_arguments=add_calibrate_arguments, run=calibrate, interrupted=NOTHING_WRITTEN),
     "predict": Command(
         help="predict the database's scene at a velocity",
         description="Whole-face displacement and von Mises time series at VELOCITY; writes face.xdmf, summary.json "
-                    "and scene.toml (run its FE with `toolkit impact simulate --scene OUT/scene.toml`).",
-        add_arguments=add_predict_arguments, run=predict, interrupted=NOTHING_WRITTEN),
+                    "and scene.toml (run its FE with `toolkit impact simulate --scene OUT/scene.toml`). With "
+                    "--tolerance, the surrogate answers when its calibrated error estimate is within it and the "
+                    "scene is like its training data, and the quasi-static FE answers otherwise; summary.json says "
+                    "which (answer.answered_by) and why.",
+        add_arguments=add_predict_arguments, run=predict,
+        interrupted="{out} holds nothing from this run, or (the FE answering with --tolerance) summary.json with "
+                    "\"status\": \"interrupted\" and the frames finished so far; rerun the same command"),
 }

@@ -17,6 +17,7 @@ from toolkit.cli._common import (
     dask_client,
     positive_float,
     positive_int,
+    probability,
     two_points,
     uninterruptible,
 )
@@ -208,17 +209,6 @@ def evaluate(args: argparse.Namespace) -> int:
           f"{m['lips_mean_error_mm']:.3f}; {m['inference_ms']:.1f} ms per prediction vs {m['fe_ms']:.0f} ms FE per "
           f"increment -> {args.out}/metrics.json")
     return 0
-
-
-def probability(text: str) -> float:
-    """argparse type: a probability in (0, 1)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0.0 < value < 1.0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a probability in (0, 1), e.g. 0.9")
-    return value
 
 
 def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:

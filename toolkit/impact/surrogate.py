@@ -304,7 +304,7 @@ def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateCon
     bundle = ModelBundle(MODEL_KIND, asdict(cfg), db.signature(),
                          {"inputs": x_scaler, "outputs": y_scaler},
                          {k: v.detach().clone() for k, v in net.state_dict().items()}, extra)
-    surrogate = ImpactSurrogate(bundle, net)
+    surrogate = ImpactSurrogate(bundle, net, out)
     if out is not None:
         bundle.save(out)
     return surrogate
@@ -314,11 +314,13 @@ class ImpactSurrogate:
     """A trained impact surrogate: predicts displacement and von Mises time series of every node.
 
     Build with :func:`train_surrogate` or :meth:`load`; ``bundle`` holds config, scalers and the
-    data signature, ``network`` the torch module (CPU).
+    data signature, ``network`` the torch module (CPU), ``directory`` the model directory it was
+    saved to or loaded from (None for a model never saved).
     """
 
-    def __init__(self, bundle: ModelBundle, network):
+    def __init__(self, bundle: ModelBundle, network, directory: str | os.PathLike | None = None):
         self.bundle, self.network = bundle, network
+        self.directory = None if directory is None else Path(directory)
         self.config = SurrogateConfig(**bundle.config)
         self.network.eval()
 
@@ -340,7 +342,7 @@ class ImpactSurrogate:
         except RuntimeError as exc:
             raise ValueError(f"{directory}/model.pt does not fit the network its config.json describes "
                              f"({cfg.network}, hidden {cfg.hidden}, layers {cfg.layers}): {exc}") from exc
-        return cls(bundle, net)
+        return cls(bundle, net, directory)
 
     # ------------------------------------------------------------------ data checks
     def check_database(self, db: ImpactDatabase) -> None:
@@ -434,8 +436,9 @@ class Prediction:
                 "fixed_clearance_mm": None, "predicted_by": f"{MODEL_KIND} ({self.config})",
                 "extrapolation": self.extrapolation}
 
-    def write(self, out: str | os.PathLike, preview: bool = True) -> Path:
-        """``face.xdmf`` (+ .h5; point data ``displacement`` mm, ``von_mises`` MPa per frame),
+    def write(self, out: str | os.PathLike, preview: bool = True, point_data: dict | None = None) -> Path:
+        """``face.xdmf`` (+ .h5; point data ``displacement`` mm, ``von_mises`` MPa per frame, and
+        each ``point_data`` field ``(F, N, ...)`` of its frames),
         ``summary.json``, ``scene.toml`` (run the FE of the same case with
         ``toolkit impact simulate --scene scene.toml``) and, with ``preview``, ``preview.png`` of
         the last frame (as :func:`toolkit.impact.simulate.simulate` draws it)."""
@@ -448,7 +451,8 @@ class Prediction:
         out.mkdir(parents=True, exist_ok=True)
         with TimeSeriesWriter(out / "face.xdmf", self.face.without_fields()) as w:
             for k, t in enumerate(self.times):
-                w.append(float(t), displacement=self.displacement[k], von_mises=self.von_mises[k])
+                w.append(float(t), displacement=self.displacement[k], von_mises=self.von_mises[k],
+                         **{name: np.asarray(v)[k] for name, v in (point_data or {}).items()})
         with atomic_path(out / "summary.json") as tmp:
             tmp.write_text(json.dumps({"status": "finished", **self.summary()}, indent=2))
         self.scene.write(out / "scene.toml")
