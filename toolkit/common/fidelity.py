@@ -37,12 +37,10 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-import pandas as pd
-
 from toolkit.common.errors import ToolkitError
 
 __all__ = ["FidelityError", "Ladder", "LadderSource", "FidelityChoice", "LADDER_FILES", "load_ladder",
-           "ladder_from_tables", "choose_fidelity"]
+           "ladder_from_tables", "choose_fidelity", "packaged_folder"]
 
 #: the result tables each workflow's ladder is built from (``<stem>.csv`` and ``<stem>.json``)
 LADDER_FILES = {"static": ("static_ladder", "static_convergence"), "impact": ("impact_ladder",)}
@@ -93,7 +91,7 @@ class Ladder:
 
     workflow: str
     options: tuple[str, ...]
-    rows: pd.DataFrame
+    rows: object  # pandas.DataFrame
     metric: str
     reference: dict
     uncertainty_mm: float
@@ -169,6 +167,8 @@ def load_ladder(workflow: str, folder: str | Path | None = None, *, own_mesh: bo
     to a user's mesh (see the module's docstring)."""
     if workflow not in LADDER_FILES:
         raise ValueError(f"workflow {workflow!r}; expected one of {list(LADDER_FILES)}")
+    import pandas as pd
+
     folder = packaged_folder() if folder is None else Path(folder)
     tables = {}
     for stem in LADDER_FILES[workflow]:
