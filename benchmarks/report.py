@@ -16,6 +16,10 @@ figure that was not measured.
     python benchmarks/report.py            # rewrite the blocks and docs/benchmarks.md
     python benchmarks/report.py --check    # exit 1 naming each block (or file) that differs
 
+It also copies the ladder results :mod:`toolkit.common.fidelity` chooses from into the package
+(:data:`PACKAGE_COPIES`, ``toolkit/common/data/ladders/``), so that an installed toolkit has them;
+``--check`` fails when a copy differs from its result.
+
 ``--root`` and ``--results`` point at another tree (the tests use a temporary one).
 """
 
@@ -620,6 +624,43 @@ def _surrogate_trust(data):
     return "\n\n".join(parts)
 
 
+#: tolerances (mm) of the generated table of the fidelity chosen per tolerance
+FIDELITY_TOLERANCES = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
+
+
+def _fidelity_table(workflow: str, data: dict, cases: list[tuple[str, bool]]) -> str:
+    """The option :func:`toolkit.common.fidelity.choose_fidelity` picks at each tolerance, from
+    the results in ``data`` (the same code the command line runs on the packaged copy)."""
+    from toolkit.common.fidelity import FidelityError, choose_fidelity, ladder_from_tables
+
+    rows = []
+    for label, own_mesh in cases:
+        ladder = ladder_from_tables(workflow, data, own_mesh=own_mesh)
+        for tol in FIDELITY_TOLERANCES:
+            try:
+                c = choose_fidelity(workflow, tol, ladder=ladder)
+            except FidelityError:
+                rows.append({"case": label, "tolerance": tol,
+                             "choice": f"refused: below the reference's own {ladder.uncertainty_mm:.3g} mm"})
+                continue
+            rows.append({"case": label, "tolerance": tol,
+                         "choice": ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}"
+                                             for k, v in c.options.items()),
+                         "error": c.error_mm, "time": c.wall_time_s})
+    return table(pd.DataFrame(rows), [("case", "run on"), ("tolerance", "tolerance (mm)", "{:g}"),
+                                      ("choice", "chosen"), ("error", "measured error (mm)", "{:.3f}"),
+                                      ("time", "ladder time (s)", "{:.2f}")])
+
+
+def _static_fidelity(data):
+    return _fidelity_table("static", data, [("phantom (`--resolution` chosen)", False),
+                                            ("own mesh (`--mesh`)", True)])
+
+
+def _impact_fidelity(data):
+    return _fidelity_table("impact", data, [("phantom, or a tet10 `--mesh`", False)])
+
+
 def _source(stem: str) -> Source:
     return SOURCES[stem]
 
@@ -691,6 +732,13 @@ BLOCKS = {b.name: b for b in (
           "The packaged plan at half scale for every material x increments x sliding model, each in a fresh "
           "process; differences are to the highest-fidelity run of the same resolution (Neo-Hookean, 10 "
           "increments, mucosa + lip sliding).", (SOURCES["static_ladder"],), _ladder),
+    Block("static_fidelity", "Static fidelity chosen by a tolerance",
+          "`toolkit static simulate --tolerance MM` (`toolkit.common.fidelity.choose_fidelity`): the fastest option "
+          "of the static ladder whose error is within the tolerance. On the phantom the error is the ladder's mean "
+          "skin difference to the most faithful model of the same resolution plus that resolution's mean skin "
+          "difference to the fine face (a bound, by the triangle inequality); on a user's mesh, the paper "
+          "phantom's ladder difference alone. Tolerances below the paper face's own difference to the fine one "
+          "are refused.", (SOURCES["static_ladder"], SOURCES["static_convergence"]), _static_fidelity),
     Block("static_robustness", "Static robustness over the plan space",
           "Plans drawn from the lip-sliding paper's ranges (both segments moved): how many complete, how long they "
           "take, the worst element quality, and how many needed a wider release band or freed cut nodes.",
@@ -704,6 +752,11 @@ BLOCKS = {b.name: b for b in (
           "accuracy is the skin displacement series against the highest-fidelity explicit run of the same "
           "resolution (RMSE, Pearson; mirrored: after reflecting across the midsagittal plane, for a run that "
           "slid to the other side).", (SOURCES["impact_ladder"],), _impact_ladder),
+    Block("impact_fidelity", "Impact fidelity chosen by a tolerance",
+          "`toolkit impact simulate --tolerance MM` (`toolkit.common.fidelity.choose_fidelity`): the fastest option "
+          "of the impact ladder (coarse face, 30 mm/s) whose displacement RMSE to the explicit reference is within "
+          "the tolerance. Tolerances below the reference's own left-right asymmetry are refused.",
+          (SOURCES["impact_ladder"],), _impact_fidelity),
     Block("impact_quasi_static", "Quasi-static impact path",
           "The implicit (quasi-static Newton) runs of the impact ladder: load steps, Newton iterations, step cuts, "
           "time and memory, and the agreement with the explicit reference where one was run.",
@@ -849,8 +902,32 @@ def pages(root: Path) -> list[Path]:
     return [p for p in found if p.exists() and p != root / BENCHMARKS_PAGE]
 
 
+#: the results copied into the package for :mod:`toolkit.common.fidelity` (``<stem>.csv`` and ``.json``)
+PACKAGE_COPIES = ("static_ladder", "static_convergence", "impact_ladder")
+PACKAGE_FOLDER = Path("toolkit") / "common" / "data" / "ladders"
+
+
+def copy_into_package(root: Path, results: Path, check: bool) -> list[str]:
+    """Copy each of :data:`PACKAGE_COPIES` present in ``results`` byte for byte into
+    ``root/PACKAGE_FOLDER`` (with ``check``, only compare); the copies that differed, as messages."""
+    problems = []
+    for stem in PACKAGE_COPIES:
+        for suffix in (".csv", ".json"):
+            source = Path(results) / f"{stem}{suffix}"
+            if not source.exists():
+                continue
+            target = root / PACKAGE_FOLDER / source.name
+            if not target.exists() or target.read_bytes() != source.read_bytes():
+                problems.append(f"{PACKAGE_FOLDER / source.name}: differs from benchmarks/results/{source.name}")
+                if not check:
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    target.write_bytes(source.read_bytes())
+    return problems
+
+
 def run(root: Path, results: Path, check: bool) -> list[str]:
-    """Rewrite (or, with ``check``, compare) the pages; the differences found, as messages."""
+    """Rewrite (or, with ``check``, compare) the pages and the package's copies of the ladders;
+    the differences found, as messages."""
     data = load(results)
     blocks = {name: render(name, data) for name in BLOCKS}
     problems = []
@@ -869,7 +946,7 @@ def run(root: Path, results: Path, check: bool) -> list[str]:
         if not check:
             target.parent.mkdir(parents=True, exist_ok=True)
             target.write_text(page_text)
-    return problems
+    return problems + copy_into_package(root, results, check)
 
 
 def main(argv=None) -> int:

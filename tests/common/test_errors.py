@@ -14,6 +14,7 @@ from toolkit.common.database import DatabaseError
 from toolkit.common.errors import ConvergenceError, ToolkitError
 from toolkit.common.fem.pardiso import PardisoError
 from toolkit.common.fem.solvers import SolverError
+from toolkit.common.fidelity import FidelityError
 from toolkit.common.io import UnitsError
 from toolkit.common.mesh import DegenerateElementError, InvertedElementError, Mesh, MeshError, MissingSetError
 from toolkit.common.mixed_bar import mixed_bar
@@ -58,6 +59,7 @@ BUILTIN_BASES = {
     MouthError: ValueError,
     MeshingError: RuntimeError,
     AnatomyError: ValueError,
+    FidelityError: ValueError,
 }
 
 

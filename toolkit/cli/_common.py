@@ -117,6 +117,15 @@ def probability(text: str) -> float:
     return value
 
 
+def tolerance_mm(text: str) -> float:
+    """A tolerance in mm: a finite number > 0 (an argparse type)."""
+    try:
+        return positive_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected a tolerance in mm, a finite number > 0 such as 0.5, got "
+                                         f"{text!r}") from None
+
+
 def floats(text: str) -> list[float]:
     """``"20,26.5"`` -> ``[20.0, 26.5]`` (an argparse type)."""
     try:

@@ -20,6 +20,7 @@ from toolkit.cli._common import (
     positive_float,
     positive_int,
     probability,
+    tolerance_mm,
     torch_threads,
     uninterruptible,
 )
@@ -80,6 +81,11 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
                              "the scene's)")
     parser.add_argument("--duration", type=float,
                         help="simulated time, s (default: the scene's, 1.8; with --mesh, 0.36)")
+    parser.add_argument("--tolerance", type=tolerance_mm, default=None, metavar="MM",
+                        help="choose the ball, order, mass scaling, safety and integrator not given: the fastest "
+                             "measured in the impact ladder (coarse face, 30 mm/s) whose displacement RMSE to the "
+                             "explicit reference is within MM; refused below the reference's own uncertainty, its "
+                             "left-right asymmetry (default: none, the options above)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
 
@@ -90,10 +96,15 @@ def simulate(args: argparse.Namespace) -> int:
     from toolkit.impact.simulate import simulate
 
     check_output_dir(args.out)
-    if args.integrator is None and args.scene is None:
-        explicit_only = args.mass_scaling is not None or args.safety is not None
-        args.integrator = "explicit" if explicit_only else "implicit"
-    result = simulate(scene(args, default_scene), out=args.out, progress=True, preview=not args.no_preview)
+    explicit_only = args.mass_scaling is not None or args.safety is not None
+    if args.integrator is None and (args.scene is None or args.tolerance is not None):
+        args.integrator = "explicit" if explicit_only else None if args.tolerance is not None else "implicit"
+    run_scene = scene(args, default_scene)
+    choice = None
+    if args.tolerance is not None:
+        choice = choose_impact_fidelity(args, run_scene)
+        run_scene = run_scene.with_fidelity_choice(choice)
+    result = simulate(run_scene, out=args.out, progress=True, preview=not args.no_preview, fidelity=choice)
     s = result.summary()
     print(f"{s['face_nodes']} face nodes ({s['element']}), {s['ball']} ball at {s['velocity_mm_s']} mm/s: "
           f"{s['steps']} steps of {s['dt_s']:.3g} s in {s['wall_time_s']:.1f} s; max displacement "
@@ -235,7 +246,7 @@ def evaluate(args: argparse.Namespace) -> int:
 def add_predict_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", required=True, type=Path, help="model directory")
     parser.add_argument("--velocity", required=True, type=float, help="ball velocity, mm/s")
-    parser.add_argument("--tolerance", type=positive_float, default=None, metavar="MM",
+    parser.add_argument("--tolerance", type=tolerance_mm, default=None, metavar="MM",
                         help="answer within this error (mm, 95th percentile of the nodal error over nodes and "
                              "frames): the surrogate's prediction when its calibrated estimate is within it and the "
                              "scene is like its training data, else the quasi-static FE of the same scene (needs "
@@ -329,6 +340,23 @@ def calibrate(args: argparse.Namespace) -> int:
           f"{errors[len(errors) // 2]:.3f} mm, max {errors[-1]:.3f} mm; {args.scale} scale x {cal.bound.factor:.3g} "
           f"bounds it at {cal.bound.coverage:.0%} -> {args.model}/calibration.json")
     return 0
+
+
+def choose_impact_fidelity(args: argparse.Namespace, run_scene):
+    """The FidelityChoice of ``--tolerance`` (printed): among the ladder's options with those given
+    on the command line (``--mass-scaling`` or ``--safety`` alone: the explicit integrator); on a
+    face mesh, with the mesh's element order."""
+    from toolkit.common.fidelity import choose_fidelity
+
+    given = {"ball": args.ball, "order": args.order, "mass_scaling": args.mass_scaling, "safety": args.safety,
+             "integrator": args.integrator}
+    fixed = {k: v for k, v in given.items() if v is not None}
+    own_mesh = run_scene.face.mesh is not None
+    if own_mesh:
+        fixed.setdefault("order", run_scene.fidelity.order)
+    choice = choose_fidelity("impact", args.tolerance, fixed=fixed, own_mesh=own_mesh)
+    print(choice.describe())
+    return choice
 
 
 def _point(text: str) -> tuple[float, float, float]:

@@ -18,6 +18,7 @@ from toolkit.cli._common import (
     positive_float,
     positive_int,
     probability,
+    tolerance_mm,
     two_points,
     uninterruptible,
 )
@@ -26,23 +27,34 @@ HELP = "orthognathic-surgery workflow (the lip-sliding paper)"
 DESCRIPTION = "Static workflow: incremental FEM of the face after orthognathic surgery."
 MATERIALS = ["linear", "neo-hookean"]
 SLIDINGS = ["none", "mucosa", "mucosa+lip"]
+#: simulate's fidelity options when neither given nor chosen by --tolerance
+SIMULATE_DEFAULTS = {"resolution": "coarse", "increments": 3, "material": "linear", "sliding": "mucosa+lip"}
 
 
 def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--mesh", type=Path,
                         help="face mesh (.inp/.vtu/.xdmf) with the phantom's node sets (default: the built-in phantom)")
-    source.add_argument("--resolution", default="coarse", choices=RESOLUTIONS, help="built-in phantom resolution")
+    source.add_argument("--resolution", default=None, choices=RESOLUTIONS,
+                        help="built-in phantom resolution (default: coarse; with --tolerance, chosen)")
     parser.add_argument("--plan", type=Path,
                         help="plan (.toml/.json) (default: the packaged bimaxillary plan, phantom only)")
     parser.add_argument("--bone", action="append", default=[], metavar="SEGMENT=FILE",
                         help="bone surface of a segment (lefort, distal, proximal_left, proximal_right, skull) as "
                              "STL/OBJ/PLY/VTK/VTU/OFF in mm, e.g. --bone lefort=maxilla.stl; repeatable (default: "
                              "the phantom's surfaces, or for --mesh the surfaces rebuilt from its bone-side faces)")
-    parser.add_argument("--increments", type=int, default=3, help="number of increments (the lip-sliding paper: 3)")
-    parser.add_argument("--material", default="linear", choices=MATERIALS, help="soft-tissue material law")
-    parser.add_argument("--sliding", default="mucosa+lip", choices=SLIDINGS,
-                        help="sliding model (mucosa+lip: the lip-sliding paper)")
+    parser.add_argument("--increments", type=int, default=None,
+                        help="number of increments (default: 3, the lip-sliding paper's; with --tolerance, chosen)")
+    parser.add_argument("--material", default=None, choices=MATERIALS,
+                        help="soft-tissue material law (default: linear; with --tolerance, chosen)")
+    parser.add_argument("--sliding", default=None, choices=SLIDINGS,
+                        help="sliding model, mucosa+lip as in the lip-sliding paper (default: mucosa+lip; with "
+                             "--tolerance, chosen)")
+    parser.add_argument("--tolerance", type=tolerance_mm, default=None, metavar="MM",
+                        help="choose the resolution, material, increments and sliding not given: the fastest "
+                             "measured in the static ladder whose error (mean skin difference to the most faithful "
+                             "model, mm) is within MM; refused below the most faithful model's own uncertainty, its "
+                             "difference to the fine face (default: none, the options above)")
     parser.add_argument("--solver", default="auto", choices=["auto", "superlu", "amg", "cholmod"],
                         help="linear solver (auto: chosen by the expected fill of the factor)")
     add_units(parser)
@@ -57,10 +69,11 @@ def simulate(args: argparse.Namespace) -> int:
     from toolkit.static import SimulationOptions, load_case
 
     check_output_dir(args.out)
-    case = load_case(args.mesh, resolution=args.resolution, plan=args.plan, bones=bones(args.bone), force=args.force,
-                     units=args.units)
-    result = case.simulate(increments=args.increments, material=args.material, sliding=args.sliding,
-                           options=SimulationOptions(solver=args.solver, progress=True))
+    chosen, fidelity = simulate_options(args)
+    case = load_case(args.mesh, resolution=chosen["resolution"], plan=args.plan, bones=bones(args.bone),
+                     force=args.force, units=args.units)
+    result = case.simulate(fidelity=fidelity, increments=chosen["increments"], material=chosen["material"],
+                           sliding=chosen["sliding"], options=SimulationOptions(solver=args.solver, progress=True))
     with uninterruptible():
         result.write(args.out, preview=not args.no_preview)
     s = result.summary()
@@ -73,6 +86,20 @@ def simulate(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}/ (result.vtu: pre-operative face with 'displacement'; postop.vtu: post-operative face; "
           f"increments.xdmf, summary.json{'' if args.no_preview else ', preview.png'})")
     return 0
+
+
+def simulate_options(args: argparse.Namespace):
+    """The resolution, increments, material and sliding of ``simulate``: those given, the others
+    chosen by ``--tolerance`` (the choice printed) or :data:`SIMULATE_DEFAULTS`; and the
+    FidelityChoice (None without ``--tolerance``). On a ``--mesh`` the resolution is the mesh's."""
+    given = {k: getattr(args, k) for k in SIMULATE_DEFAULTS if getattr(args, k) is not None}
+    if args.tolerance is None:
+        return {**SIMULATE_DEFAULTS, **given}, None
+    from toolkit.common.fidelity import choose_fidelity
+
+    choice = choose_fidelity("static", args.tolerance, fixed=given, own_mesh=args.mesh is not None)
+    print(choice.describe())
+    return {**SIMULATE_DEFAULTS, **choice.options}, choice
 
 
 def condyles(text: str):

@@ -4,6 +4,7 @@ Imports nothing from :mod:`toolkit.static` or :mod:`toolkit.impact`.
 """
 
 from toolkit.common.errors import ConvergenceError, ToolkitError
+from toolkit.common.fidelity import FidelityChoice, FidelityError, choose_fidelity
 from toolkit.common.io import TimeSeries, TimeSeriesWriter, read, read_time_series, write, write_time_series
 from toolkit.common.mesh import (
     CELL_TYPES,
@@ -41,4 +42,7 @@ __all__ = [
     "TimeSeries",
     "TimeSeriesWriter",
     "set_threads",
+    "choose_fidelity",
+    "FidelityChoice",
+    "FidelityError",
 ]

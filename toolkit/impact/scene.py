@@ -256,6 +256,17 @@ class Scene:
     def with_fidelity(self, **kw) -> Scene:
         return replace(self, fidelity=replace(self.fidelity, **kw))
 
+    def with_fidelity_choice(self, choice) -> Scene:
+        """This scene with the options of an impact
+        :class:`~toolkit.common.fidelity.FidelityChoice` (element order, rigid or deformable
+        ball, mass scaling, safety, integrator); the face, the ball's speed and the duration stay."""
+        if choice.workflow != "impact":
+            raise SceneError(f"fidelity was chosen for the {choice.workflow} workflow; expected an impact choice")
+        o = choice.options
+        return self.with_ball(rigid=o["ball"] == "rigid").with_fidelity(
+            order=int(o["order"]), mass_scaling=float(o["mass_scaling"]), safety=float(o["safety"]),
+            integrator=o["integrator"])
+
     def with_ball(self, **kw) -> Scene:
         return replace(self, ball=replace(self.ball, **kw))
 

@@ -360,6 +360,8 @@ class ImpactResult:
     stats : dict (steps, dt_s, wall_time_s, energy_error, ...)
     plastic_volume_fraction : (n_frames,) share of the face volume (integration points) that has
         yielded
+    fidelity : the record of the :class:`~toolkit.common.fidelity.FidelityChoice` the scene took
+        its options from (``summary()["fidelity"]``), or None
     """
 
     scene: Scene
@@ -373,9 +375,12 @@ class ImpactResult:
     contact_force: np.ndarray
     stats: dict
     plastic_volume_fraction: np.ndarray | None = None
+    fidelity: dict | None = None
 
     def summary(self) -> dict:
+        """JSON-ready summary (mm, s, MPa, N); ``fidelity`` when the options were chosen by a tolerance."""
         mag = np.linalg.norm(self.displacement, axis=2)
+        fidelity = {} if self.fidelity is None else {"fidelity": self.fidelity}
         return {
             "face_nodes": self.face.n_points,
             "face_elements": self.face.n_cells,
@@ -399,6 +404,7 @@ class ImpactResult:
             # travel (mm) left between the ball's path and the fixed nodes; None: the path never meets them
             "fixed_clearance_mm": (None if not np.isfinite(self.stats.get("fixed_clearance_mm", np.inf))
                                    else float(self.stats["fixed_clearance_mm"])),
+            **fidelity,
         }
 
 
@@ -416,9 +422,13 @@ def _run(scene: Scene, built: BuiltScene, on_frame, progress: bool) -> tuple[lis
                            progress=progress)
 
 
-def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False, preview: bool = True) -> ImpactResult:
+def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False, preview: bool = True,
+             fidelity=None) -> ImpactResult:
     """Run ``scene``; with ``out``, stream frames to ``out/face.xdmf`` (and ``ball.xdmf``) and write
     ``history.h5``, ``summary.json`` and ``preview.png``.
+
+    ``fidelity``: the :class:`~toolkit.common.fidelity.FidelityChoice` the scene's options come
+    from (:meth:`Scene.with_fidelity_choice`); its record goes to the summary as ``fidelity``.
 
     ``summary.json`` has ``"status"``: ``"finished"``, or, when the run raises or is interrupted
     (``KeyboardInterrupt``), ``"failed"`` or ``"interrupted"`` with the ``reason``, the ``error``
@@ -454,7 +464,7 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
         for w in writers:
             w.close()
         if out is not None:
-            _write_partial(out, scene, done, exc, time.perf_counter() - t0)
+            _write_partial(out, scene, done, exc, time.perf_counter() - t0, fidelity)
         raise
     for w in writers:
         w.close()
@@ -467,7 +477,8 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
                           np.stack([f.displacement for f in frames]), np.stack([f.von_mises for f in frames]),
                           np.stack([f.equivalent_plastic_strain for f in frames]), energies,
                           np.stack([f.contact_force for f in frames]), stats,
-                          np.array([f.plastic_volume_fraction for f in frames]))
+                          np.array([f.plastic_volume_fraction for f in frames]),
+                          None if fidelity is None else fidelity.record())
     if out is not None:
         _write_history(out / "history.h5", frames)
         _write_summary(out / "summary.json", {"status": "finished", **result.summary()})
@@ -511,7 +522,8 @@ def _write_summary(path: Path, summary: dict) -> None:
         tmp.write_text(json.dumps(summary, indent=2))
 
 
-def _write_partial(out: Path, scene: Scene, frames: list, exc: BaseException, wall_time_s: float) -> None:
+def _write_partial(out: Path, scene: Scene, frames: list, exc: BaseException, wall_time_s: float,
+                   fidelity=None) -> None:
     """The ``summary.json`` (and ``history.h5`` of the ``frames`` finished) of a run stopped by
     ``exc``: status ``interrupted`` for a ``KeyboardInterrupt``, else ``failed``."""
     interrupted = isinstance(exc, KeyboardInterrupt)
@@ -526,6 +538,7 @@ def _write_partial(out: Path, scene: Scene, frames: list, exc: BaseException, wa
         "last_frame_time_s": float(frames[-1].time) if frames else None,
         "stopped_at_time_s": None if getattr(exc, "time", None) is None else float(exc.time),
         "wall_time_s": wall_time_s,
+        **({} if fidelity is None else {"fidelity": fidelity.record()}),
     }
     if frames:
         _write_history(out / "history.h5", frames)

@@ -55,20 +55,48 @@ class StaticCase:
         """The face mesh (the phantom's, or the subject itself), mm."""
         return self.subject.mesh if isinstance(self.subject, FacePhantom) else self.subject
 
-    def simulate(self, **kwargs):
+    def simulate(self, fidelity=None, **kwargs):
         """Run the incremental simulation of this case.
 
         Keywords are those of :func:`toolkit.static.simulate`: ``increments`` (default 3),
         ``material`` (``linear``), ``sliding`` (``mucosa+lip``), ``options``
         (SimulationOptions).
 
+        ``fidelity``: a :class:`~toolkit.common.fidelity.FidelityChoice` of the static ladder
+        (:func:`~toolkit.common.fidelity.choose_fidelity`), whose ``increments``, ``material``
+        and ``sliding`` the run takes and whose record the result's summary carries as
+        ``fidelity``. A keyword that contradicts it, or a phantom of another resolution than the
+        one chosen, is refused.
+
         Returns
         -------
         SimulationResult — displacements ``(increments + 1, n_nodes, 3)`` mm and diagnostics
         """
+        from dataclasses import replace
+
         from toolkit.static.simulate import simulate
 
-        return simulate(self.subject, self.plan, segments=self.segments, **kwargs)
+        if fidelity is None:
+            return simulate(self.subject, self.plan, segments=self.segments, **kwargs)
+        kwargs = {**kwargs, **self._fidelity_keywords(fidelity, kwargs)}
+        result = simulate(self.subject, self.plan, segments=self.segments, **kwargs)
+        return replace(result, fidelity=fidelity.record())
+
+    def _fidelity_keywords(self, fidelity, kwargs: dict) -> dict:
+        """The simulate keywords of a static FidelityChoice, checked against ``kwargs`` and the face."""
+        if fidelity.workflow != "static":
+            raise ValueError(f"fidelity was chosen for the {fidelity.workflow} workflow; expected a static choice")
+        chosen = {k: fidelity.options[k] for k in ("increments", "material", "sliding")}
+        clash = {k: v for k, v in kwargs.items() if k in chosen and v != chosen[k]}
+        if clash:
+            k = next(iter(clash))
+            raise ValueError(f"{k} = {clash[k]!r} contradicts the fidelity chosen ({k} = {chosen[k]!r}); give it to "
+                             "choose_fidelity(..., fixed=...) instead")
+        resolution = fidelity.options.get("resolution")
+        if resolution is not None and isinstance(self.subject, FacePhantom) and self.subject.resolution != resolution:
+            raise ValueError(f"the fidelity chosen is the {resolution} phantom, but this case is the "
+                             f"{self.subject.resolution} one; load_case(resolution={resolution!r})")
+        return chosen
 
 
 def load_case(

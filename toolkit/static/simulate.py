@@ -222,6 +222,8 @@ class SimulationResult:
         the pre-operative mesh; empty without mucosa sliding
     far_mucosa : (f,) int64 — mucosa nodes left free as farther than
         ``SimulationOptions.max_mucosa_offset`` from their bone
+    fidelity : the record of the :class:`~toolkit.common.fidelity.FidelityChoice` the run took
+        its options from (``summary()["fidelity"]``), or None
     """
 
     reference: Mesh
@@ -235,6 +237,7 @@ class SimulationResult:
     freed_cut: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     mucosa_offset: np.ndarray = field(default_factory=lambda: np.zeros(0))
     far_mucosa: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    fidelity: dict | None = None
 
     @property
     def displacement(self) -> np.ndarray:
@@ -255,8 +258,9 @@ class SimulationResult:
             boundary_type=self.boundary.types.astype(np.int32))
 
     def summary(self) -> dict:
-        """JSON-ready summary (mm, s)."""
+        """JSON-ready summary (mm, s); ``fidelity`` when the options were chosen by a tolerance."""
         mag = np.linalg.norm(self.displacement, axis=1)
+        fidelity = {} if self.fidelity is None else {"fidelity": self.fidelity}
         return {
             "nodes": self.reference.n_points,
             "elements": self.reference.n_cells,
@@ -281,6 +285,7 @@ class SimulationResult:
             "regulated_nodes": int(sum(r.regulated_nodes for r in self.reports)),
             "max_regulation_shift_mm": float(max(r.max_regulation_shift for r in self.reports)),
             "increments_report": [asdict(r) for r in self.reports],
+            **fidelity,
         }
 
     def write(self, out: str | Path, preview: bool = True, point_data: Mapping | None = None) -> Path:
