@@ -624,6 +624,61 @@ def _surrogate_trust(data):
     return "\n\n".join(parts)
 
 
+def _surrogate_trust_impact(data):
+    df, side = data["surrogate_trust_impact"]
+    extra = side.get("extra", {})
+    d = df[df.scale == "interpolation"].assign(ok=lambda x: x.fe_status == "ok")
+    kinds = d.groupby("kind", sort=False).agg(
+        cases=("velocity_mm_s", "size"), lo=("velocity_mm_s", "min"), hi=("velocity_mm_s", "max"),
+        fe_ok=("ok", "sum"), error=("error_mm", "median"), error_max=("error_mm", "max"),
+        interpolation=("interpolation_error_mm", "median"), flagged=("ood", "mean"),
+        bound=("bound_90_mm", "median"), network_s=("surrogate_s", "median"), fe_s=("fe_s", "median")).reset_index()
+    kinds["velocities"] = [f"{a:.0f}-{b:.0f}" for a, b in zip(kinds.lo, kinds.hi)]
+    parts = [f"Coarse face (tet10, rigid ball, quasi-static, {extra.get('duration_s', 0.27)} s), the strong LSTM "
+             f"trained {extra.get('train_seconds') or 0:.0f} s on the six training velocities. Cases by kind (error: "
+             "95th percentile over nodes and frames against the FE of the case; interpolation: the training "
+             "simulations interpolated in velocity, alone; bound: the interpolation estimate at 90 %):",
+             table(kinds, [("kind", "cases"), ("velocities", "velocities (mm/s)"), ("cases", "runs"),
+                           ("fe_ok", "FE completed"), ("error", "LSTM median error (mm)", "{:.3f}"),
+                           ("error_max", "LSTM max error (mm)", "{:.3f}"),
+                           ("interpolation", "interpolation median error (mm)", "{:.3f}"),
+                           ("bound", "median bound (mm)", "{:.3f}"),
+                           ("flagged", "flagged out of distribution", "{:.0%}"),
+                           ("network_s", "LSTM (s)", "{:.3f}"), ("fe_s", "FE (s)", "{:.2f}")])]
+    failed = df[(df.scale == "interpolation") & (df.fe_status != "ok")]
+    if len(failed):
+        parts.append("FE runs that did not complete (no reference; the fallback fails the same way): " + ", ".join(
+            f"{r.kind} {r.velocity_mm_s:g} mm/s ({str(r.fe_status).split(':')[0]})" for r in failed.itertuples())
+            + ".")
+    cal = extra.get("calibration", {})
+    if cal:
+        parts.append("Calibration: " + "; ".join(f"{k} on {v['velocities']} velocities, factor {v['factor_90']:.3g} "
+                                                 "at 90 %" for k, v in cal.items()) + ".")
+    if extra.get("methods"):
+        parts.append("Estimates (coverage: share of cases whose error is within the bound; AUROC where both "
+                     "classes occur):")
+        parts.append(table(pd.DataFrame(extra["methods"]), [
+            ("scale", "scale"), ("coverage_90_in", "coverage 90 %, in", "{:.0%}"),
+            ("coverage_90_out", "90 %, out", "{:.0%}"), ("coverage_95_in", "95 %, in", "{:.0%}"),
+            ("coverage_95_out", "95 %, out", "{:.0%}"), ("width_90_in_mm", "mean bound 90 %, in (mm)", "{:.3f}"),
+            ("auroc_0.5mm", "AUROC 0.5 mm", "{:.2f}"), ("auroc_1mm", "1 mm", "{:.2f}"),
+            ("estimate_s", "estimate (s)", "{:.4f}")]))
+    if extra.get("policies"):
+        parts.append("`impact predict --tolerance` over the cases whose FE completed (the FE answers "
+                     "out-of-distribution inputs and estimates above the tolerance; its answer is the reference):")
+        parts.append(table(pd.DataFrame(extra["policies"]), [
+            ("tolerance_mm", "tolerance (mm)", "{:g}"), ("scale", "scale"), ("coverage", "coverage", "{:.0%}"),
+            ("cases", "cases"),
+            ("answered_by_surrogate", "answered by the surrogate", "{:.0%}"),
+            ("in_distribution_answered_by_surrogate", "in-distribution answered by it", "{:.0%}"),
+            ("delivered_within_tolerance", "answers within tolerance", "{:.0%}"),
+            ("mean_answer_s", "mean time per answer (s)", "{:.2f}"), ("mean_fe_s", "mean FE (s)", "{:.2f}"),
+            ("speedup_vs_fe", "speed-up vs FE", "{:.2f}"),
+            ("in_distribution_speedup_vs_fe", "speed-up, in-distribution", "{:.1f}")]))
+    parts.append("![Estimated bound against true error](figures/surrogate_trust_impact.png)")
+    return "\n\n".join(parts)
+
+
 #: tolerances (mm) of the generated table of the fidelity chosen per tolerance
 FIDELITY_TOLERANCES = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
 
@@ -700,6 +755,7 @@ SOURCES = {s.stem: s for s in (
     Source("surrogate_remeshed", "python benchmarks/surrogate_remeshed.py", 40),
     Source("own_face_impact", "python benchmarks/own_face_impact.py", 20),
     Source("surrogate_trust_static", "python benchmarks/surrogate_trust.py --cases 40", 15),
+    Source("surrogate_trust_impact", "python benchmarks/surrogate_trust.py --workflow impact --cases 40", 15),
     Source("static_robustness", "python benchmarks/static_robustness.py --resolutions coarse paper --materials "
            "linear --slidings mucosa+lip --modes full --plans 20", 2),
 )}
@@ -801,6 +857,11 @@ BLOCKS = {b.name: b for b in (
           "subjects, plans with translations 1.2-2 times the physiological range, an unseen subject beyond the "
           "training shapes, and Neo-Hookean FE for the linear-trained model.",
           (SOURCES["surrogate_trust_static"],), _surrogate_trust),
+    Block("surrogate_trust_impact", "Impact answers within a tolerance",
+          "The strong LSTM trained on the impact paper's six velocities (20-50 mm/s, held-out-velocity split), its "
+          "error estimate calibrated on 20 other velocities of the same scene, then run on new cases: velocities "
+          "drawn over 20-50 mm/s, slower (10-15) and faster (55-70) balls, and the ball aimed 20 mm lower.",
+          (SOURCES["surrogate_trust_impact"],), _surrogate_trust_impact),
     Block("off_bone", "Mucosa off the bone",
           "The paper phantom with its bone surfaces moved away from the tissue (`toolkit.common.off_bone`, "
           "mucosa 2.3 mm median and 4.3 mm at most off its bone): a 5 mm mandibular advance and plans drawn by "

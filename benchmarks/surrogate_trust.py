@@ -29,6 +29,8 @@ Writes ``benchmarks/results/surrogate_trust_static.csv`` (one row per case and s
 summary in its sidecar's ``extra``, and ``docs/figures/surrogate_trust_static.png`` (estimated
 bound against true error).
 
+With ``--workflow impact``, the same for the impact LSTM (``surrogate_trust_impact.py``).
+
     python benchmarks/surrogate_trust.py --cases 40           # 4 x 25 plans, 8 min, 40 + 40 + 20 + 20 cases
     python benchmarks/surrogate_trust.py --subjects 2 --plans 10 --max-minutes 1 --cases 4 --suffix _smoke
 """
@@ -201,14 +203,25 @@ def plot(df: pd.DataFrame, tolerance: float, out: Path) -> None:
 
 
 def main(argv=None):
+    import surrogate_trust_impact
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--workflow", choices=["static", "impact"], default="static",
+                    help="static: PointNet++ (this module); impact: the LSTM (surrogate_trust_impact.py)")
     add_training_arguments(ap)
+    surrogate_trust_impact.add_arguments(ap)
     ap.add_argument("--cases", type=int, default=20, help="in-distribution and beyond-range cases (half as many "
                                                           "for the unseen shape and for Neo-Hookean)")
-    ap.add_argument("--tolerances", type=float, nargs="+", default=[0.5, 2.0, 4.0],
-                    help="mm: the policy of predict --tolerance at each")
-    ap.add_argument("--out", type=Path, default=RESULTS / "surrogate_trust_static.csv")
+    ap.add_argument("--tolerances", type=float, nargs="+", default=None,
+                    help="mm: the policy of predict --tolerance at each (default static 0.5 2 4, impact 1 0.5 2)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="default benchmarks/results/surrogate_trust_WORKFLOW.csv")
     args = ap.parse_args(argv)
+    args.out = args.out or RESULTS / f"surrogate_trust_{args.workflow}.csv"
+    if args.workflow == "impact":
+        args.tolerances = args.tolerances or [1.0, 0.5, 2.0]
+        return surrogate_trust_impact.main(args, argv)
+    args.tolerances = args.tolerances or [0.5, 2.0, 4.0]
 
     from tqdm import tqdm
 
