@@ -21,11 +21,13 @@ Stages (each resumable: rerun the same command to continue):
 
 4. per case and scale: the answer error (95th percentile over all nodes of the network's nodal
    error against the FE), the bound at 90 % and 95 %, the out-of-distribution check, the time of
-   the network, the estimate and the FE; and the policy of ``toolkit static predict --tolerance``
-   at each of ``--tolerances`` mm: the share of delivered answers within it, the share of
-   in-distribution cases the surrogate answers, and the mean time per answer against always running the FE.
+   the network, the estimate and the FE, for the network's answer and for the linear + POD
+   residual baseline's (the two answerers a calibration can choose); and the policy of
+   ``toolkit static predict --tolerance`` at each of ``--tolerances`` mm: the share of delivered
+   answers within it, the share of in-distribution cases the surrogate answers, and the mean time
+   per answer against always running the FE.
 
-Writes ``benchmarks/results/surrogate_trust_static.csv`` (one row per case and scale), the
+Writes ``benchmarks/results/surrogate_trust_static.csv`` (one row per case, scale and answerer), the
 summary in its sidecar's ``extra``, and ``docs/figures/surrogate_trust_static.png`` (estimated
 bound against true error).
 
@@ -51,6 +53,8 @@ from surrogate_remeshed import add_training_arguments, stage_database, stage_mod
 
 FIGURES = Path(__file__).resolve().parent.parent / "docs" / "figures"
 COVERAGES = (0.9, 0.95)
+#: whose answer each row bounds: PointNet++ or the linear + POD residual baseline
+ANSWERED_BY = ("network", "baseline")
 #: mm: the AUROC of each estimate for flagging answers whose error exceeds these
 AUROC_AT_MM = (0.5, 1.0, 2.0, 4.0)
 
@@ -150,25 +154,32 @@ def fe_of(case, face, data: dict, cache: Path) -> tuple[np.ndarray | None, float
     return u, seconds, status
 
 
-def policy(df: pd.DataFrame, scale: str, coverage: float, tolerance: float) -> dict:
-    """What ``predict --tolerance`` does over the cases with one scale and coverage."""
+def _rows(df: pd.DataFrame, scale: str, answerer: str | None) -> pd.DataFrame:
     d = df[(df.scale == scale) & (df.fe_status == "ok")]
+    return d if answerer is None or "answerer" not in d else d[d.answerer == answerer]
+
+
+def policy(df: pd.DataFrame, scale: str, coverage: float, tolerance: float, answerer: str | None = None) -> dict:
+    """What ``predict --tolerance`` does over the cases with one scale, coverage and answerer."""
+    d = _rows(df, scale, answerer)
     bound = d[f"bound_{int(coverage * 100)}_mm"]
     by_surrogate = ~d.ood & (bound <= tolerance)
     delivered_error = np.where(by_surrogate, d.error_mm, 0.0)  # the FE's answer is the reference itself
     seconds = d.surrogate_s + d.estimate_s + np.where(by_surrogate, 0.0, d.fe_s)
     inside = d.kind == "in"
-    return {"scale": scale, "coverage": coverage, "tolerance_mm": tolerance, "cases": int(len(d)),
-            "answered_by_surrogate": float(by_surrogate.mean()),
+    return {"scale": scale, "answerer": answerer, "coverage": coverage, "tolerance_mm": tolerance,
+            "cases": int(len(d)), "answered_by_surrogate": float(by_surrogate.mean()),
             "in_distribution_answered_by_surrogate": float(by_surrogate[inside].mean()) if inside.any() else None,
             "delivered_within_tolerance": float(np.mean(delivered_error <= tolerance)),
             "mean_answer_s": float(seconds.mean()), "mean_fe_s": float(d.fe_s.mean()),
-            "speedup_vs_fe": float(d.fe_s.mean() / seconds.mean())}
+            "speedup_vs_fe": float(d.fe_s.mean() / seconds.mean()),
+            "in_distribution_speedup_vs_fe": (float(d.fe_s[inside].mean() / seconds[inside].mean())
+                                              if inside.any() else None)}
 
 
-def method_scores(df: pd.DataFrame, scale: str) -> dict:
-    d = df[(df.scale == scale) & (df.fe_status == "ok")]
-    out = {"scale": scale, "estimate_s": float(d.estimate_s.mean())}
+def method_scores(df: pd.DataFrame, scale: str, answerer: str | None = None) -> dict:
+    d = _rows(df, scale, answerer)
+    out = {"scale": scale, "answerer": answerer, "estimate_s": float(d.estimate_s.mean())}
     for at in AUROC_AT_MM:
         out[f"auroc_{at:g}mm"] = auroc(d.error_mm > at, d.scale_mm) if scale != "constant" else 0.5
     for c in COVERAGES:
@@ -186,17 +197,19 @@ def plot(df: pd.DataFrame, tolerance: float, out: Path) -> None:
     import matplotlib.pyplot as plt
 
     d = df[(df.scale == "disagreement") & (df.fe_status == "ok")]
-    fig, ax = plt.subplots(figsize=(5.2, 4.4), dpi=120)
-    for kind, marker in (("in", "o"), ("plan 1.2-2x", "^"), ("shape", "s"), ("neo-hookean", "D")):
-        k = d[d.kind == kind]
-        ax.scatter(k.bound_90_mm, k.error_mm, marker=marker, s=22, label=kind, alpha=0.8)
-    top = float(max(d.bound_90_mm.max(), d.error_mm.max()) * 1.05)
-    ax.plot([0, top], [0, top], "k-", lw=0.8, label="error = bound")
-    ax.axhline(tolerance, color="grey", ls="--", lw=0.8)
-    ax.axvline(tolerance, color="grey", ls="--", lw=0.8)
-    ax.set(xlabel="estimated bound at 90 % (mm)", ylabel="true answer error, p95 over nodes (mm)",
-           title="PointNet++ error estimate (disagreement)", xlim=(0, top), ylim=(0, top))
-    ax.legend(fontsize=7, loc="upper left")
+    fig, axes = plt.subplots(1, 2, figsize=(9.6, 4.4), dpi=120)
+    for ax, answerer, name in zip(axes, ANSWERED_BY, ("PointNet++", "linear + POD residual")):
+        a = d[d.answerer == answerer]
+        for kind, marker in (("in", "o"), ("plan 1.2-2x", "^"), ("shape", "s"), ("neo-hookean", "D")):
+            k = a[a.kind == kind]
+            ax.scatter(k.bound_90_mm, k.error_mm, marker=marker, s=22, label=kind, alpha=0.8)
+        top = float(max(a.bound_90_mm.max(), a.error_mm.max()) * 1.05)
+        ax.plot([0, top], [0, top], "k-", lw=0.8, label="error = bound")
+        ax.axhline(tolerance, color="grey", ls="--", lw=0.8)
+        ax.axvline(tolerance, color="grey", ls="--", lw=0.8)
+        ax.set(xlabel="estimated bound at 90 % (mm)", ylabel="true answer error, p95 over nodes (mm)",
+               title=f"{name} answers (disagreement scale)", xlim=(0, top), ylim=(0, top))
+        ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     fig.savefig(out)
     plt.close(fig)
@@ -257,22 +270,29 @@ def main(argv=None):
             ood = out_of_distribution(cal, face.mesh, case["plan"], case["material"])
             t0 = time.perf_counter()
             est = estimate(model, cal, pred, case["plan"])
-            row = {**base, "scale": scale, "estimate_s": time.perf_counter() - t0, "scale_mm": est["scale_mm"],
-                   "ood": ood["outside"], "ood_reasons": " | ".join(ood["reasons"]),
-                   "nearest_plan_distance": ood["plan"]["nearest_plan_distance"],
-                   "shape_rms_mm": ood["shape"]["rms_to_nearest_subject_mm"],
-                   "shape_outside_envelope_mm": ood["shape"]["outside_envelope_mm"]}
-            for c in COVERAGES:
-                try:
-                    row[f"bound_{int(c * 100)}_mm"] = float(cal.at(c).bound.bound(est["scale_mm"]))
-                except ValueError:  # too few calibration plans for this coverage
-                    row[f"bound_{int(c * 100)}_mm"] = np.nan
-            rows.append(row)
+            estimate_s = time.perf_counter() - t0
+            for answerer in ANSWERED_BY:
+                row = {**base, "scale": scale, "answerer": answerer, "estimate_s": estimate_s,
+                       "scale_mm": est["scale_mm"], "ood": ood["outside"], "ood_reasons": " | ".join(ood["reasons"]),
+                       "nearest_plan_distance": ood["plan"]["nearest_plan_distance"],
+                       "shape_rms_mm": ood["shape"]["rms_to_nearest_subject_mm"],
+                       "shape_outside_envelope_mm": ood["shape"]["outside_envelope_mm"]}
+                if answerer == "baseline":
+                    row["error_mm"] = answer_error(est["companion"][-1], fe) if fe is not None else np.nan
+                for c in COVERAGES:
+                    try:
+                        row[f"bound_{int(c * 100)}_mm"] = float(cal.bounds[answerer].at(c).bound(est["scale_mm"]))
+                    except ValueError:  # too few calibration plans for this coverage
+                        row[f"bound_{int(c * 100)}_mm"] = np.nan
+                rows.append(row)
     table = pd.DataFrame(rows)
-    methods = [method_scores(table, s) for s in SCALES]
-    policies = [policy(table, s, c, t) for t in args.tolerances for s in SCALES for c in COVERAGES]
-    calib = {s: {"plans": c.bound.n, "factor_90": c.bound.factor,
-                 "factor_95": c.at(0.95).bound.factor if c.bound.n >= min_calibration_cases(0.95) else None}
+    methods = [method_scores(table, s, a) for s in SCALES for a in ANSWERED_BY]
+    policies = [policy(table, s, c, t, a) for t in args.tolerances for s in SCALES for a in ANSWERED_BY
+                for c in COVERAGES]
+    calib = {s: {"plans": c.bound.n, "answerer": c.answerer,
+                 **{f"factor_90_{a}": c.bounds[a].factor for a in ANSWERED_BY},
+                 **{f"factor_95_{a}": (c.bounds[a].at(0.95).factor if c.bound.n >= min_calibration_cases(0.95)
+                                       else None) for a in ANSWERED_BY}}
              for s, c in calibrations.items()}
     write_result(args.out, table, argv=argv, extra={"methods": methods, "policies": policies,
                                                     "calibration": calib, "tolerances_mm": args.tolerances})

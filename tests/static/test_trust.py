@@ -6,12 +6,14 @@ import math
 import shutil
 import subprocess
 import sys
+import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from toolkit.static import load_case
-from toolkit.static.dataset import StaticDatabase
+from toolkit.static.dataset import StaticDatabase, plan_features
 from toolkit.static.plan import SurgicalPlan
 from toolkit.static.simulate import simulate
 from toolkit.static.surrogate import Surrogate
@@ -40,11 +42,23 @@ def test_calibration_measures_held_out_plans_and_round_trips(calibrated, db100):
     subject = db.subject(case["subject"])
     pred = model.predict_plan(subject, db.plan(case["key"]))
     assert answer_error(pred.displacement, db.displacements(case["key"])[-1]) == pytest.approx(case["error_mm"])
-    # the factor is the ceil((n + 1) c)-th smallest ratio: with n = 7 and c = 0.8, the 7th
-    ratios = sorted(c["error_mm"] / c["scale_mm"] for c in cal.cases)
-    assert cal.bound.factor == pytest.approx(ratios[math.ceil(8 * COVERAGE) - 1])
+    # the baseline's error: the linear + POD residual baseline's own predict, summed over the increments
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        params = plan_features(db.plan(case["key"]), db.config.increments)
+    im = model.prior(pred.reference, pred.boundary.types)
+    base = cal.residual.predict(params, np.stack([im.predict(p) for p in pred.prescribed])).sum(axis=0)
+    assert answer_error(base, db.displacements(case["key"])[-1]) == pytest.approx(case["baseline_error_mm"])
+    # each factor is the ceil((n + 1) c)-th smallest ratio: with n = 7 and c = 0.8, the 7th
+    for who, key in (("network", "error_mm"), ("baseline", "baseline_error_mm")):
+        ratios = sorted(c[key] / c["scale_mm"] for c in cal.cases)
+        assert cal.bounds[who].factor == pytest.approx(ratios[math.ceil(8 * COVERAGE) - 1])
+    # auto: the answer with the smaller factor gives the answers, and the bound is its own
+    assert cal.answerer == min(cal.bounds, key=lambda k: cal.bounds[k].factor)
+    assert cal.bound == cal.bounds[cal.answerer]
     loaded = Calibration.load(model.directory)
-    assert loaded.bound == cal.bound and loaded.scale == "disagreement"
+    assert loaded.bound == cal.bound and loaded.scale == "disagreement" and loaded.answerer == cal.answerer
+    assert loaded.bounds == cal.bounds and loaded.at(0.5).bounds["network"].factor <= cal.bounds["network"].factor
     np.testing.assert_array_equal(loaded.residual.residual.modes, cal.residual.residual.modes)
     assert loaded.plan_ranges == cal.plan_ranges
 
@@ -76,7 +90,17 @@ def test_in_distribution_plan_answered_by_whichever_the_tolerance_allows(calibra
     subject, plan = db.subject(0), db.plan(key)
     assert not out_of_distribution(cal, subject.mesh, plan)["outside"]
     loose = answer(model, subject, plan, 100.0, calibration=cal)
-    assert loose.answered_by == "surrogate" and loose.seconds["fe"] == 0.0
+    assert loose.answered_by == {"network": "surrogate", "baseline": "baseline"}[cal.answerer]
+    assert loose.seconds["fe"] == 0.0
+    network_only = replace(cal, answerer="network", bound=cal.bounds["network"])
+    by_network = answer(model, subject, plan, 100.0, calibration=network_only)
+    assert by_network.answered_by == "surrogate"
+    np.testing.assert_allclose(by_network.result.displacement, model.predict_plan(subject, plan).displacement)
+    baseline_only = replace(cal, answerer="baseline", bound=cal.bounds["baseline"])
+    by_baseline = answer(model, subject, plan, 100.0, calibration=baseline_only)
+    assert by_baseline.answered_by == "baseline"
+    np.testing.assert_allclose(by_baseline.result.displacements, by_baseline.estimate["companion"])
+    assert by_baseline.result.summary()["min_scaled_jacobian"] > 0
     est = loose.estimate
     assert est["bound_mm"] == pytest.approx(cal.bound.factor * est["scale_mm"])
     assert est["node_mm"].shape == (subject.mesh.n_points,)
@@ -125,12 +149,12 @@ def test_cli_calibrate_and_predict_within_a_tolerance(hard_model, db100, tmp_pat
     assert not (tmp_path / "p0").exists()
     r = run("calibrate", "--model", str(model), "--data", str(db100), "--coverage", "0.8")
     assert r.returncode == 0, r.stderr
-    assert "bounds it at 80%" in r.stdout
+    assert "bounds it at 80%" in r.stdout and "answers given by the" in r.stdout
     r = run("predict", "--model", str(model), "--resolution", "coarse", "--tolerance", "1000", "--out",
             str(tmp_path / "p1"), "--no-preview")
     assert r.returncode == 0, r.stderr
     summary = json.loads((tmp_path / "p1" / "summary.json").read_text())
-    assert summary["answer"]["answered_by"] in ("surrogate", "fe")  # the packaged plan may lie outside
+    assert summary["answer"]["answered_by"] in ("surrogate", "baseline", "fe")  # the packaged plan may lie outside
     assert "answered by" in r.stdout
     r = run("predict", "--model", str(model), "--resolution", "coarse", "--tolerance", "0.5", "--coverage", "0.99",
             "--out", str(tmp_path / "p2"))

@@ -239,7 +239,7 @@ def evaluate(args: argparse.Namespace) -> int:
 
 
 def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
-    from toolkit.static.trust import SCALES
+    from toolkit.static.trust import ANSWERERS, SCALES
 
     parser.add_argument("--model", required=True, type=Path, help="model directory (the calibration is saved in it)")
     parser.add_argument("--data", required=True, type=Path,
@@ -251,6 +251,9 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="probability that the error bound holds for a plan like these")
     parser.add_argument("--scale", choices=SCALES, default=SCALES[0],
                         help="disagreement: with the linear + POD residual baseline; constant: one bound for all")
+    parser.add_argument("--answerer", choices=ANSWERERS, default=ANSWERERS[0],
+                        help="whose answer `predict --tolerance` gives and bounds: the network, the linear + POD "
+                             "residual baseline, or auto: the one with the smaller calibrated bound")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
 
 
@@ -259,13 +262,16 @@ def calibrate(args: argparse.Namespace) -> int:
     from toolkit.static.trust import calibrate_surrogate
 
     model = Surrogate.load(args.model, device=args.device)
-    cal = calibrate_surrogate(model, args.data, coverage=args.coverage, scale=args.scale, training=args.train_data)
+    cal = calibrate_surrogate(model, args.data, coverage=args.coverage, scale=args.scale, training=args.train_data,
+                              answerer=args.answerer)
     with uninterruptible():
         cal.save(args.model)
-    errors = sorted(c["error_mm"] for c in cal.cases)
-    print(f"{cal.bound.n} held-out plans ({cal.source['plans']}): answer error (p95 over nodes) median "
-          f"{errors[len(errors) // 2]:.2f} mm, max {errors[-1]:.2f} mm; {args.scale} scale x {cal.bound.factor:.3g} "
-          f"bounds it at {cal.bound.coverage:.0%} -> {args.model}/calibration.json")
+    for who, key in (("network", "error_mm"), ("baseline", "baseline_error_mm")):
+        errors = sorted(c[key] for c in cal.cases)
+        print(f"{who}: answer error (p95 over nodes) median {errors[len(errors) // 2]:.2f} mm, max {errors[-1]:.2f} "
+              f"mm over {cal.bound.n} held-out plans ({cal.source['plans']}); {args.scale} scale x "
+              f"{cal.bounds[who].factor:.3g} bounds it at {cal.bound.coverage:.0%}")
+    print(f"answers given by the {cal.answerer} -> {args.model}/calibration.json")
     return 0
 
 
@@ -346,7 +352,8 @@ def _predict_within(args, model, case) -> int:
         result.write(args.out, preview=not args.no_preview)
     s = result.summary()
     a, sec = s["answer"], result.seconds
-    print(f"answered by {'the surrogate' if a['answered_by'] == 'surrogate' else 'the FE'}: {a['reason']}")
+    who = {"surrogate": "the surrogate", "baseline": "the linear + POD residual baseline", "fe": "the FE"}
+    print(f"answered by {who[a['answered_by']]}: {a['reason']}")
     print(f"plan: {describe_extrapolation(a['out_of_distribution']['plan'])}")
     print(f"{s['nodes']} nodes: max displacement {s['max_displacement_mm']:.2f} mm; surrogate "
           f"{sec['surrogate']:.2f} s, estimate {sec['estimate']:.2f} s, FE {sec['fe']:.2f} s -> {args.out}/ "

@@ -20,6 +20,13 @@ checks the inputs first (plan parameters outside the training ranges, a face mes
 topology or farther from every training subject than they lie from each other, another
 material), and :func:`answer` runs the FE for such inputs whatever the estimate says.
 
+Which of the two answers is chosen at calibration (``answerer``): ``auto`` (default) calibrates the
+network's and the linear + POD residual baseline's errors against the same scale and keeps the one
+whose calibrated factor is smaller, so the bound of the answer given always belongs to the answer
+given (the choice does not depend on the new plan, so the coverage holds for it); ``network`` and
+``baseline`` force one. On the paper phantom subjects the baseline is the more accurate of the two
+(``benchmarks/surrogate_trust.py``).
+
 The calibration is saved beside the model (``calibration.json`` and ``calibration.npz``).
 """
 
@@ -35,11 +42,13 @@ import numpy as np
 
 from toolkit.common.training.conformal import ConformalBound, calibrate, min_calibration_cases
 
-__all__ = ["SCALES", "Calibration", "calibrate_surrogate", "estimate", "out_of_distribution", "answer",
+__all__ = ["SCALES", "ANSWERERS", "Calibration", "calibrate_surrogate", "estimate", "out_of_distribution", "answer",
            "TrustedAnswer"]
 
 #: how the error estimate's scale is computed (see the module)
 SCALES = ("disagreement", "constant")
+#: which answer a calibration bounds: the network's, the baseline's, or the one with the smaller factor
+ANSWERERS = ("auto", "network", "baseline")
 #: mm added to the disagreement so that a scale is never zero
 SCALE_FLOOR_MM = 0.01
 #: mm: a face farther (RMS over nodes) from every training subject than they lie from each other,
@@ -59,16 +68,20 @@ class Calibration:
     """A surrogate's calibrated error estimate and what it was calibrated on.
 
     scale : one of :data:`SCALES`
-    bound : ConformalBound (its ``factor`` times a plan's scale bounds that plan's answer error)
-    residual : the linear + POD residual companion (``disagreement``), else None
+    bound : ConformalBound (its ``factor`` times a plan's scale bounds the error of the
+        ``answerer``'s answer)
+    residual : the linear + POD residual companion
     train_plans : (m, 12) the plan parameters (last increment) of the simulations the model saw
     plan_ranges : parameter -> [min, max] over them
     subjects : (s, n, 3) mm, the training subjects' pre-operative points
     shape_spread_mm : the largest RMS distance between two training subjects (at least
         :data:`MIN_SHAPE_SPREAD_MM`)
     material : the training database's material
-    cases : per calibration plan: ``key``, ``error_mm``, ``scale_mm``, ``fe_s``, ``surrogate_s``
+    cases : per calibration plan: ``key``, ``error_mm`` (the network's), ``baseline_error_mm``,
+        ``scale_mm``, ``fe_s``, ``surrogate_s``
     source : database path and how its plans were chosen
+    answerer : ``network`` or ``baseline``, whose answer the bound is for
+    bounds : answerer -> its ConformalBound (both, for the record)
     """
 
     scale: str
@@ -81,6 +94,8 @@ class Calibration:
     material: str
     cases: list = field(default_factory=list)
     source: dict = field(default_factory=dict)
+    answerer: str = "network"
+    bounds: dict = field(default_factory=dict)
 
     def save(self, directory) -> Path:
         """Write ``calibration.json`` and ``calibration.npz`` into the model directory."""
@@ -97,7 +112,8 @@ class Calibration:
                 np.savez_compressed(fh, **arrays)
         meta = {"scale": self.scale, "bound": self.bound.to_dict(), "plan_ranges": self.plan_ranges,
                 "shape_spread_mm": self.shape_spread_mm, "material": self.material, "cases": self.cases,
-                "source": self.source}
+                "source": self.source, "answerer": self.answerer,
+                "bounds": {k: b.to_dict() for k, b in self.bounds.items()}}
         with atomic_path(directory / "calibration.json") as tmp:
             tmp.write_text(json.dumps(meta, indent=2))
         return directory
@@ -121,26 +137,33 @@ class Calibration:
                                                    arrays["x_scale"], float(arrays["energy"])))
         return cls(meta["scale"], ConformalBound.from_dict(meta["bound"]), residual, arrays["train_plans"],
                    meta["plan_ranges"], arrays["subjects"], float(meta["shape_spread_mm"]), meta["material"],
-                   meta["cases"], meta["source"])
+                   meta["cases"], meta["source"], meta.get("answerer", "network"),
+                   {k: ConformalBound.from_dict(b) for k, b in meta.get("bounds", {}).items()})
 
     def at(self, coverage: float) -> Calibration:
         """The same calibration with its bound at another coverage."""
-        return replace(self, bound=self.bound.at(coverage))
+        return replace(self, bound=self.bound.at(coverage), bounds={k: b.at(coverage) for k, b in self.bounds.items()})
 
 
-def _scale_field(model, calibration_scale: str, residual, prediction, plan, increments: int) -> np.ndarray:
-    """Per-node scale ``(n,)`` mm of a PlanPrediction (see the module)."""
+def _companion(model, residual, prediction, plan, increments: int) -> np.ndarray:
+    """The linear + POD residual baseline along the prediction's increments: cumulative
+    displacement ``(increments + 1, n, 3)`` mm (row 0 zero)."""
     from toolkit.static.dataset import plan_features
 
-    n = prediction.displacement.shape[0]
-    if calibration_scale == "constant":
-        return np.ones(n)
     im = model.prior(prediction.reference, prediction.boundary.types)
     with warnings.catch_warnings():  # the plan warned of its range where it was built
         warnings.simplefilter("ignore")
         params = plan_features(plan, increments)
-    companion = sum(im.predict(p) for p in prediction.prescribed) + residual.residual.predict(params).sum(axis=0)
-    return np.linalg.norm(prediction.displacement - companion, axis=1) + SCALE_FLOOR_MM
+    steps = np.stack([im.predict(p) for p in prediction.prescribed]) + residual.residual.predict(params)
+    return np.concatenate([np.zeros((1,) + steps.shape[1:]), np.cumsum(steps, axis=0)])
+
+
+def _scale_field(calibration_scale: str, prediction, companion: np.ndarray) -> np.ndarray:
+    """Per-node scale ``(n,)`` mm of a PlanPrediction (see the module)."""
+    n = prediction.displacement.shape[0]
+    if calibration_scale == "constant":
+        return np.ones(n)
+    return np.linalg.norm(prediction.displacement - companion[-1], axis=1) + SCALE_FLOOR_MM
 
 
 def _case_scale(node_scale: np.ndarray) -> float:
@@ -148,7 +171,7 @@ def _case_scale(node_scale: np.ndarray) -> float:
 
 
 def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = "disagreement", keys=None,
-                        training=None, progress: bool = True) -> Calibration:
+                        training=None, answerer: str = "auto", progress: bool = True) -> Calibration:
     """Calibrate ``model``'s error estimate on whole simulations of ``database`` it has not seen.
 
     Parameters
@@ -164,6 +187,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     training : the database the model was trained on (default ``database``): the linear + POD
         residual companion, the training plans and subjects come from its simulations the model
         trained or validated on
+    answerer : one of :data:`ANSWERERS` (see the module)
     progress : tqdm over the plans
 
     Returns
@@ -178,6 +202,8 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
 
     if scale not in SCALES:
         raise ValueError(f"scale = {scale!r}; expected one of {SCALES}")
+    if answerer not in ANSWERERS:
+        raise ValueError(f"answerer = {answerer!r}; expected one of {ANSWERERS}")
     db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
     keys, how = evaluation_keys(model, db, keys)
     train_db = db if training is None else (training if isinstance(training, StaticDatabase)
@@ -194,8 +220,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     if len(keys) < need:
         raise ValueError(f"{len(keys)} held-out simulation(s) in {db.path} ({how}); a bound at {coverage:.0%} needs "
                          f"at least {need}: generate more plans (`toolkit static dataset --plans`) or lower --coverage")
-    residual = None
-    if scale == "disagreement":
+    if True:  # the companion: the disagreement's other member and the baseline answer
         rows = np.flatnonzero(train_db.samples.key.isin(seen_keys).to_numpy())
         seen_data = train_db.arrays(rows)
         priors = {int(s): model.prior(train_db.subject_mesh(int(s)), train_db.types[int(s)])
@@ -217,15 +242,22 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
         subject, plan = db.subject(sid), db.plan(key)
         t0 = time.perf_counter()
         pred = model.predict_plan(_face(subject), plan, segments=subject.segments)
-        node_scale = _scale_field(model, scale, residual, pred, plan, db.config.increments)
-        cases.append({"key": str(key), "subject": sid,
-                      "error_mm": answer_error(pred.displacement, db.displacements(key)[-1]),
+        companion = _companion(model, residual, pred, plan, db.config.increments)
+        node_scale = _scale_field(scale, pred, companion)
+        fe = db.displacements(key)[-1]
+        cases.append({"key": str(key), "subject": sid, "error_mm": answer_error(pred.displacement, fe),
+                      "baseline_error_mm": answer_error(companion[-1], fe),
                       "scale_mm": _case_scale(node_scale), "surrogate_s": time.perf_counter() - t0,
                       "fe_s": float(fe_s[key])})
-    bound = calibrate([c["error_mm"] for c in cases], [c["scale_mm"] for c in cases], coverage)
-    return Calibration(scale, bound, residual, train_plans, plan_ranges, pts, float(spread), db.config.material,
-                       cases, {"database": str(Path(db.path).resolve()), "plans": how,
-                               "training_database": str(Path(train_db.path).resolve())})
+    scales = [c["scale_mm"] for c in cases]
+    bounds = {"network": calibrate([c["error_mm"] for c in cases], scales, coverage),
+              "baseline": calibrate([c["baseline_error_mm"] for c in cases], scales, coverage)}
+    if answerer == "auto":
+        answerer = min(bounds, key=lambda k: bounds[k].factor)
+    return Calibration(scale, bounds[answerer], residual, train_plans, plan_ranges, pts, float(spread),
+                       db.config.material, cases, {"database": str(Path(db.path).resolve()), "plans": how,
+                                                   "training_database": str(Path(train_db.path).resolve())},
+                       answerer, bounds)
 
 
 def _face(subject):
@@ -243,16 +275,19 @@ def estimate(model, calibration: Calibration, prediction, plan) -> dict:
     """The calibrated error estimate of a PlanPrediction.
 
     Returns ``{"bound_mm", "coverage", "scale", "scale_mm", "node_mm"}``: ``bound_mm`` bounds
-    the answer's error (95th percentile of the nodal error) with probability ``coverage`` for
-    a plan like the calibration ones; ``node_mm`` ``(n,)`` is the per-node estimate (the factor
-    times each node's scale; its 95th percentile is ``bound_mm``).
+    the error of the ``answerer``'s answer (95th percentile of the nodal error) with probability
+    ``coverage`` for a plan like the calibration ones; ``node_mm`` ``(n,)`` is the per-node
+    estimate (the factor times each node's scale; its 95th percentile is ``bound_mm``);
+    ``answerer`` and ``companion`` ``(increments + 1, n, 3)`` mm, the baseline's answer.
     """
     from toolkit.static.dataset import DatasetConfig
 
     increments = DatasetConfig(**model.bundle.data["database"]).increments
-    node = _scale_field(model, calibration.scale, calibration.residual, prediction, plan, increments)
+    companion = _companion(model, calibration.residual, prediction, plan, increments)
+    node = _scale_field(calibration.scale, prediction, companion)
     return {"bound_mm": float(calibration.bound.bound(_case_scale(node))), "coverage": calibration.bound.coverage,
-            "scale": calibration.scale, "scale_mm": _case_scale(node), "node_mm": calibration.bound.bound(node)}
+            "scale": calibration.scale, "scale_mm": _case_scale(node), "node_mm": calibration.bound.bound(node),
+            "answerer": calibration.answerer, "companion": companion}
 
 
 def out_of_distribution(calibration: Calibration, mesh, plan, material: str | None = None,
@@ -314,7 +349,8 @@ class TrustedAnswer:
     """An answer within a tolerance: the surrogate's prediction or the FE's result.
 
     result : PlanPrediction (``answered_by == "surrogate"``) or SimulationResult (``"fe"``)
-    answered_by : ``surrogate`` or ``fe``
+    answered_by : ``surrogate`` (the network), ``baseline`` (the linear + POD residual baseline,
+        when the calibration chose it) or ``fe``
     reason : why (one line)
     tolerance_mm : the tolerance asked
     estimate : :func:`estimate` of the surrogate's prediction (``node_mm`` left out of the summary)
@@ -331,7 +367,7 @@ class TrustedAnswer:
     seconds: dict
 
     def summary(self) -> dict:
-        est = {k: v for k, v in self.estimate.items() if k != "node_mm"}
+        est = {k: v for k, v in self.estimate.items() if k not in ("node_mm", "companion")}
         return {**self.result.summary(), "answer": {
             "answered_by": self.answered_by, "reason": self.reason, "tolerance_mm": self.tolerance_mm,
             "estimate": est, "out_of_distribution": self.ood, "seconds": self.seconds}}
@@ -341,7 +377,7 @@ class TrustedAnswer:
         and ``error_estimate`` (mm, per node) in ``result.vtu`` when the surrogate answered."""
         from toolkit.common.io import atomic_path
 
-        fields = {"error_estimate": self.estimate["node_mm"]} if self.answered_by == "surrogate" else {}
+        fields = {"error_estimate": self.estimate["node_mm"]} if self.answered_by != "fe" else {}
         out = self.result.write(out, preview=preview, point_data=fields)
         with atomic_path(out / "summary.json") as tmp:
             tmp.write_text(json.dumps(self.summary(), indent=2, default=_json_default))
@@ -389,7 +425,7 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
     if same or any_mesh:
         pred = model.predict_plan(face, plan, segments=segments, any_mesh=any_mesh or not same)
         seconds["surrogate"] = time.perf_counter() - t0
-        if calibration.scale == "constant" or same:
+        if same:  # the baseline and its disagreement are node-indexed: the training topology only
             t1 = time.perf_counter()
             est = estimate(model, calibration, pred, plan)
             seconds["estimate"] = time.perf_counter() - t1
@@ -401,8 +437,10 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
         reason = (f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) is above the tolerance "
                   f"{tolerance_mm:g} mm")
     else:
+        who = "surrogate" if calibration.answerer == "network" else "baseline"
+        result = pred if who == "surrogate" else _baseline_result(pred, est["companion"])
         seconds["total"] = time.perf_counter() - t0
-        return TrustedAnswer(pred, "surrogate", f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) "
+        return TrustedAnswer(result, who, f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) "
                              f"is within the tolerance {tolerance_mm:g} mm", float(tolerance_mm), est, ood, seconds)
     t1 = time.perf_counter()
     fe = simulate(face, plan, data.increments, material or data.material, data.sliding, segments=segments,
@@ -410,6 +448,17 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
     seconds["fe"] = time.perf_counter() - t1
     seconds["total"] = time.perf_counter() - t0
     return TrustedAnswer(fe, "fe", reason, float(tolerance_mm), est, ood, seconds)
+
+
+def _baseline_result(prediction, companion: np.ndarray):
+    """The PlanPrediction with the linear + POD residual baseline's displacements
+    ``(increments + 1, n, 3)`` mm and their element quality."""
+    X = prediction.reference.points
+    reports = [replace(r, min_scaled_jacobian=float(q.min()), worst_element=int(np.argmin(q)))
+               for r, q in zip(prediction.reports, (prediction.reference.with_points(X + u).scaled_jacobian()
+                                                    for u in companion[1:]))]
+    return replace(prediction, displacements=companion, reports=reports,
+                   material="baseline (linear + POD residual)")
 
 
 def _same_topology(model, mesh) -> bool:
