@@ -605,8 +605,9 @@ def _surrogate_trust(data):
     if cal:
         parts.append("Calibration: " + "; ".join(
             f"{k} on {v['plans']} held-out plans, factor {v['factor_90_network']:.3g} (PointNet++) and "
-            f"{v['factor_90_baseline']:.3g} (baseline) at 90 %, answers by the {v['answerer']} (`auto`)"
-            for k, v in cal.items()) + ".")
+            f"{v['factor_90_baseline']:.3g} (baseline) at 90 %" for k, v in cal.items()) + "."
+            + (" The defaults (`auto`) choose the {scale} scale and the {answerer}'s answers.".format(**extra["auto"])
+               if extra.get("auto") else ""))
     if extra.get("methods"):
         parts.append("Estimates (coverage: share of cases whose error is within the bound; AUROC: flagging errors "
                      "above 0.5, 1, 2 and 4 mm where both classes occur):")
@@ -643,7 +644,7 @@ def _surrogate_trust_impact(data):
         interpolation=("interpolation_error_mm", "median"), flagged=("ood", "mean"),
         bound=("bound_90_mm", "median"), network_s=("surrogate_s", "median"), fe_s=("fe_s", "median")).reset_index()
     kinds["velocities"] = [f"{a:.0f}-{b:.0f}" for a, b in zip(kinds.lo, kinds.hi)]
-    parts = [f"Coarse face (tet10, rigid ball, quasi-static, {extra.get('duration_s', 0.27)} s), the strong LSTM "
+    parts = [f"Coarse face (tet10, deformable ball, quasi-static, {extra.get('duration_s')} s), the strong LSTM "
              f"trained {extra.get('train_seconds') or 0:.0f} s on the six training velocities. Cases by kind (error: "
              "95th percentile over nodes and frames against the FE of the case; interpolation: the training "
              "simulations interpolated in velocity, alone; bound: the interpolation estimate at 90 %):",

@@ -226,15 +226,15 @@ def main(argv=None):
     ap.add_argument("--cases", type=int, default=20, help="in-distribution and beyond-range cases (half as many "
                                                           "for the unseen shape and for Neo-Hookean)")
     ap.add_argument("--tolerances", type=float, nargs="+", default=None,
-                    help="mm: the policy of predict --tolerance at each (default static 0.5 2 4, impact 1 0.5 2)")
+                    help="mm: the policy of predict --tolerance at each (default static 0.5 1 2 4, impact 0.02 0.05 0.5 1)")
     ap.add_argument("--out", type=Path, default=None,
                     help="default benchmarks/results/surrogate_trust_WORKFLOW.csv")
     args = ap.parse_args(argv)
     args.out = args.out or RESULTS / f"surrogate_trust_{args.workflow}.csv"
     if args.workflow == "impact":
-        args.tolerances = args.tolerances or [1.0, 0.5, 2.0]
+        args.tolerances = args.tolerances or [0.02, 0.05, 0.5, 1.0]
         return surrogate_trust_impact.main(args, argv)
-    args.tolerances = args.tolerances or [0.5, 2.0, 4.0]
+    args.tolerances = args.tolerances or [0.5, 1.0, 2.0, 4.0]
 
     from tqdm import tqdm
 
@@ -252,6 +252,8 @@ def main(argv=None):
         calibrations[scale] = calibrate_surrogate(model, db_path, coverage=COVERAGES[0], scale=scale)
         print(f"calibration {scale}: {calibrations[scale].bound.n} plans, factor {calibrations[scale].bound.factor:.3g}"
               f" ({time.perf_counter() - t0:.0f} s)", flush=True)
+    auto = calibrate_surrogate(model, db_path, coverage=COVERAGES[0])  # the defaults: scale and answerer "auto"
+    print(f"calibration auto: {auto.scale} scale, answers by the {auto.answerer}", flush=True)
     cache = WORK / f"trust_fe{args.suffix}"
     cache.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -295,7 +297,8 @@ def main(argv=None):
                                        else None) for a in ANSWERED_BY}}
              for s, c in calibrations.items()}
     write_result(args.out, table, argv=argv, extra={"methods": methods, "policies": policies,
-                                                    "calibration": calib, "tolerances_mm": args.tolerances})
+                                                    "calibration": calib, "tolerances_mm": args.tolerances,
+                                                    "auto": {"scale": auto.scale, "answerer": auto.answerer}})
     if args.out.resolve().parent == RESULTS.resolve():
         FIGURES.mkdir(parents=True, exist_ok=True)
         plot(table, args.tolerances[0], FIGURES / "surrogate_trust_static.png")

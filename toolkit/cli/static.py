@@ -249,8 +249,9 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the database the model was trained on, when --data is another one (default: --data)")
     parser.add_argument("--coverage", type=probability, default=0.9,
                         help="probability that the error bound holds for a plan like these")
-    parser.add_argument("--scale", choices=SCALES, default=SCALES[0],
-                        help="disagreement: with the linear + POD residual baseline; constant: one bound for all")
+    parser.add_argument("--scale", choices=SCALES + ("auto",), default="auto",
+                        help="disagreement: with the linear + POD residual baseline; constant: one bound for all; "
+                             "auto: with --answerer auto, the pair whose bound is narrowest over the plans")
     parser.add_argument("--answerer", choices=ANSWERERS, default=ANSWERERS[0],
                         help="whose answer `predict --tolerance` gives and bounds: the network, the linear + POD "
                              "residual baseline, or auto: the one with the smaller calibrated bound")
@@ -269,9 +270,9 @@ def calibrate(args: argparse.Namespace) -> int:
     for who, key in (("network", "error_mm"), ("baseline", "baseline_error_mm")):
         errors = sorted(c[key] for c in cal.cases)
         print(f"{who}: answer error (p95 over nodes) median {errors[len(errors) // 2]:.2f} mm, max {errors[-1]:.2f} "
-              f"mm over {cal.bound.n} held-out plans ({cal.source['plans']}); {args.scale} scale x "
+              f"mm over {cal.bound.n} held-out plans ({cal.source['plans']}); {cal.scale} scale x "
               f"{cal.bounds[who].factor:.3g} bounds it at {cal.bound.coverage:.0%}")
-    print(f"answers given by the {cal.answerer} -> {args.model}/calibration.json")
+    print(f"answers given by the {cal.answerer}, {cal.scale} scale -> {args.model}/calibration.json")
     return 0
 
 
