@@ -94,3 +94,30 @@ def test_dataset_takes_the_mesh_and_refuses_a_missed_aim_before_the_database(mes
     assert main(argv + ["--target", "0,0,1000"]) == 2
     assert "misses the face" in capsys.readouterr().err and not db.exists()
     assert main(argv) == 0, capsys.readouterr().err
+
+
+def test_an_answer_within_a_tolerance_on_a_meshed_face(meshed, tmp_path, capsys):
+    """A database, model and calibration on the meshed face (velocities 20-40 mm/s to train, nine
+    others to calibrate): `predict --tolerance` answers by the LSTM at a loose tolerance, with an
+    error estimate per node and frame, and by the quasi-static FE of the meshed face at a tight one."""
+    from toolkit.common.io import read_time_series
+
+    scene = ["--mesh", str(meshed), "--ball", "rigid", "--duration", "0.05", "--mass-scaling", "100",
+             "--workers", "0"]
+    train, cal, model = tmp_path / "train.h5", tmp_path / "cal.h5", tmp_path / "model"
+    assert main(["impact", "dataset", *scene, "--velocities", "20,30,40", "--held-out", "", "--out", str(train)]) == 0
+    assert main(["impact", "dataset", *scene, "--velocities", "21,23,25,27,29,32,34,36,38", "--held-out", "",
+                 "--out", str(cal)]) == 0
+    assert main(["impact", "train", "--data", str(train), "--out", str(model), "--config", "baseline",
+                 "--epochs", "3"]) == 0
+    assert main(["impact", "calibrate", "--model", str(model), "--data", str(cal), "--train-data", str(train)]) == 0
+    capsys.readouterr()
+    for tolerance, who in (("1000", "surrogate"), ("0.000001", "fe")):
+        out = tmp_path / f"answer-{who}"
+        assert main(["impact", "predict", "--model", str(model), "--velocity", "33", "--tolerance", tolerance,
+                     "--no-preview", "--out", str(out)]) == 0, capsys.readouterr().err
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["answer"]["answered_by"] == who, summary["answer"]["reason"]
+        assert summary["element"] == "tet4" and summary["velocity_mm_s"] == 33.0
+    series = read_time_series(tmp_path / "answer-surrogate" / "face.xdmf")
+    assert series.point_data["error_estimate"].shape == series.point_data["displacement"].shape[:2]
