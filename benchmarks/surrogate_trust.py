@@ -226,7 +226,8 @@ def main(argv=None):
     ap.add_argument("--cases", type=int, default=20, help="in-distribution and beyond-range cases (half as many "
                                                           "for the unseen shape and for Neo-Hookean)")
     ap.add_argument("--tolerances", type=float, nargs="+", default=None,
-                    help="mm: the policy of predict --tolerance at each (default static 0.5 1 2 4, impact 0.02 0.05 0.5 1)")
+                    help="mm: the policy of predict --tolerance at each (default static 0.5 1 2 4, impact "
+                         "0.02 0.05 0.5 1)")
     ap.add_argument("--out", type=Path, default=None,
                     help="default benchmarks/results/surrogate_trust_WORKFLOW.csv")
     args = ap.parse_args(argv)
