@@ -416,3 +416,14 @@ def test_a_bad_worker_count_is_refused_before_the_database_file_is_made(tmp_path
     assert main([*argv, "--workers", "-1", "--out", str(out)]) == 2
     assert "workers must be >= 0" in capsys.readouterr().err
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_the_parser_names_the_libraries_choices():
+    """The calibration choices the parser lists (kept there so that building it imports no
+    numerical library) are the libraries' own."""
+    from toolkit.cli import impact, static
+    from toolkit.impact import trust as impact_trust
+    from toolkit.static import trust as static_trust
+
+    assert impact.IMPACT_SCALES == impact_trust.SCALES
+    assert static.STATIC_SCALES == static_trust.SCALES and static.STATIC_ANSWERERS == static_trust.ANSWERERS

@@ -59,13 +59,13 @@ def main(argv: list[str] | None = None) -> int:
         set_threads(args.threads)
         code = int(args.func(args) or 0)
     except KeyboardInterrupt:
-        if program:  # one Ctrl-C is enough: a second one while this is said or at shutdown changes nothing
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-        _close_progress_bars()
-        left = "nothing was started; rerun the same command" if args is None else \
-            args.interrupted.format(out=getattr(args, "out", None))
-        print(f"interrupted: {left}", file=sys.stderr)
-        return 130
+        return _interrupted(args, program)
+    except ImportError as exc:
+        # a Ctrl-C while a compiled module initialises reaches Python as its ImportError
+        # ("initialization failed", raised from the KeyboardInterrupt)
+        if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):
+            return _interrupted(args, program)
+        raise
     except (ToolkitError, ValueError, KeyError, FileNotFoundError, RuntimeError) as exc:
         _close_progress_bars()
         print(f"error: {with_options(str(exc), argv)}", file=sys.stderr)
@@ -78,6 +78,17 @@ def main(argv: list[str] | None = None) -> int:
     if program:  # the work is done and written: a Ctrl-C while the interpreter shuts down changes nothing
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     return code
+
+
+def _interrupted(args, program: bool) -> int:
+    """Say what a Ctrl-C left and how to finish; 130."""
+    if program:  # one Ctrl-C is enough: a second one while this is said or at shutdown changes nothing
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _close_progress_bars()
+    left = "nothing was started; rerun the same command" if args is None else \
+        args.interrupted.format(out=getattr(args, "out", None))
+    print(f"interrupted: {left}", file=sys.stderr)
+    return 130
 
 
 def _close_progress_bars() -> None:

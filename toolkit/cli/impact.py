@@ -310,9 +310,13 @@ def _predict_within(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
-    from toolkit.impact.trust import SCALES
+#: the scales of :data:`toolkit.impact.trust.SCALES` (named here so that building the parser imports
+#: no numerical library; a test keeps the two equal)
+IMPACT_SCALES = ("interpolation", "constant")
 
+
+def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
+    SCALES = IMPACT_SCALES
     parser.add_argument("--model", required=True, type=Path, help="model directory (the calibration is saved in it)")
     parser.add_argument("--data", required=True, type=Path,
                         help="a database of the model's scene: its simulations at velocities the model did not "

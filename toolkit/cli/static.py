@@ -238,8 +238,14 @@ def evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+#: :data:`toolkit.static.trust.SCALES` and ``ANSWERERS`` (named here so that building the parser
+#: imports no numerical library; a test keeps them equal)
+STATIC_SCALES = ("disagreement", "constant")
+STATIC_ANSWERERS = ("auto", "network", "baseline")
+
+
 def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
-    from toolkit.static.trust import ANSWERERS, SCALES
+    SCALES, ANSWERERS = STATIC_SCALES, STATIC_ANSWERERS
 
     parser.add_argument("--model", required=True, type=Path, help="model directory (the calibration is saved in it)")
     parser.add_argument("--data", required=True, type=Path,
