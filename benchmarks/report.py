@@ -635,7 +635,17 @@ def _surrogate_trust(data):
 
 
 def _surrogate_trust_impact(data):
-    df, side = data["surrogate_trust_impact"]
+    parts = []
+    for stem in ("surrogate_trust_impact", "surrogate_trust_impact_paper"):
+        if stem in data:
+            parts.append(_surrogate_trust_impact_one(data[stem]))
+        else:
+            parts.append(f"{'Paper' if stem.endswith('paper') else 'Coarse'} face: {not_measured(SOURCES[stem])}")
+    return "\n\n".join(parts)
+
+
+def _surrogate_trust_impact_one(result):
+    df, side = result
     extra = side.get("extra", {})
     d = df[df.scale == "interpolation"].assign(ok=lambda x: x.fe_status == "ok")
     kinds = d.groupby("kind", sort=False).agg(
@@ -644,7 +654,8 @@ def _surrogate_trust_impact(data):
         interpolation=("interpolation_error_mm", "median"), flagged=("ood", "mean"),
         bound=("bound_90_mm", "median"), network_s=("surrogate_s", "median"), fe_s=("fe_s", "median")).reset_index()
     kinds["velocities"] = [f"{a:.0f}-{b:.0f}" for a, b in zip(kinds.lo, kinds.hi)]
-    parts = [f"Coarse face (tet10, deformable ball, quasi-static, {extra.get('duration_s')} s), the strong LSTM "
+    face = "Paper" if extra.get("resolution") == "paper" else "Coarse"
+    parts = [f"{face} face (tet10, deformable ball, quasi-static, {extra.get('duration_s')} s), the strong LSTM "
              f"trained {extra.get('train_seconds') or 0:.0f} s on the six training velocities. Cases by kind (error: "
              "95th percentile over nodes and frames against the FE of the case; interpolation: the training "
              "simulations interpolated in velocity, alone; bound: the interpolation estimate at 90 %):",
@@ -685,7 +696,8 @@ def _surrogate_trust_impact(data):
             ("mean_answer_s", "mean time per answer (s)", "{:.2f}"), ("mean_fe_s", "mean FE (s)", "{:.2f}"),
             ("speedup_vs_fe", "speed-up vs FE", "{:.2f}"),
             ("in_distribution_speedup_vs_fe", "speed-up, in-distribution", "{:.1f}")]))
-    parts.append("![Estimated bound against true error](figures/surrogate_trust_impact.png)")
+    parts.append(f"![Estimated bound against true error, {face.lower()} face]"
+                 f"(figures/{Path(side.get('name', 'surrogate_trust_impact')).name}.png)")
     return "\n\n".join(parts)
 
 
@@ -765,7 +777,9 @@ SOURCES = {s.stem: s for s in (
     Source("surrogate_remeshed", "python benchmarks/surrogate_remeshed.py", 40),
     Source("own_face_impact", "python benchmarks/own_face_impact.py", 20),
     Source("surrogate_trust_static", "python benchmarks/surrogate_trust.py --cases 40", 15),
-    Source("surrogate_trust_impact", "python benchmarks/surrogate_trust.py --workflow impact --cases 40", 15),
+    Source("surrogate_trust_impact", "python benchmarks/surrogate_trust.py --workflow impact --cases 40", 16),
+    Source("surrogate_trust_impact_paper", "python benchmarks/surrogate_trust.py --workflow impact --resolution paper "
+           "--cases 20 --out benchmarks/results/surrogate_trust_impact_paper.csv", 60),
     Source("static_robustness", "python benchmarks/static_robustness.py --resolutions coarse paper --materials "
            "linear --slidings mucosa+lip --modes full --plans 20", 2),
 )}
@@ -871,7 +885,7 @@ BLOCKS = {b.name: b for b in (
           "The strong LSTM trained on the impact paper's six velocities (20-50 mm/s, held-out-velocity split), its "
           "error estimate calibrated on 20 other velocities of the same scene, then run on new cases: velocities "
           "drawn over 20-50 mm/s, slower (10-15) and faster (55-70) balls, and the ball aimed 20 mm lower.",
-          (SOURCES["surrogate_trust_impact"],), _surrogate_trust_impact),
+          (SOURCES["surrogate_trust_impact"], SOURCES["surrogate_trust_impact_paper"]), _surrogate_trust_impact),
     Block("off_bone", "Mucosa off the bone",
           "The paper phantom with its bone surfaces moved away from the tissue (`toolkit.common.off_bone`, "
           "mucosa 2.3 mm median and 4.3 mm at most off its bone): a 5 mm mandibular advance and plans drawn by "
@@ -893,7 +907,8 @@ BLOCKS = {b.name: b for b in (
           (SOURCES["bad_inputs_interrupts"],), _interrupts),
 )}
 #: blocks whose table needs every source (the others render what is present, the rest as one line)
-_PARTIAL = {"headline", "static_surrogate", "impact_surrogate", "static_convergence", "own_face"}
+_PARTIAL = {"headline", "static_surrogate", "impact_surrogate", "static_convergence", "own_face",
+            "surrogate_trust_impact"}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -922,7 +937,7 @@ def render(name: str, data: dict) -> str:
     if not present and name != "headline":
         return not_measured(block.sources[-1])
     body = block.render(present)
-    if name in ("static_surrogate", "impact_surrogate", "static_convergence", "own_face"):
+    if name in ("static_surrogate", "impact_surrogate", "static_convergence", "own_face", "surrogate_trust_impact"):
         body += "\n\n" + _sources_footer(present, block.sources)
     return body
 

@@ -302,7 +302,7 @@ def main(argv=None):
                                                     "auto": {"scale": auto.scale, "answerer": auto.answerer}})
     if args.out.resolve().parent == RESULTS.resolve():
         FIGURES.mkdir(parents=True, exist_ok=True)
-        plot(table, args.tolerances[0], FIGURES / "surrogate_trust_static.png")
+        plot(table, args.tolerances[0], FIGURES / f"{args.out.stem}.png")
     with pd.option_context("display.width", 200):
         print(pd.DataFrame(methods).to_string(index=False, float_format=lambda v: f"{v:.3g}"))
         print(pd.DataFrame(policies).to_string(index=False, float_format=lambda v: f"{v:.3g}"))

@@ -224,7 +224,7 @@ def main(args, argv=None):
         "train_seconds": model.bundle.extra.get("train_seconds"), "max_minutes": args.max_minutes})
     if args.out.resolve().parent == RESULTS.resolve():
         FIGURES.mkdir(parents=True, exist_ok=True)
-        plot(table, args.tolerances[0], FIGURES / "surrogate_trust_impact.png")
+        plot(table, args.tolerances[0], FIGURES / f"{args.out.stem}.png")
     with pd.option_context("display.width", 200):
         print(pd.Series(baselines).to_string(float_format=lambda v: f"{v:.3g}"))
         print(pd.DataFrame(methods).to_string(index=False, float_format=lambda v: f"{v:.3g}"))
