@@ -82,7 +82,7 @@ def database(path: Path, vs, held, sc):
 def stage_model(args, train_path: Path):
     from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, train_surrogate
 
-    out = WORK / f"trust_impact_model{args.suffix}"
+    out = WORK / f"trust_impact_model_{args.resolution}{args.suffix}"
     if (out / "config.json").exists():
         return ImpactSurrogate.load(out)
     cfg = CONFIGS["strong"].with_(max_seconds=args.max_minutes * 60.0)
