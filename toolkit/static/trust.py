@@ -401,8 +401,9 @@ def _json_default(value):
 def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration: Calibration | None = None,
            coverage: float | None = None, material: str | None = None, any_mesh: bool = False,
            options=None) -> TrustedAnswer:
-    """The surrogate's answer when its calibrated estimate is within ``tolerance_mm`` and the
-    inputs are like its training data; otherwise the FE of the same plan.
+    """The calibrated answer (the network's or the linear + POD residual baseline's, as the
+    calibration chose: ``Calibration.answerer``) when its estimate is within ``tolerance_mm`` and
+    the inputs are like the training data; otherwise the FE of the same plan.
 
     Parameters
     ----------
