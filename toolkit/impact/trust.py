@@ -41,7 +41,14 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.training.conformal import ConformalBound, calibrate, min_calibration_cases
+from toolkit.common.config_diff import jsonable
+from toolkit.common.training.conformal import (
+    ConformalBound,
+    calibrate,
+    load_calibration,
+    min_calibration_cases,
+    save_calibration,
+)
 
 __all__ = ["SCALES", "ImpactCalibration", "calibrate_impact", "estimate", "out_of_distribution", "answer",
            "answer_error", "TrustedImpactAnswer"]
@@ -88,37 +95,22 @@ class ImpactCalibration:
 
     def save(self, directory) -> Path:
         """Write ``calibration.json`` and ``calibration.npz`` into the model directory."""
-        from toolkit.common.io import atomic_path
-
-        directory = Path(directory)
         arrays = {"train_velocities": self.train_velocities}
         if self.fields is not None:
             arrays["fields"] = self.fields
-        with atomic_path(directory / "calibration.npz") as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
         meta = {"kind": "toolkit.impact.trust", "scale": self.scale, "bound": self.bound.to_dict(),
                 "cases": self.cases, "source": self.source}
-        with atomic_path(directory / "calibration.json") as tmp:
-            tmp.write_text(json.dumps(meta, indent=2))
-        return directory
+        return save_calibration(directory, meta, arrays)
 
     @classmethod
     def load(cls, directory) -> ImpactCalibration:
         """Read the calibration of a model directory (FileNotFoundError naming the command that
         makes one)."""
-        directory = Path(directory)
-        if not (directory / "calibration.json").is_file() or not (directory / "calibration.npz").is_file():
-            raise FileNotFoundError(f"{directory} holds no calibration (calibration.json, calibration.npz): make one "
-                                    f"with `toolkit impact calibrate --model {directory} --data DB.h5`")
-        meta = json.loads((directory / "calibration.json").read_text())
+        meta, arrays = load_calibration(directory, "toolkit impact calibrate")
         if meta.get("kind") != "toolkit.impact.trust":
             raise ValueError(f"{directory}/calibration.json is not an impact calibration (kind {meta.get('kind')!r})")
-        with np.load(directory / "calibration.npz") as z:
-            fields = z["fields"] if "fields" in z.files else None
-            velocities = z["train_velocities"]
-        return cls(meta["scale"], ConformalBound.from_dict(meta["bound"]), velocities, fields, meta["cases"],
-                   meta["source"])
+        return cls(meta["scale"], ConformalBound.from_dict(meta["bound"]), arrays["train_velocities"],
+                   arrays.get("fields"), meta["cases"], meta["source"])
 
     def at(self, coverage: float) -> ImpactCalibration:
         """The same calibration with its bound at another coverage."""
@@ -300,18 +292,19 @@ class TrustedImpactAnswer:
         """(F, N, 3) mm, whichever answered."""
         return self.result.displacement
 
+    def write_summary(self, out) -> None:
+        """``out/summary.json``: the result's summary with ``answer`` (atomically)."""
+        from toolkit.common.io import atomic_path
+
+        with atomic_path(Path(out) / "summary.json") as tmp:
+            tmp.write_text(json.dumps(jsonable({"status": "finished", **self.summary()}), indent=2))
+
     def summary(self) -> dict:
         est = {k: v for k, v in self.estimate.items() if k != "node_mm"}
         return {**self.result.summary(), "answer": {
             "answered_by": self.answered_by, "reason": self.reason, "tolerance_mm": self.tolerance_mm,
             "estimate": est, "out_of_distribution": self.ood, "seconds": self.seconds,
             "fe_integrator": self.fe_integrator}}
-
-
-def _json_default(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
 def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, calibration=None,
@@ -337,7 +330,6 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
 
     Raises ValueError for a tolerance that is not a positive number, before any computation.
     """
-    from toolkit.common.io import atomic_path
     from toolkit.impact.dataset import SceneInputs, mesh_checksum
     from toolkit.impact.scene import Scene
     from toolkit.impact.simulate import face_mesh, simulate
@@ -364,8 +356,7 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
     est, pred = {}, None
     if face.n_points == sig["n_nodes"] and mesh_checksum(face.points) == sig["mesh_checksum"]:
         times = np.asarray(sig["times_s"], dtype=float)
-        u, vm = model.predict(velocity, SceneInputs.from_scene(scene, face, times)) if not ood["outside"] else \
-            _quiet_predict(model, velocity, SceneInputs.from_scene(scene, face, times))
+        u, vm = _quiet_predict(model, velocity, SceneInputs.from_scene(scene, face, times))
         seconds["surrogate"] = time.perf_counter() - t0
         t1 = time.perf_counter()
         est = estimate(calibration, u, velocity)
@@ -385,8 +376,7 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
                                   float(tolerance_mm), est, ood, seconds)
         if out is not None:
             pred.write(out, preview=preview, point_data={"error_estimate": est["node_mm"]})
-            with atomic_path(Path(out) / "summary.json") as tmp:
-                tmp.write_text(json.dumps({"status": "finished", **ans.summary()}, indent=2, default=_json_default))
+            ans.write_summary(out)
         return ans
     t1 = time.perf_counter()
     fe_scene = scene.with_fidelity(integrator=FALLBACK_INTEGRATOR)
@@ -395,13 +385,13 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
     seconds["total"] = time.perf_counter() - t0
     ans = TrustedImpactAnswer(fe, "fe", reason, float(tolerance_mm), est, ood, seconds)
     if out is not None:
-        with atomic_path(Path(out) / "summary.json") as tmp:
-            tmp.write_text(json.dumps({"status": "finished", **ans.summary()}, indent=2, default=_json_default))
+        ans.write_summary(out)
     return ans
 
 
 def _quiet_predict(model, velocity, inputs):
-    """The prediction without the ExtrapolationWarning (the answer records why it is beyond)."""
+    """The prediction without the ExtrapolationWarning (the answer's out-of-distribution check
+    records the velocity's distance to the training ones)."""
     import warnings
 
     from toolkit.impact.surrogate import ExtrapolationWarning

@@ -42,7 +42,14 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.training.conformal import ConformalBound, calibrate, min_calibration_cases
+from toolkit.common.config_diff import jsonable
+from toolkit.common.training.conformal import (
+    ConformalBound,
+    calibrate,
+    load_calibration,
+    min_calibration_cases,
+    save_calibration,
+)
 
 __all__ = ["SCALES", "ANSWERERS", "Calibration", "calibrate_surrogate", "estimate", "out_of_distribution", "answer",
            "TrustedAnswer"]
@@ -101,24 +108,16 @@ class Calibration:
 
     def save(self, directory) -> Path:
         """Write ``calibration.json`` and ``calibration.npz`` into the model directory."""
-        from toolkit.common.io import atomic_path
-
-        directory = Path(directory)
         arrays = {"train_plans": self.train_plans, "subjects": self.subjects}
         if self.residual is not None:
             r = self.residual.residual
             arrays.update(mean=r.mean, modes=r.modes, coef=r.coef, x_scale=r.x_scale,
                           energy=np.array(r.energy))
-        with atomic_path(directory / "calibration.npz") as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
         meta = {"scale": self.scale, "bound": self.bound.to_dict(), "plan_ranges": self.plan_ranges,
                 "shape_spread_mm": self.shape_spread_mm, "material": self.material, "cases": self.cases,
                 "source": self.source, "answerer": self.answerer,
                 "bounds": {k: b.to_dict() for k, b in self.bounds.items()}}
-        with atomic_path(directory / "calibration.json") as tmp:
-            tmp.write_text(json.dumps(meta, indent=2))
-        return directory
+        return save_calibration(directory, meta, arrays)
 
     @classmethod
     def load(cls, directory) -> Calibration:
@@ -126,13 +125,7 @@ class Calibration:
         makes one)."""
         from toolkit.static.baselines import LinearPlusPOD, PODRegression
 
-        directory = Path(directory)
-        if not (directory / "calibration.json").is_file() or not (directory / "calibration.npz").is_file():
-            raise FileNotFoundError(f"{directory} holds no calibration (calibration.json, calibration.npz): make one "
-                                    f"with `toolkit static calibrate --model {directory} --data DB.h5`")
-        meta = json.loads((directory / "calibration.json").read_text())
-        with np.load(directory / "calibration.npz") as z:
-            arrays = {k: z[k] for k in z.files}
+        meta, arrays = load_calibration(directory, "toolkit static calibrate")
         residual = None
         if "modes" in arrays:
             residual = LinearPlusPOD(PODRegression(arrays["mean"], arrays["modes"], arrays["coef"],
@@ -388,14 +381,8 @@ class TrustedAnswer:
         fields = {"error_estimate": self.estimate["node_mm"]} if self.answered_by != "fe" else {}
         out = self.result.write(out, preview=preview, point_data=fields)
         with atomic_path(out / "summary.json") as tmp:
-            tmp.write_text(json.dumps(self.summary(), indent=2, default=_json_default))
+            tmp.write_text(json.dumps(jsonable(self.summary()), indent=2))
         return out
-
-
-def _json_default(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
 def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration: Calibration | None = None,

@@ -16,12 +16,14 @@ check beside it is for.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ConformalBound", "calibrate", "conformal_rank", "coverage_interval", "min_calibration_cases"]
+__all__ = ["ConformalBound", "calibrate", "conformal_rank", "coverage_interval", "min_calibration_cases",
+           "save_calibration", "load_calibration", "CALIBRATION_FILES"]
 
 
 def min_calibration_cases(coverage: float) -> int:
@@ -119,3 +121,38 @@ def calibrate(errors, scales, coverage: float = 0.9) -> ConformalBound:
     ratios = np.sort(e / s)
     k = conformal_rank(ratios.size, coverage)
     return ConformalBound(float(coverage), float(ratios[k - 1]), tuple(ratios.tolist()))
+
+
+#: the files a calibration is saved to in a model directory
+CALIBRATION_FILES = ("calibration.json", "calibration.npz")
+
+
+def save_calibration(directory, meta: dict, arrays: dict):
+    """Write ``arrays`` (name -> ndarray) to ``calibration.npz`` and ``meta`` (JSON-ready) to
+    ``calibration.json`` in ``directory``, each atomically, the JSON last; returns the directory."""
+    from pathlib import Path
+
+    from toolkit.common.io import atomic_path
+
+    directory = Path(directory)
+    with atomic_path(directory / CALIBRATION_FILES[1]) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+    with atomic_path(directory / CALIBRATION_FILES[0]) as tmp:
+        tmp.write_text(json.dumps(meta, indent=2))
+    return directory
+
+
+def load_calibration(directory, command: str) -> tuple[dict, dict]:
+    """``(meta, arrays)`` of the calibration saved in ``directory``; FileNotFoundError naming
+    ``command`` (the one that makes a calibration, e.g. ``toolkit static calibrate``) when absent."""
+    from pathlib import Path
+
+    directory = Path(directory)
+    if not all((directory / name).is_file() for name in CALIBRATION_FILES):
+        raise FileNotFoundError(f"{directory} holds no calibration ({', '.join(CALIBRATION_FILES)}): make one with "
+                                f"`{command} --model {directory} --data DB.h5`")
+    meta = json.loads((directory / CALIBRATION_FILES[0]).read_text())
+    with np.load(directory / CALIBRATION_FILES[1]) as z:
+        arrays = {k: z[k] for k in z.files}
+    return meta, arrays
