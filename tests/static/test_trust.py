@@ -90,6 +90,24 @@ def test_a_plan_far_outside_the_training_data_falls_back_to_the_fe_and_is_the_fe
     assert got.seconds["fe"] > 0 and got.seconds["surrogate"] > 0
 
 
+@pytest.mark.parametrize("beyond", [0.5, 1.5])
+def test_a_plan_beyond_the_training_range_by_less_than_the_margin_is_in_distribution(calibrated, beyond):
+    _, cal = calibrated
+    assert cal.plan_margin == pytest.approx(min(0.1, math.log(50) / len(cal.train_plans)))
+    lo, hi = cal.plan_ranges["lefort.translation_y_mm"]
+    value = hi + beyond * cal.plan_margin * (hi - lo)
+    case = load_case(resolution="coarse")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plan = SurgicalPlan.from_dict({"lefort": {"translation_mm": [0.0, value, 0.0]}}, phantom=case.subject)
+    ood = out_of_distribution(cal, case.subject.mesh, plan)
+    assert ood["plan"]["margin"] == cal.plan_margin
+    moved = "within_margin" if beyond < 1 else "parameters"
+    assert ood["plan"][moved]["lefort.translation_y_mm"]["outside_by"] == pytest.approx(value - hi)
+    assert ood["outside"] is (beyond > 1)
+    assert any(r.startswith("plan:") for r in ood["reasons"]) is (beyond > 1)
+
+
 def test_in_distribution_plan_answered_by_whichever_the_tolerance_allows(calibrated, db100):
     model, cal = calibrated
     db = StaticDatabase.open(db100)
@@ -107,6 +125,15 @@ def test_in_distribution_plan_answered_by_whichever_the_tolerance_allows(calibra
     by_baseline = answer(model, subject, plan, 100.0, calibration=baseline_only)
     assert by_baseline.answered_by == "baseline"
     np.testing.assert_allclose(by_baseline.result.displacements, by_baseline.estimate["companion"])
+    # with the constant scale the network is not run: the same prescribed values, the same answer (to the
+    # float32 rounding of the network's output at the bone nodes, whose place the next increment starts from)
+    no_network = answer(model, subject, plan, 100.0, calibration=replace(baseline_only, scale="constant"))
+    assert no_network.result.material == by_baseline.result.material
+    np.testing.assert_allclose(no_network.result.displacements, by_baseline.result.displacements, rtol=0, atol=1e-6)
+    prior_only = model.predict_plan(subject, plan, network=False)
+    np.testing.assert_allclose(prior_only.prescribed, by_network.result.prescribed, rtol=0, atol=1e-6)
+    im = model.prior(prior_only.reference, prior_only.boundary.types)
+    np.testing.assert_allclose(prior_only.displacement, sum(im.predict(p) for p in prior_only.prescribed))
     assert by_baseline.result.summary()["min_scaled_jacobian"] > 0
     est = loose.estimate
     assert est["bound_mm"] == pytest.approx(cal.bound.factor * est["scale_mm"])

@@ -16,9 +16,9 @@ error to a *scale* the model can compute without the FE:
 Split-conformal calibration (:mod:`toolkit.common.training.conformal`) turns the ratios into a
 factor whose bound holds at the stated coverage for a new plan exchangeable with the
 calibration ones. Inputs unlike them void that guarantee, so :func:`out_of_distribution`
-checks the inputs first (plan parameters outside the training ranges, a face mesh of another
-topology or farther from every training subject than they lie from each other, another
-material), and :func:`answer` runs the FE for such inputs whatever the estimate says.
+checks the inputs first (plan parameters beyond the training ranges by more than a margin, a
+face mesh of another topology or farther from every training subject than they lie from each
+other, another material), and :func:`answer` runs the FE for such inputs whatever the estimate says.
 
 Which answer is given (``answerer``) and with which scale is chosen at calibration: ``auto``
 (default, for both) calibrates the network's and the linear + POD residual baseline's errors
@@ -64,6 +64,9 @@ SCALE_FLOOR_MM = 0.01
 #: and at least this far, or with a node farther than this outside the box (per coordinate) its
 #: training subjects span, is another shape
 MIN_SHAPE_SPREAD_MM = 1.0
+#: a plan parameter lying beyond its training range by at most this share of the range (or
+#: :attr:`Calibration.plan_margin`, whichever is smaller) is not out of distribution
+MAX_PLAN_MARGIN = 0.1
 
 
 def answer_error(predicted: np.ndarray, reference: np.ndarray) -> float:
@@ -134,6 +137,19 @@ class Calibration:
                    meta["plan_ranges"], arrays["subjects"], float(meta["shape_spread_mm"]), meta["material"],
                    meta["cases"], meta["source"], meta.get("answerer", "network"),
                    {k: ConformalBound.from_dict(b) for k, b in meta.get("bounds", {}).items()})
+
+    @property
+    def plan_margin(self) -> float:
+        """Share of each parameter's training range a plan may lie beyond it and still be in
+        distribution: ``ln(50) / m`` for ``m`` training plans, at most :data:`MAX_PLAN_MARGIN`.
+
+        ``m`` plans drawn uniformly over a range leave a gap of more than that share at one end
+        with probability ``(1 - ln(50) / m) ** m``, about 2 %: a plan drawn like them lies
+        beyond their box by that much about as rarely, while a plan beyond it by more comes
+        from a wider distribution. Without a margin, a plan drawn like the training ones lies
+        a hair outside the box of 80 training plans in one of its six sagittal parameters 1 time
+        in 6 (``benchmarks/surrogate_trust.py``)."""
+        return float(min(MAX_PLAN_MARGIN, np.log(50.0) / max(len(self.train_plans), 1)))
 
     def at(self, coverage: float) -> Calibration:
         """The same calibration with its bound at another coverage."""
@@ -301,7 +317,9 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
     "outside_envelope_mm"}, "material": {"asked", "trained"}}``. The face is another shape when it
     lies farther (RMS) from every training subject than they lie from each other, or when one of
     its nodes lies more than :data:`MIN_SHAPE_SPREAD_MM` outside the per-coordinate box of that
-    node over the training subjects.
+    node over the training subjects. A plan is outside when one of its parameters lies beyond
+    the training range by more than :attr:`Calibration.plan_margin` of that range (``"plan"``:
+    ``margin``, and ``within_margin``, the parameters beyond the range by less).
     """
     from toolkit.common.training.extrapolation import describe_extrapolation
     from toolkit.static.surrogate import PLAN_PARAMETERS, plan_extrapolation
@@ -313,6 +331,13 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
     span = np.array([calibration.plan_ranges[n][1] for n in PLAN_PARAMETERS]) - lo
     span[span <= 0] = 1.0
     ex["nearest_plan_distance"] = float(np.min(np.linalg.norm((calibration.train_plans - values) / span, axis=1)))
+    ex["margin"] = margin = calibration.plan_margin
+    if ex["outside"] is True:
+        spans = dict(zip(PLAN_PARAMETERS, span))
+        near = {n: p for n, p in ex["parameters"].items() if p["outside_by"] <= margin * spans[n]}
+        ex["parameters"] = {n: p for n, p in ex["parameters"].items() if n not in near}
+        ex["within_margin"] = near
+        ex["outside"] = bool(ex["parameters"])
     if ex["outside"]:
         reasons.append("plan: " + describe_extrapolation(ex))
     shape = {"training_spread_mm": calibration.shape_spread_mm}
@@ -419,7 +444,9 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
     est, pred = {}, None
     seconds = {"surrogate": 0.0, "estimate": 0.0, "fe": 0.0}
     if same or any_mesh:
-        pred = model.predict_plan(face, plan, segments=segments, any_mesh=any_mesh or not same)
+        # the baseline answering with the constant scale reads only the prescribed values: no network
+        network = not same or calibration.answerer == "network" or calibration.scale != "constant"
+        pred = model.predict_plan(face, plan, segments=segments, any_mesh=any_mesh or not same, network=network)
         seconds["surrogate"] = time.perf_counter() - t0
         if same:  # the baseline and its disagreement are node-indexed: the training topology only
             t1 = time.perf_counter()
