@@ -103,6 +103,25 @@ def test_a_model_refuses_what_it_was_not_built_for(db100, hard_model, tmp_path):
         train_surrogate(db100, tmp_path / "m", SurrogateConfig(FeatureSpec("explicit", material_channels=True)))
     with pytest.raises(ValueError, match="lr_schedule = 'step'"):
         SurrogateConfig(lr_schedule="step")
+    with pytest.raises(ValueError, match="split_seed = 1.5"):
+        SurrogateConfig(split_seed=1.5)
+
+
+def test_ensemble_members_share_the_split_through_split_seed():
+    """Members of a deep ensemble differ in ``seed`` and hold out the same simulations."""
+    from types import SimpleNamespace
+
+    from toolkit.static.surrogate import _split
+
+    keys = np.repeat([f"s000-p{k:05d}" for k in range(30)], 3)
+    data = SimpleNamespace(keys=keys, subject=np.zeros(keys.size, int))
+    split = [keys[i] for i in _split(data, SurrogateConfig(seed=0))]
+    member = [keys[i] for i in _split(data, SurrogateConfig(seed=1, split_seed=0))]
+    other = [keys[i] for i in _split(data, SurrogateConfig(seed=1))]
+    for a, b in zip(split, member):
+        np.testing.assert_array_equal(a, b)
+    assert set(split[2]) != set(other[2])  # without it, another seed holds out other plans
+    assert not set(split[2]) & set(split[0]) and len(set(split[2])) == 6  # whole simulations, 20 %
 
 
 def _load_as(model, tmp_path, kind):

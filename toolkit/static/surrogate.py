@@ -102,6 +102,8 @@ class SurrogateConfig:
         fewer epochs here)
     lr_schedule : ``constant`` (the PointNet++ paper) or ``cosine`` (decays to 1 % of ``lr`` over the
         epochs, or over ``max_seconds`` when set; :class:`~toolkit.common.training.TrainConfig`)
+    split_seed : seed of the split into training, validation and test simulations (None: ``seed``);
+        the members of a deep ensemble share it and differ in ``seed``
     """
 
     features: FeatureSpec = FEATURE_PRESETS["best"]
@@ -117,6 +119,7 @@ class SurrogateConfig:
     device: str = "cpu"
     max_seconds: float | None = None
     lr_schedule: str = "constant"
+    split_seed: int | None = None
 
     def __post_init__(self):
         if isinstance(self.features, dict):
@@ -130,6 +133,8 @@ class SurrogateConfig:
             raise ValueError(f"network = {self.network!r}; expected one of {sorted(NETWORK_PRESETS)}")
         if self.split not in ("plans", "subjects"):
             raise ValueError(f"split = {self.split!r}; expected 'plans' or 'subjects'")
+        if self.split_seed is not None and (isinstance(self.split_seed, bool) or not isinstance(self.split_seed, int)):
+            raise ValueError(f"split_seed = {self.split_seed!r}; expected an integer or None (the training seed)")
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule = {self.lr_schedule!r}; expected one of {LR_SCHEDULES}")
         if self.split == "subjects" and not self.test_subjects:
@@ -487,14 +492,15 @@ def _encode_database(db, spec: FeatureSpec, priors: dict | None = None) -> _Data
 
 
 def _split(data: _Data, config: SurrogateConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    seed = config.seed if config.split_seed is None else config.split_seed
     if config.split == "plans":
-        return split_groups(data.keys, (0.7, 0.1, 0.2), config.seed)
+        return split_groups(data.keys, (0.7, 0.1, 0.2), seed)
     test = np.flatnonzero(np.isin(data.subject, config.test_subjects))
     rest = np.flatnonzero(~np.isin(data.subject, config.test_subjects))
     if not test.size or not rest.size:
         raise ValueError(f"test subjects {config.test_subjects} leave {rest.size} training and {test.size} test "
                          f"samples; the database has subjects {sorted(set(data.subject.tolist()))}")
-    tr, va = split_groups(data.keys[rest], (0.8, 0.2), config.seed)
+    tr, va = split_groups(data.keys[rest], (0.8, 0.2), seed)
     return rest[tr], rest[va], test
 
 
