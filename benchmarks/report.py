@@ -592,20 +592,32 @@ def _surrogate_trust(data):
     b = base.groupby("kind", sort=False).agg(base_error=("error_mm", "median"), base_max=("error_mm", "max"),
                                              base_bound=("bound_90_mm", "median")).reset_index()
     kinds = kinds.merge(b, on="kind", how="left")
+    ens = df[df.scale == "ensemble"]
+    ensemble_cols = []
+    if len(ens):
+        kinds = kinds.merge(ens.groupby("kind", sort=False).agg(ens_error=("error_mm", "median"),
+                                                                 ens_bound=("bound_90_mm", "median")).reset_index(),
+                            on="kind", how="left")
+        ensemble_cols = [("ens_error", "ensemble median error (mm)", "{:.2f}"),
+                         ("ens_bound", "its median bound (mm)", "{:.2f}")]
     parts = ["Cases by kind (error: 95th percentile over nodes against the FE of the case; bound: the "
-             "disagreement estimate at 90 % of that answer's error):",
+             "disagreement estimate at 90 % of that answer's error, the spread's for the ensemble):",
              table(kinds, [("kind", "cases"), ("cases", "plans"), ("fe_ok", "FE completed"),
                            ("error", "PointNet++ median error (mm)", "{:.2f}"), ("error_max", "max (mm)", "{:.2f}"),
                            ("bound", "median bound (mm)", "{:.2f}"),
                            ("base_error", "baseline median error (mm)", "{:.2f}"), ("base_max", "max (mm)", "{:.2f}"),
-                           ("base_bound", "median bound (mm)", "{:.2f}"),
+                           ("base_bound", "median bound (mm)", "{:.2f}"), *ensemble_cols,
                            ("flagged", "flagged out of distribution", "{:.0%}"),
                            ("network_s", "network (s)", "{:.2f}"), ("fe_s", "FE (s)", "{:.2f}")])]
-    cal = extra.get("calibration", {})
+    cal = dict(extra.get("calibration", {}))
+    ensemble = cal.pop("ensemble", None)
     if cal:
         parts.append("Calibration: " + "; ".join(
             f"{k} on {v['plans']} held-out plans, factor {v['factor_90_network']:.3g} (PointNet++) and "
-            f"{v['factor_90_baseline']:.3g} (baseline) at 90 %" for k, v in cal.items()) + "."
+            f"{v['factor_90_baseline']:.3g} (baseline) at 90 %" for k, v in cal.items())
+            + (f"; the deep ensemble of {ensemble['members']} PointNet++ (the default model and more trained with "
+               f"other seeds on its split), its spread on the same plans, factor {ensemble['factor_90']:.3g}"
+               if ensemble else "") + "."
             + (" The defaults (`auto`) choose the {scale} scale and the {answerer}'s answers.".format(**extra["auto"])
                if extra.get("auto") else ""))
     if extra.get("methods"):

@@ -7,7 +7,10 @@ Stages (each resumable: rerun the same command to continue):
 1. the paper-size database and default PointNet++ of ``surrogate_remeshed.py`` (``--subjects``
    paper phantom subjects x ``--plans`` sagittal plans, ``--max-minutes`` of training), shared
    with it in ``benchmarks/work/``;
-2. calibration of each scale (``disagreement``, ``constant``) on the model's test plans;
+2. calibration of each scale (``disagreement``, ``constant``) on the model's test plans, and of a
+   deep ensemble measured beside them (``--ensemble`` members: the model and more trained like it
+   with other seeds on its split; answer: the members' mean; scale: their spread, the root mean
+   square distance of the members to the mean, 95th percentile over nodes);
 3. cases, the FE of each cached in ``work/trust_fe/`` (with the time of the run that computed it):
 
    - ``in``: ``--cases`` sampled plans (the physiological ranges) on the training subjects, drawn
@@ -34,8 +37,8 @@ bound against true error).
 
 With ``--workflow impact``, the same for the impact LSTM (``surrogate_trust_impact.py``).
 
-    python benchmarks/surrogate_trust.py --cases 40           # 4 x 25 plans, 8 min, 40 + 40 + 20 + 20 cases
-    python benchmarks/surrogate_trust.py --subjects 2 --plans 10 --max-minutes 1 --cases 4 --suffix _smoke
+    python benchmarks/surrogate_trust.py --cases 40           # 4 x 25 plans, 3 x 8 min, 40 + 40 + 20 + 20 cases
+    python benchmarks/surrogate_trust.py --subjects 2 --plans 25 --max-minutes 0.3 --cases 4 --suffix _smoke
 """
 
 from __future__ import annotations
@@ -58,6 +61,40 @@ COVERAGES = (0.9, 0.95)
 ANSWERED_BY = ("network", "baseline")
 #: mm: the AUROC of each estimate for flagging answers whose error exceeds these
 AUROC_AT_MM = (0.5, 1.0, 2.0, 4.0)
+
+
+def stage_members(args, db_path: Path, model) -> list:
+    """The deep ensemble: ``model`` and ``--ensemble - 1`` more trained like it with seeds
+    ``seed + k`` on its split (``split_seed``), so that every member holds out the same test plans
+    (``work/remeshed_model_member<k>``)."""
+    from dataclasses import replace
+
+    from toolkit.static.surrogate import Surrogate, train_surrogate
+
+    split = model.config.seed if model.config.split_seed is None else model.config.split_seed
+    members = [model]
+    for k in range(1, args.ensemble):
+        out = WORK / f"remeshed_model{args.suffix}_member{k}"
+        if (out / "model.pt").exists():
+            member = Surrogate.load(out)
+        else:
+            member = train_surrogate(db_path, out, replace(model.config, seed=model.config.seed + k, split_seed=split),
+                                     resume=(out / "checkpoint.pt").exists())
+        if sorted(member.bundle.extra["test_keys"]) != sorted(model.bundle.extra["test_keys"]):
+            raise RuntimeError(f"{out} holds out other test plans than the model: delete it and rerun")
+        members.append(member)
+    return members
+
+
+def ensemble_prediction(members, face, plan) -> tuple[np.ndarray, np.ndarray, float]:
+    """The members' mean final displacement ``(n, 3)`` mm, each node's spread (root mean square
+    distance of the members to the mean, mm) and the time of all members (s)."""
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        u = np.stack([m.predict_plan(face, plan).displacement for m in members])
+    mean = u.mean(axis=0)
+    return mean, np.sqrt(np.mean(np.sum((u - mean) ** 2, axis=2), axis=0)), time.perf_counter() - t0
 
 
 def auroc(flag: np.ndarray, score: np.ndarray) -> float:
@@ -155,6 +192,13 @@ def fe_of(case, face, data: dict, cache: Path) -> tuple[np.ndarray | None, float
     return u, seconds, status
 
 
+def _bound_at(bound, coverage: float, scale_mm: float) -> float:
+    try:
+        return float(bound.at(coverage).bound(scale_mm))
+    except ValueError:  # too few calibration plans for this coverage
+        return np.nan
+
+
 def _rows(df: pd.DataFrame, scale: str, answerer: str | None) -> pd.DataFrame:
     d = df[(df.scale == scale) & (df.fe_status == "ok")]
     return d if answerer is None or "answerer" not in d else d[d.answerer == answerer]
@@ -226,6 +270,9 @@ def main(argv=None):
     surrogate_trust_impact.add_arguments(ap)
     ap.add_argument("--cases", type=int, default=20, help="in-distribution and beyond-range cases (half as many "
                                                           "for the unseen shape and for Neo-Hookean)")
+    ap.add_argument("--ensemble", type=int, default=3,
+                    help="members of the deep ensemble measured beside the calibrated scales (the default model and "
+                         "ENSEMBLE - 1 more trained with other seeds on its split; 1: none)")
     ap.add_argument("--tolerances", type=float, nargs="+", default=None,
                     help="mm: the policy of predict --tolerance at each (default static 0.5 1 2 4, impact "
                          "0.02 0.05 0.5 1)")
@@ -241,8 +288,17 @@ def main(argv=None):
     from tqdm import tqdm
 
     from toolkit.common.runtime import set_threads
-    from toolkit.common.training.conformal import min_calibration_cases
-    from toolkit.static.trust import SCALES, answer_error, calibrate_surrogate, estimate, out_of_distribution
+    from toolkit.common.training.conformal import calibrate, min_calibration_cases
+    from toolkit.static.dataset import StaticDatabase
+    from toolkit.static.trust import (
+        SCALE_FLOOR_MM,
+        SCALES,
+        _case_scale,
+        answer_error,
+        calibrate_surrogate,
+        estimate,
+        out_of_distribution,
+    )
 
     set_threads(1)
     db_path = stage_database(args)
@@ -256,6 +312,17 @@ def main(argv=None):
               f" ({time.perf_counter() - t0:.0f} s)", flush=True)
     auto = calibrate_surrogate(model, db_path, coverage=COVERAGES[0])  # the defaults: scale and answerer "auto"
     print(f"calibration auto: {auto.scale} scale, answers by the {auto.answerer}", flush=True)
+    members = stage_members(args, db_path, model) if args.ensemble > 1 else []
+    ensemble_bound = None
+    if members:  # the deep ensemble's spread, calibrated on the same held-out plans
+        db = StaticDatabase.open(db_path)
+        errors, scales = [], []
+        for c in calibrations["constant"].cases:
+            mean, spread, _ = ensemble_prediction(members, db.subject(c["subject"]), db.plan(c["key"]))
+            errors.append(answer_error(mean, db.displacements(c["key"])[-1]))
+            scales.append(_case_scale(spread + SCALE_FLOOR_MM))
+        ensemble_bound = calibrate(errors, scales, COVERAGES[0])
+        print(f"calibration ensemble ({len(members)} members): factor {ensemble_bound.factor:.3g}", flush=True)
     cache = WORK / f"trust_fe{args.suffix}"
     cache.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -289,20 +356,31 @@ def main(argv=None):
                     if scale == "constant":
                         row["surrogate_s"] = prescribed_s
                 for c in COVERAGES:
-                    try:
-                        row[f"bound_{int(c * 100)}_mm"] = float(cal.bounds[answerer].at(c).bound(est["scale_mm"]))
-                    except ValueError:  # too few calibration plans for this coverage
-                        row[f"bound_{int(c * 100)}_mm"] = np.nan
+                    row[f"bound_{int(c * 100)}_mm"] = _bound_at(cal.bounds[answerer], c, est["scale_mm"])
                 rows.append(row)
+        if ensemble_bound is not None:
+            mean, spread, ensemble_s = ensemble_prediction(members, face, case["plan"])
+            t0 = time.perf_counter()
+            scale_mm = _case_scale(spread + SCALE_FLOOR_MM)
+            ood = out_of_distribution(calibrations["constant"], face.mesh, case["plan"], case["material"])
+            rows.append({**base, "scale": "ensemble", "answerer": "ensemble", "surrogate_s": ensemble_s,
+                         "estimate_s": time.perf_counter() - t0, "scale_mm": scale_mm, "ood": ood["outside"],
+                         "ood_reasons": " | ".join(ood["reasons"]),
+                         "error_mm": answer_error(mean, fe) if fe is not None else np.nan,
+                         **{f"bound_{int(c * 100)}_mm": _bound_at(ensemble_bound, c, scale_mm) for c in COVERAGES}})
     table = pd.DataFrame(rows)
-    methods = [method_scores(table, s, a) for s in SCALES for a in ANSWERED_BY]
-    policies = [policy(table, s, c, t, a) for t in args.tolerances for s in SCALES for a in ANSWERED_BY
-                for c in COVERAGES]
+    pairs = [(s, a) for s in SCALES for a in ANSWERED_BY] + ([("ensemble", "ensemble")] if members else [])
+    methods = [method_scores(table, s, a) for s, a in pairs]
+    policies = [policy(table, s, c, t, a) for t in args.tolerances for s, a in pairs for c in COVERAGES]
     calib = {s: {"plans": c.bound.n, "answerer": c.answerer,
                  **{f"factor_90_{a}": c.bounds[a].factor for a in ANSWERED_BY},
                  **{f"factor_95_{a}": (c.bounds[a].at(0.95).factor if c.bound.n >= min_calibration_cases(0.95)
                                        else None) for a in ANSWERED_BY}}
              for s, c in calibrations.items()}
+    if ensemble_bound is not None:
+        calib["ensemble"] = {"plans": ensemble_bound.n, "members": len(members), "factor_90": ensemble_bound.factor,
+                             "factor_95": (ensemble_bound.at(0.95).factor
+                                           if ensemble_bound.n >= min_calibration_cases(0.95) else None)}
     write_result(args.out, table, argv=argv, extra={"methods": methods, "policies": policies,
                                                     "calibration": calib, "tolerances_mm": args.tolerances,
                                                     "auto": {"scale": auto.scale, "answerer": auto.answerer}})
