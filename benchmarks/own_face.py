@@ -71,8 +71,10 @@ CARRIED = ("fixed", "maxilla", "mandible", "mucosa_sliding", "mucosa_lefort", "m
 
 
 def phantom_labels(face_mesh, phantom_mesh):
-    """``face_mesh`` whose :data:`CARRIED` sets are the phantom's: each boundary node takes the
-    membership of the nearest boundary node of the phantom (bone-side sets only on its bone nodes)."""
+    """``face_mesh`` whose :data:`CARRIED` sets are the phantom's: each boundary corner node takes
+    the membership of the nearest boundary node of the phantom (bone-side sets only on its bone
+    nodes), and on a tet10 face each set takes the mid-edge nodes of the boundary edges whose two
+    ends it holds, as ``toolkit mesh`` extends its own sets."""
     from scipy.spatial import cKDTree
 
     from toolkit.common.topology import boundary_faces
@@ -86,9 +88,31 @@ def phantom_labels(face_mesh, phantom_mesh):
             sets.pop(name, None)
             continue
         member = np.isin(nearest, phantom_mesh.node_sets[name]) & (on_bone | (name == "fixed"))
-        sets[name] = ours[member]
+        sets[name] = _with_mid_edge_nodes(face_mesh, ours[member])
+    per_segment = [sets[k] for k in CARRIED if k.startswith("mucosa_") and k != "mucosa_sliding" and k in sets]
+    if per_segment:  # a mid-edge node between two segments' mucosa slides on neither, as toolkit mesh has it
+        sets["mucosa_sliding"] = np.unique(np.concatenate(per_segment))
     return type(face_mesh)(face_mesh.points, face_mesh.cells, node_sets=sets, element_sets=face_mesh.element_sets,
                            cell_data=face_mesh.cell_data)
+
+
+def _with_mid_edge_nodes(mesh, ids: np.ndarray) -> np.ndarray:
+    """``ids`` (corner nodes) and, on a tet10 mesh, the mid-edge nodes of the boundary edges whose
+    two ends are in ``ids``."""
+    from toolkit.common.topology import boundary_faces
+
+    if mesh.volume_type != "tet10":
+        return ids
+    cells, n = mesh.volume_cells, mesh.n_points
+    ends = np.sort(cells[:, [[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]]], axis=2).reshape(-1, 2)
+    mids = cells[:, 4:].reshape(-1)
+    faces = boundary_faces("tet10", cells)
+    edges = np.sort(np.vstack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [0, 2]]]), axis=1)
+    member = np.zeros(n, dtype=bool)
+    member[ids] = True
+    keep = np.isin(ends[:, 0] * (n + 1) + ends[:, 1], edges[:, 0] * (n + 1) + edges[:, 1]) \
+        & member[ends[:, 0]] & member[ends[:, 1]]
+    return np.union1d(ids, mids[keep])
 
 
 def skin_difference(face_mesh, u_face, phantom_mesh, u_phantom) -> dict:

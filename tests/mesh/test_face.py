@@ -189,3 +189,27 @@ def test_meshing_leaves_nothing_in_the_working_directory(inputs, tmp_path, monke
     surface = inputs[0]
     tetrahedralize(surface.points, surface.cells["tri3"], 12.0, backend=BACKEND)
     assert list(tmp_path.iterdir()) == [] and Path.cwd() == tmp_path
+
+
+def test_round_trip_benchmark_carries_sets_to_mid_edge_nodes_as_the_mesher_does(face, phantom):
+    """``benchmarks/own_face.py --labels phantom`` extends the carried corner sets to the tet10
+    mid-edge nodes with the mesher's rule: applied to the mesher's own corner sets, it gives them back."""
+    import importlib.util
+    import sys
+
+    benchmarks = Path(__file__).resolve().parents[2] / "benchmarks"
+    if str(benchmarks) not in sys.path:
+        sys.path.insert(0, str(benchmarks))
+    spec = importlib.util.spec_from_file_location("benchmarks_own_face", benchmarks / "own_face.py")
+    own_face = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(own_face)
+    m = face.mesh
+    corners = np.unique(m.volume_cells[:, :4])
+    for name in ("fixed", "maxilla", "mandible", "mucosa_lefort", "mucosa_distal", "bone"):
+        ids = m.node_sets[name]
+        got = own_face._with_mid_edge_nodes(m, np.intersect1d(ids, corners))
+        assert np.setdiff1d(ids, corners).size > 0, name
+        np.testing.assert_array_equal(got, ids, err_msg=name)
+    carried = own_face.phantom_labels(m, phantom.mesh)
+    for name in ("maxilla", "mandible", "mucosa_distal"):
+        assert np.setdiff1d(carried.node_sets[name], corners).size > 0, name
