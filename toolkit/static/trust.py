@@ -146,9 +146,9 @@ class Calibration:
         ``m`` plans drawn uniformly over a range leave a gap of more than that share at one end
         with probability ``(1 - ln(50) / m) ** m``, about 2 %: a plan drawn like them lies
         beyond their box by that much about as rarely, while a plan beyond it by more comes
-        from a wider distribution. Without a margin, a plan drawn like the training ones lies
-        a hair outside the box of 80 training plans in one of its six sagittal parameters 1 time
-        in 6 (``benchmarks/surrogate_trust.py``)."""
+        from a wider distribution. Without a margin, a plan drawn like them lies outside the
+        range of one parameter with probability ``2 / (m + 1)``: 1 time in 7 in one of the six
+        sagittal parameters of 80 plans."""
         return float(min(MAX_PLAN_MARGIN, np.log(50.0) / max(len(self.train_plans), 1)))
 
     def at(self, coverage: float) -> Calibration:
