@@ -360,9 +360,9 @@ def main(argv=None):
                 rows.append(row)
         if ensemble_bound is not None:
             mean, spread, ensemble_s = ensemble_prediction(members, face, case["plan"])
+            ood = out_of_distribution(calibrations["constant"], face.mesh, case["plan"], case["material"])
             t0 = time.perf_counter()
             scale_mm = _case_scale(spread + SCALE_FLOOR_MM)
-            ood = out_of_distribution(calibrations["constant"], face.mesh, case["plan"], case["material"])
             rows.append({**base, "scale": "ensemble", "answerer": "ensemble", "surrogate_s": ensemble_s,
                          "estimate_s": time.perf_counter() - t0, "scale_mm": scale_mm, "ood": ood["outside"],
                          "ood_reasons": " | ".join(ood["reasons"]),
