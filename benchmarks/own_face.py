@@ -99,20 +99,17 @@ def phantom_labels(face_mesh, phantom_mesh):
 def _with_mid_edge_nodes(mesh, ids: np.ndarray) -> np.ndarray:
     """``ids`` (corner nodes) and, on a tet10 mesh, the mid-edge nodes of the boundary edges whose
     two ends are in ``ids``."""
-    from toolkit.common.topology import boundary_faces
+    from toolkit.common.fem.reference import REFERENCE_ELEMENTS
+    from toolkit.common.topology import boundary_faces, unique_edges
+    from toolkit.mesh.face import mid_edge_lookup
 
     if mesh.volume_type != "tet10":
         return ids
-    cells, n = mesh.volume_cells, mesh.n_points
-    ends = np.sort(cells[:, [[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]]], axis=2).reshape(-1, 2)
-    mids = cells[:, 4:].reshape(-1)
-    faces = boundary_faces("tet10", cells)
-    edges = np.sort(np.vstack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [0, 2]]]), axis=1)
-    member = np.zeros(n, dtype=bool)
+    edges = unique_edges(boundary_faces("tet10", mesh.volume_cells), REFERENCE_ELEMENTS["tri3"].edges)[0]
+    member = np.zeros(mesh.n_points, dtype=bool)
     member[ids] = True
-    keep = np.isin(ends[:, 0] * (n + 1) + ends[:, 1], edges[:, 0] * (n + 1) + edges[:, 1]) \
-        & member[ends[:, 0]] & member[ends[:, 1]]
-    return np.union1d(ids, mids[keep])
+    both = edges[member[edges[:, 0]] & member[edges[:, 1]]]
+    return np.union1d(ids, mid_edge_lookup(mesh.volume_cells)(both))
 
 
 def skin_difference(face_mesh, u_face, phantom_mesh, u_phantom) -> dict:

@@ -316,7 +316,6 @@ IMPACT_SCALES = ("interpolation", "constant")
 
 
 def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
-    SCALES = IMPACT_SCALES
     parser.add_argument("--model", required=True, type=Path, help="model directory (the calibration is saved in it)")
     parser.add_argument("--data", required=True, type=Path,
                         help="a database of the model's scene: its simulations at velocities the model did not "
@@ -325,7 +324,7 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the database the model was trained on, when --data is another one (default: --data)")
     parser.add_argument("--coverage", type=probability, default=0.9,
                         help="probability that the error bound holds for a velocity like these")
-    parser.add_argument("--scale", choices=SCALES, default=SCALES[0],
+    parser.add_argument("--scale", choices=IMPACT_SCALES, default=IMPACT_SCALES[0],
                         help="interpolation: the distance to the training simulations interpolated in velocity; "
                              "constant: one bound for all")
 

@@ -245,8 +245,6 @@ STATIC_ANSWERERS = ("auto", "network", "baseline")
 
 
 def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
-    SCALES, ANSWERERS = STATIC_SCALES, STATIC_ANSWERERS
-
     parser.add_argument("--model", required=True, type=Path, help="model directory (the calibration is saved in it)")
     parser.add_argument("--data", required=True, type=Path,
                         help="the model's training database (its test plans are used) or another of its settings "
@@ -255,10 +253,10 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the database the model was trained on, when --data is another one (default: --data)")
     parser.add_argument("--coverage", type=probability, default=0.9,
                         help="probability that the error bound holds for a plan like these")
-    parser.add_argument("--scale", choices=SCALES + ("auto",), default="auto",
+    parser.add_argument("--scale", choices=STATIC_SCALES + ("auto",), default="auto",
                         help="disagreement: with the linear + POD residual baseline; constant: one bound for all; "
                              "auto: with --answerer auto, the pair whose bound is narrowest over the plans")
-    parser.add_argument("--answerer", choices=ANSWERERS, default=ANSWERERS[0],
+    parser.add_argument("--answerer", choices=STATIC_ANSWERERS, default=STATIC_ANSWERERS[0],
                         help="whose answer `predict --tolerance` gives and bounds: the network, the linear + POD "
                              "residual baseline, or auto: the one with the smaller calibrated bound")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")

@@ -34,7 +34,8 @@ from toolkit.common.mesh import Mesh
 from toolkit.mesh.backends import DEFAULT, tetrahedralize
 from toolkit.mesh.rules import SEGMENTS, LabelRules, read_rules
 
-__all__ = ["MeshedFace", "mesh_face", "FaceInputError", "dihedral_angles", "DEFAULT_SIZE_MM", "DEFAULT_ORDER"]
+__all__ = ["MeshedFace", "mesh_face", "FaceInputError", "dihedral_angles", "mid_edge_lookup", "DEFAULT_SIZE_MM",
+           "DEFAULT_ORDER"]
 
 #: mm, default tetrahedron edge length (a paper-size face: a few thousand nodes)
 DEFAULT_SIZE_MM = 3.0
@@ -143,6 +144,23 @@ def _edges_of(faces: np.ndarray) -> np.ndarray:
     return unique_edges(faces, REFERENCE_ELEMENTS["tri3"].edges)[0]
 
 
+def mid_edge_lookup(cells10: np.ndarray):
+    """The function that maps corner-node edges ``(k, 2)`` (sorted or not) of a tet10 mesh
+    ``cells10 (t, 10)`` to their mid-edge nodes ``(k,)``; the edges must be edges of its cells."""
+    cells10 = np.asarray(cells10, dtype=np.int64)
+    corner_pairs = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+    pairs = np.sort(cells10[:, corner_pairs], axis=2).reshape(-1, 2)
+    n = int(cells10.max()) + 1
+    key, first = np.unique(pairs[:, 0] * n + pairs[:, 1], return_index=True)
+    mid_of = cells10[:, 4:].reshape(-1)[first]
+
+    def mid(edges):
+        e = np.sort(np.asarray(edges, dtype=np.int64).reshape(-1, 2), axis=1)
+        return mid_of[np.searchsorted(key, e[:, 0] * n + e[:, 1])]
+
+    return mid
+
+
 def _elevate(points: np.ndarray, tets: np.ndarray, node_sets: dict[str, np.ndarray],
              set_faces: Mapping[str, np.ndarray]):
     """tet10 from tet4, each set extended to the mid-edge nodes of the edges of its faces
@@ -151,15 +169,7 @@ def _elevate(points: np.ndarray, tets: np.ndarray, node_sets: dict[str, np.ndarr
 
     p10, t10 = tet10_from_tet4(points, tets)
     n4 = points.shape[0]
-    corner_pairs = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
-    pairs = np.sort(t10[:, corner_pairs], axis=2).reshape(-1, 2)
-    mids = t10[:, 4:].reshape(-1)
-    key, first = np.unique(pairs[:, 0] * (n4 + 1) + pairs[:, 1], return_index=True)
-    mid_of = mids[first]
-
-    def mid(edges):
-        return mid_of[np.searchsorted(key, edges[:, 0] * (n4 + 1) + edges[:, 1])]
-
+    mid = mid_edge_lookup(t10)
     boundary = _edges_of(boundary_faces("tet4", tets))
     out = {}
     for name, ids in node_sets.items():

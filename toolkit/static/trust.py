@@ -325,19 +325,12 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
     from toolkit.static.surrogate import PLAN_PARAMETERS, plan_extrapolation
 
     reasons = []
-    ex = plan_extrapolation(plan, calibration.plan_ranges)
+    ex = plan_extrapolation(plan, calibration.plan_ranges, calibration.plan_margin)
     values = np.array(_plan_values(plan))
     lo = np.array([calibration.plan_ranges[n][0] for n in PLAN_PARAMETERS])
     span = np.array([calibration.plan_ranges[n][1] for n in PLAN_PARAMETERS]) - lo
     span[span <= 0] = 1.0
     ex["nearest_plan_distance"] = float(np.min(np.linalg.norm((calibration.train_plans - values) / span, axis=1)))
-    ex["margin"] = margin = calibration.plan_margin
-    if ex["outside"] is True:
-        spans = dict(zip(PLAN_PARAMETERS, span))
-        near = {n: p for n, p in ex["parameters"].items() if p["outside_by"] <= margin * spans[n]}
-        ex["parameters"] = {n: p for n, p in ex["parameters"].items() if n not in near}
-        ex["within_margin"] = near
-        ex["outside"] = bool(ex["parameters"])
     if ex["outside"]:
         reasons.append("plan: " + describe_extrapolation(ex))
     shape = {"training_spread_mm": calibration.shape_spread_mm}
