@@ -26,6 +26,7 @@ Usage::
     python benchmarks/own_face.py --sizes 7 5 3.5 --simulate-sizes 7 5
     python benchmarks/own_face.py --sizes 7 --plans 25 --no-simulate    # 50 sampled plans
     python benchmarks/own_face.py --sizes 3.5 --merge  # add a size to the committed tables
+    python benchmarks/own_face.py --sizes 7 --lip-muscle none --merge   # the tissue isotropic throughout
 """
 
 from __future__ import annotations
@@ -144,6 +145,9 @@ def main(argv=None):
     ap.add_argument("--labels", nargs="+", default=["rules"], choices=["rules", "phantom"],
                     help="simulate the meshed face with its labelling rules' sets, and/or with the phantom's "
                          "bone-side sets carried over (what the labels account for in the difference)")
+    ap.add_argument("--lip-muscle", nargs="+", default=["fibres"], choices=["fibres", "none"],
+                    help="simulate with the mesher's transversely isotropic lip muscle, and/or with none (the "
+                         "tissue isotropic throughout: what the lip muscle accounts for in the difference)")
     ap.add_argument("--out", type=Path, default=RESULTS / "own_face.csv")
     ap.add_argument("--merge", action="store_true",
                     help="keep the rows of --out (and its labels table) for the sizes, orders and labels not run now")
@@ -177,8 +181,10 @@ def main(argv=None):
                 label_rows.append({"size_mm": size, "order": order, **r})
             simulated = not args.no_simulate and (args.simulate_sizes is None or size in args.simulate_sizes)
             base = row
-            for labels in args.labels if simulated else ("rules",):
-                row = {**base, "labels": labels}
+            variants = [(la, li) for la in args.labels for li in args.lip_muscle] if simulated \
+                else [("rules", "fibres")]
+            for labels, lip in variants:
+                row = {**base, "labels": labels, "lip_muscle": lip}
                 if simulated:
                     if reference is None:
                         case = load_case(resolution=args.resolution)
@@ -186,6 +192,8 @@ def main(argv=None):
                         reference = case.simulate(increments=3, material="linear", sliding="mucosa+lip")
                         ref_s = time.perf_counter() - t1
                     mesh = face.mesh if labels == "rules" else phantom_labels(face.mesh, phantom.mesh)
+                    if lip == "none":
+                        mesh = type(mesh)(mesh.points, mesh.cells, node_sets=mesh.node_sets)
                     meshed = load_case(mesh, plan=case.plan, bones={k: v for k, v in face.bones.items()
                                                                     if k != "skull"})
                     t1 = time.perf_counter()
@@ -204,7 +212,7 @@ def main(argv=None):
         robustness(args, phantom, surfaces, backend)
         if args.no_simulate:
             return None
-    table = _merged(args.out, pd.DataFrame(rows), ["size_mm", "order", "labels"], args.merge)
+    table = _merged(args.out, pd.DataFrame(rows), ["size_mm", "order", "labels", "lip_muscle"], args.merge)
     write_result(args.out, table, argv=argv, resumed=args.merge)
     labels_out = args.out.with_name(args.out.stem + "_labels.csv")
     labels = _merged(labels_out, pd.DataFrame(label_rows), ["size_mm", "order", "set"], args.merge)
@@ -221,6 +229,7 @@ def _merged(path: Path, new: pd.DataFrame, key: list[str], merge: bool) -> pd.Da
     if not merge or not path.exists():
         return new
     old = pd.read_csv(path)
+    old = old.assign(**{k: new[k].iloc[0] for k in key if k not in old})  # a key column the table lacked
     done = set(map(tuple, new[key].astype(str).to_numpy()))
     keep = old[[tuple(r) not in done for r in old[key].astype(str).to_numpy()]]
     out = pd.concat([keep, new], ignore_index=True)

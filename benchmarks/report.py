@@ -506,12 +506,15 @@ def _own_face(data):
         df = data["own_face"][0].copy()
         if "labels" not in df:
             df["labels"] = "rules"
+        df["lip_muscle"] = df.get("lip_muscle", pd.Series("fibres", index=df.index)).fillna("fibres").map(
+            {"fibres": "transversely isotropic", "none": "none (isotropic)"})
         df["stages"] = df.apply(lambda r: ", ".join(f"{k} {r[k + '_s']:.1f}" for k in
                                                      ("read_repair", "mesh", "mouth", "label", "order", "quality")),
                                 axis=1)
         parts.append(table(df, [
-            ("size_mm", "size (mm)", "{:g}"), ("order", "order"), ("labels", "labels"), ("nodes", "nodes"),
-            ("elements", "elements"), ("mesh_face_s", "toolkit mesh (s)", "{:.1f}"), ("stages", "stages (s)"),
+            ("size_mm", "size (mm)", "{:g}"), ("order", "order"), ("labels", "labels"),
+            ("lip_muscle", "lip muscle"), ("nodes", "nodes"), ("elements", "elements"),
+            ("mesh_face_s", "toolkit mesh (s)", "{:.1f}"), ("stages", "stages (s)"),
             ("min_scaled_jacobian", "min scaled Jacobian", "{:.3f}"),
             ("min_dihedral_deg", "min dihedral (deg)", "{:.1f}"),
             ("simulate_s", "simulation (s)", "{:.0f}"), ("phantom_simulate_s", "phantom hex (s)", "{:.1f}"),
@@ -521,7 +524,8 @@ def _own_face(data):
         failed = df[df.get("status", pd.Series("ok", index=df.index)).fillna("ok") != "ok"]
         if len(failed):
             parts.append("Simulations that did not complete: " + "; ".join(
-                f"{r.size_mm:g} mm, order {r.order}, {r.labels} labels: {str(r.status).split(' (')[0]}"
+                f"{r.size_mm:g} mm, order {r.order}, {r.labels} labels, lip muscle {r.lip_muscle}: "
+                f"{str(r.status).split(' (')[0]}"
                 for r in failed.itertuples()) + ".")
     if "own_face_labels" in data:
         parts.append("Labels against the phantom's own sets: the share of the meshed face's nodes of each set "

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common.errors import ToolkitError
+from toolkit.common.fibres import with_lip_fibres
 from toolkit.common.mesh import Mesh
 from toolkit.mesh.backends import DEFAULT, tetrahedralize
 from toolkit.mesh.rules import SEGMENTS, LabelRules, read_rules
@@ -52,7 +53,8 @@ class MeshedFace:
     """A labelled face mesh and what made it.
 
     mesh : tet4 or tet10 :class:`~toolkit.common.mesh.Mesh` (mm) with the node sets of the
-        static workflow and, with a mouth, the element set ``lip_muscle``
+        static workflow and, with a mouth, the element set ``lip_muscle`` and the cell field
+        ``fibre_direction`` (:func:`toolkit.common.fibres.superior_fibres`)
     bones : segment name -> its ``tri3`` surface (mm), oriented toward the tissue
     report : counts, quality, repairs, rules and stage times (``labels.json``)
     """
@@ -204,15 +206,17 @@ def _pair_lips(points: np.ndarray, cells: np.ndarray, node_sets: dict[str, np.nd
 
 
 def _lip_muscle(points: np.ndarray, tets: np.ndarray, slit, commissures, rules: LabelRules) -> np.ndarray:
-    """Elements within ``lip_muscle_mm`` above or below the slit plane, between the commissures,
-    no farther behind their line than the slit reaches."""
+    """Elements within ``lip_muscle_mm`` above or below the slit plane, between the commissures
+    and ``lip_muscle_lateral`` of the mouth's width beyond each, no farther behind their line
+    than the slit reaches."""
     c = np.asarray(commissures, dtype=float)
     e = (c[1] - c[0]) / slit.width_mm
     x = points[tets[:, :4]].mean(axis=1)
     t = (x - c[0]) @ e / slit.width_mm
     behind = c[0, 1] + t * (c[1, 1] - c[0, 1]) - x[:, 1]
-    return np.flatnonzero((t > 0) & (t < 1) & (np.abs((x - c[0]) @ slit.normal) <= rules.lip_muscle_mm)
-                          & (behind < 15.0))
+    lateral = rules.lip_muscle_lateral
+    return np.flatnonzero((t > -lateral) & (t < 1 + lateral)
+                          & (np.abs((x - c[0]) @ slit.normal) <= rules.lip_muscle_mm) & (behind < 15.0))
 
 
 def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFAULT_SIZE_MM,
@@ -298,6 +302,8 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
     if slit is not None:
         points, cells, node_sets = _pair_lips(points, cells, node_sets)
     mesh = Mesh(points, {ctype: cells}, node_sets=node_sets, element_sets=element_sets)
+    if slit is not None:
+        mesh = with_lip_fibres(mesh)
     times["order"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -88,20 +88,27 @@ class LabelRules:
     segments : per bony segment, its :class:`SegmentRule`
     cuts : the truncation planes held fixed
     lip_muscle_mm : with commissures, elements within this distance above or below the
-        mouth slit (and between the commissures, in front of them) form ``lip_muscle``
+        mouth slit (and in front of the commissures' line) form ``lip_muscle``, the
+        orbicularis oris (the phantom's: 18 mm for its 90 mm face height)
+    lip_muscle_lateral : how far ``lip_muscle`` reaches beyond each commissure, as a fraction
+        of the mouth's width (the phantom's: 0.125)
     """
 
     contact_mm: float = 3.0
     facing_deg: float = 60.0
     segments: dict[str, SegmentRule] = field(default_factory=_default_segments)
     cuts: CutRule = field(default_factory=CutRule)
-    lip_muscle_mm: float = 10.0
+    lip_muscle_mm: float = 18.0
+    lip_muscle_lateral: float = 0.125
 
     def __post_init__(self):
         for key in ("contact_mm", "lip_muscle_mm"):
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise RulesError(f"{key} = {v!r}; expected a positive number of mm")
+        if not (isinstance(self.lip_muscle_lateral, (int, float)) and 0 <= self.lip_muscle_lateral <= 1):
+            raise RulesError(f"lip_muscle_lateral = {self.lip_muscle_lateral!r}; expected a fraction of the mouth's "
+                             "width in [0, 1]")
         if not 0 < self.facing_deg <= 90:
             raise RulesError(f"facing_deg = {self.facing_deg!r}; expected an angle in (0, 90] degrees")
         for name, rule in self.segments.items():

@@ -78,6 +78,7 @@ def face_anatomy(mesh: Mesh, bones: Mapping[str, str | Path | Mesh] | None = Non
     AnatomyError when the mesh has no ``maxilla`` set, ``lefort`` or ``distal`` has no surface,
     or ``condyles`` is not two points
     """
+    from toolkit.common.fibres import with_lip_fibres
     from toolkit.static.bones import segments_from_files
     from toolkit.static.boundary import BoundaryError, segments_from_mesh
 
@@ -105,7 +106,7 @@ def face_anatomy(mesh: Mesh, bones: Mapping[str, str | Path | Mesh] | None = Non
                 for name, seg in segments.items()}
     lefort = segments["lefort"].surface.points
     arch = lefort[lefort[:, 2] <= lefort[:, 2].min() + ARCH_BAND_MM]
-    return FaceAnatomy(mesh, segments, condyles, arch)
+    return FaceAnatomy(with_lip_fibres(mesh), segments, condyles, arch)
 
 
 def _condyles(segments: Mapping, centre: np.ndarray) -> np.ndarray:

@@ -165,10 +165,11 @@ def load_case(
     if plan is None:
         raise ValueError(f"mesh {_name(mesh)} needs a plan (with pivot_mm for every rotating segment); got plan=None, "
                          "and only the phantom has a default plan: give plan= (command line: --plan FILE)")
+    from toolkit.common.fibres import with_lip_fibres
     from toolkit.common.io import read
     from toolkit.static.boundary import BoundaryError, segments_from_mesh
 
-    face = mesh if isinstance(mesh, Mesh) else read(mesh, units=units, require_node_sets=["fixed"])
+    face = with_lip_fibres(mesh if isinstance(mesh, Mesh) else read(mesh, units=units, require_node_sets=["fixed"]))
     plan = plan if isinstance(plan, SurgicalPlan) else SurgicalPlan.read(plan, force=force)
     if force:
         plan = SurgicalPlan(plan.motions, force=True)

@@ -316,13 +316,22 @@ class SimulationResult:
 def material_assignment(material: str | MaterialAssignment, mesh: Mesh) -> MaterialAssignment:
     """The lip-sliding paper's materials: ``linear`` (isotropic E 0.003 MPa, nu 0.47, transversely
     isotropic lip muscle 0.009/0.003 MPa along its fibres) or ``neo-hookean`` (E 0.003 MPa,
-    nu 0.47 everywhere)."""
+    nu 0.47 everywhere).
+
+    The lip muscle is the element set ``lip_muscle``, its fibres the cell field
+    ``fibre_direction``; a mesh with the set but not the field gets an isotropic lip muscle and a
+    warning (:func:`~toolkit.static.case.load_case` derives the field first)."""
     if isinstance(material, MaterialAssignment):
         return material
     if material == "linear":
-        regions = {"lip_muscle": TransverselyIsotropic()} if "lip_muscle" in mesh.element_sets \
-            and "fibre_direction" in mesh.cell_data else {}
-        return MaterialAssignment(LinearElastic(), regions)
+        if "lip_muscle" not in mesh.element_sets:
+            return MaterialAssignment(LinearElastic())
+        if "fibre_direction" not in mesh.cell_data:
+            warnings.warn("the mesh has a 'lip_muscle' element set but no 'fibre_direction' cell field (an Abaqus "
+                          "file keeps none): the lip muscle is isotropic; load the mesh with load_case, which gives "
+                          "it the superior fibres of toolkit.common.fibres, or write it as VTU", stacklevel=2)
+            return MaterialAssignment(LinearElastic())
+        return MaterialAssignment(LinearElastic(), {"lip_muscle": TransverselyIsotropic()})
     if material == "neo-hookean":
         return MaterialAssignment(NeoHookean())
     raise ValueError(f"unknown material {material!r}; expected one of {MATERIALS} or a MaterialAssignment")
