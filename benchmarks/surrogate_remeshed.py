@@ -84,13 +84,17 @@ def stage_face(args, phantom) -> tuple[Path, dict]:
     return face_file, {k: files[k] for k in ("lefort", "distal", "proximal_left", "proximal_right")}
 
 
+def face_database_path(args) -> Path:
+    return WORK / f"remeshed_face_db_s{args.test_subject}_{args.size:g}{args.suffix}.h5"
+
+
 def stage_face_model(args, face_file: Path, bones: dict, phantom):
     """A database of ``--face-plans`` plans on the remeshed face itself (the phantom's condyles, which
     lie outside its tissue) and the default PointNet++ trained on it within ``--face-minutes``."""
     from toolkit.static.dataset import DatasetConfig, generate
     from toolkit.static.surrogate import Surrogate, SurrogateConfig, train_surrogate
 
-    db = WORK / f"remeshed_face_db_s{args.test_subject}_{args.size:g}{args.suffix}.h5"
+    db = face_database_path(args)
     generate(db, DatasetConfig.for_mesh(face_file, bones, phantom.condyles, plans=args.face_plans, mode="sagittal",
                                         seed=args.seed), workers=args.workers)
     out = WORK / f"remeshed_face_model{args.suffix}"
@@ -148,6 +152,11 @@ def main(argv=None):
     phantom = face_hex("paper", FaceShape.sample(args.test_subject))
     face_file, bones = stage_face(args, phantom)
     face_model = stage_face_model(args, face_file, bones, phantom) if args.face_plans else None
+    if face_model is not None:
+        from toolkit.common.database import read_index
+
+        completed = len(read_index(face_database_path(args), "index"))
+        face_method = f"PointNet++ trained on this face ({completed} of {args.face_plans} plans completed)"
     plans = sample_plans(args.test_plans, np.random.default_rng([args.seed, args.test_subject]), "sagittal",
                          phantom=phantom)
     cache = WORK / f"remeshed_fe{args.suffix}"
@@ -188,7 +197,7 @@ def main(argv=None):
             if own and face_model is not None:
                 t0 = time.perf_counter()
                 net = face_model.predict_plan(case.subject, plan, segments=case.segments).displacement
-                rows.append({**base, "method": f"PointNet++ trained on this face ({args.face_plans} plans)",
+                rows.append({**base, "method": face_method,
                              "seconds": time.perf_counter() - t0, **errors(net, fe, lips)})
             print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in rows[-2].items()}, flush=True)
     table = pd.DataFrame(rows)

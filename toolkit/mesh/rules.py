@@ -5,6 +5,7 @@ has: where the tissue faces a bone, which segments carry it, which mucosa slides
 the model was truncated. A TOML file overrides any of them, e.g.::
 
     contact_mm = 4.0              # tissue up to 4 mm off a bone counts as lying on it
+    lip_muscle_mm = 15.0          # the orbicularis oris reaches 15 mm above and below the mouth
 
     [cuts]
     directions = [[0, -1, 0], [0, 0, 1]]   # posterior and superior truncation planes
