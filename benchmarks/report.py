@@ -507,7 +507,7 @@ def _own_face(data):
         if "labels" not in df:
             df["labels"] = "rules"
         df["lip_muscle"] = df.get("lip_muscle", pd.Series("fibres", index=df.index)).fillna("fibres").map(
-            {"fibres": "transversely isotropic", "none": "none (isotropic)"})
+            {"fibres": "transversely isotropic", "none": "none (isotropic)"}).where(df["simulate_s"].notna(), "–")
         df["stages"] = df.apply(lambda r: ", ".join(f"{k} {r[k + '_s']:.1f}" for k in
                                                      ("read_repair", "mesh", "mouth", "label", "order", "quality")),
                                 axis=1)
