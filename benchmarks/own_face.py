@@ -229,7 +229,6 @@ def _merged(path: Path, new: pd.DataFrame, key: list[str], merge: bool) -> pd.Da
     if not merge or not path.exists():
         return new
     old = pd.read_csv(path)
-    old = old.assign(**{k: new[k].iloc[0] for k in key if k not in old})  # a key column the table lacked
     done = set(map(tuple, new[key].astype(str).to_numpy()))
     keep = old[[tuple(r) not in done for r in old[key].astype(str).to_numpy()]]
     out = pd.concat([keep, new], ignore_index=True)

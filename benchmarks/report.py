@@ -506,8 +506,8 @@ def _own_face(data):
         df = data["own_face"][0].copy()
         if "labels" not in df:
             df["labels"] = "rules"
-        df["lip_muscle"] = df.get("lip_muscle", pd.Series("fibres", index=df.index)).fillna("fibres").map(
-            {"fibres": "transversely isotropic", "none": "none (isotropic)"}).where(df["simulate_s"].notna(), "–")
+        df["lip_muscle"] = df["lip_muscle"].map({"fibres": "transversely isotropic", "none": "none (isotropic)"}).where(
+            df["simulate_s"].notna(), "–")
         df["stages"] = df.apply(lambda r: ", ".join(f"{k} {r[k + '_s']:.1f}" for k in
                                                      ("read_repair", "mesh", "mouth", "label", "order", "quality")),
                                 axis=1)

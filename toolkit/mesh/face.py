@@ -301,9 +301,7 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
         ctype = "tet10"
     if slit is not None:
         points, cells, node_sets = _pair_lips(points, cells, node_sets)
-    mesh = Mesh(points, {ctype: cells}, node_sets=node_sets, element_sets=element_sets)
-    if slit is not None:
-        mesh = with_lip_fibres(mesh)
+    mesh = with_lip_fibres(Mesh(points, {ctype: cells}, node_sets=node_sets, element_sets=element_sets))
     times["order"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
