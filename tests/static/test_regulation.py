@@ -49,3 +49,64 @@ def test_regulation_keeps_boundary_nodes_on_their_plane_and_leaves_good_meshes(c
     assert reg.points[bottom, 2] == pytest.approx(0.0, abs=1e-12)
     same = regulate(mesh, mesh.points, movable, target=0.2)
     assert same.moved == 0 and np.array_equal(same.points, mesh.points)
+
+
+@pytest.fixture()
+def tet10_cube():
+    """4 x 4 x 4 block of 10 mm cubes, each split into 6 tet10, with the nodes off its boundary movable."""
+    mesh = block([np.linspace(0, 40, 5)] * 3, "tet10")
+    x = mesh.points
+    interior = np.all((x > 0) & (x < 40), axis=1)
+    return mesh, interior
+
+
+def test_tet10_regulation_untangles_a_corner_and_its_edges_follow(tet10_cube):
+    """An interior corner node pushed (9, 9, 9) mm inverts corner tetrahedra; regulation
+    untangles them exactly as it does the same block of tet4 (the corner tetrahedra are what
+    it optimises), and leaves every interior mid-edge node of the regulated elements on its
+    straight edge (the mesh's edges were straight)."""
+    from toolkit.common.fem.reference import TET_EDGES
+
+    mesh, interior = tet10_cube
+    conn = mesh.cells["tet10"]
+    x = mesh.points.copy()
+    node = np.flatnonzero(interior & np.isin(np.arange(mesh.n_points), conn[:, :4]))[0]
+    x[node] += [9.0, 9.0, 9.0]
+    assert element_quality(mesh, x).min() < 0
+    reg = regulate(mesh, x, interior, target=0.2)
+    linear = block([np.linspace(0, 40, 5)] * 3, "tet4")
+    x4 = linear.points.copy()
+    x4[node] += [9.0, 9.0, 9.0]  # the tet10 block numbers its corner nodes as the tet4 block
+    reg4 = regulate(linear, x4, np.all((x4 > 0) & (x4 < 40), axis=1), target=0.2)
+    assert reg.min_quality_before < 0 and reg.min_quality_after > 0.05
+    assert reg.min_quality_after == pytest.approx(reg4.min_quality_after, abs=1e-9)
+    moved = np.flatnonzero(np.linalg.norm(reg.points - x, axis=1) > 0)
+    assert np.all(interior[moved])
+    mid = conn[:, 4:].ravel()
+    a, b = conn[:, TET_EDGES[:, 0]].ravel(), conn[:, TET_EDGES[:, 1]].ravel()
+    touched = np.isin(mid, moved) | np.isin(a, moved) | np.isin(b, moved)
+    sel = touched & interior[mid]
+    assert sel.sum() > 6
+    np.testing.assert_allclose(reg.points[mid[sel]], 0.5 * (reg.points[a[sel]] + reg.points[b[sel]]), atol=1e-9)
+
+
+@pytest.mark.parametrize("curvature_mm", [0.0, 1.0])
+def test_tet10_regulation_gives_a_folded_edge_its_shape_back(tet10_cube, curvature_mm):
+    """A mid-edge node pushed 9 mm off its 10 mm edge folds its elements while every corner
+    tetrahedron stays as it was: regulation puts the node back at its pre-operative offset from
+    the edge's midpoint (0: a straight edge; 1 mm: a curved one), so the quality is the mesh's
+    own again; nodes that may not move stay where they are."""
+    mesh, interior = tet10_cube
+    conn = mesh.cells["tet10"]
+    inner_mid = np.flatnonzero(interior & np.isin(np.arange(mesh.n_points), conn[:, 4:]))[0]
+    points = mesh.points.copy()
+    points[inner_mid] += curvature_mm * np.array([0.0, 0.6, 0.8])
+    mesh = mesh.with_points(points)
+    q0 = element_quality(mesh, points).min()
+    x = points.copy()
+    x[inner_mid] += [9.0, -9.0, 9.0]
+    assert element_quality(mesh, x).min() < 0
+    reg = regulate(mesh, x, interior, target=0.2)
+    np.testing.assert_allclose(reg.points[inner_mid], points[inner_mid], atol=1e-9)
+    assert reg.min_quality_after == pytest.approx(q0)
+    assert np.all(reg.points[~interior] == x[~interior])

@@ -11,8 +11,10 @@ on the skin: the skin is the prediction) to raise every corner Jacobian determin
 those elements above a target: gradient descent on ``sum max(0, tau - D)^2`` over the
 corners (Knupp's untangling objective), with a backtracking line search. Movable nodes on
 the mesh boundary (the bone side, a free slit face) move in their tangent plane only, so
-the boundary shape is kept. Linear cells only (``hex8``, ``wedge6``, ``tet4``); the
-nodes of other cells are left where they are.
+the boundary shape is kept. Cells ``hex8``, ``wedge6``, ``tet4`` and ``tet10``: a ``tet10``
+is regulated by its corner tetrahedron, and then its movable mid-edge nodes take back the
+pre-operative shape of their edge (straight for a mesh with straight edges): deformation
+curves the edges, and a curved edge folds a quadratic element whose corners are fine.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ CORNERS = {
                       [4, 7, 5, 0], [5, 4, 6, 1], [6, 5, 7, 2], [7, 6, 4, 3]]),
     "wedge6": np.array([[0, 1, 2, 3], [1, 2, 0, 4], [2, 0, 1, 5], [3, 5, 4, 0], [4, 3, 5, 1], [5, 4, 3, 2]]),
     "tet4": np.array([[0, 1, 2, 3]]),
+    "tet10": np.array([[0, 1, 2, 3]]),  # the corner tetrahedron; mid-edge nodes follow it (see _place_mid_edge_nodes)
 }
 
 
@@ -124,13 +127,35 @@ def _objective(x: np.ndarray, corners: np.ndarray, tau: np.ndarray, gradient: bo
     return value, grad
 
 
+def _place_mid_edge_nodes(mesh: Mesh, x: np.ndarray, elements: np.ndarray, movable: np.ndarray) -> np.ndarray:
+    """``x`` with the movable mid-edge nodes of the given ``tet10`` elements at their offset
+    from their edge's midpoint in ``mesh.points`` (the pre-operative mesh): a straight edge is
+    made straight again, a curved one gets its own curvature back."""
+    from toolkit.common.fem.reference import TET_EDGES
+
+    X, offset, out = mesh.points, 0, x.copy()
+    for ctype, conn in mesh.cells.items():
+        if ctype not in VOLUME_TYPES:
+            continue
+        sel = elements[(elements >= offset) & (elements < offset + conn.shape[0])] - offset
+        offset += conn.shape[0]
+        if ctype != "tet10" or not sel.size:
+            continue
+        c = conn[sel]
+        mid, first = np.unique(c[:, 4:].ravel(), return_index=True)
+        a, b = c[:, TET_EDGES[:, 0]].ravel()[first], c[:, TET_EDGES[:, 1]].ravel()[first]
+        placed = 0.5 * (x[a] + x[b]) + X[mid] - 0.5 * (X[a] + X[b])
+        out[mid] = np.where(movable[mid][:, None], placed, x[mid])
+    return out
+
+
 def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float | np.ndarray = 0.2,
              rings: int = 2, iterations: int = 200) -> Regulation:
     """Raise the elements below ``target`` quality by moving ``movable`` nodes.
 
     Parameters
     ----------
-    mesh : topology (its points are not used), mm
+    mesh : topology, mm (its points, the pre-operative mesh, give only the shape of ``tet10`` edges)
     points : (n, 3) float, mm — the configuration to regulate
     movable : (n,) bool — nodes that may move (free, not on the skin)
     target : scaled Jacobian the bad elements are raised towards: one number, or one per
@@ -191,6 +216,8 @@ def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float 
         x = trial
         value, grad = _objective(x, corners, tau)
         step = 2.0 * alpha
+    if "tet10" in mesh.cells:
+        x = _place_mid_edge_nodes(mesh, x, elems, active)
     after = element_quality(mesh, x)
     if after.min() <= before:  # no better than the start: leave the mesh as it was
         return Regulation(x0, 0, 0.0, before, before)

@@ -803,7 +803,8 @@ def boundary_conditions(mesh: Mesh, segments: Mapping, sliding: str,
     if sliding not in SLIDING_MODELS:
         raise ValueError(f"unknown sliding model {sliding!r}; expected one of {SLIDING_MODELS}")
     bc_all = BoundaryConditions.from_mesh(mesh, segments, lip_threshold=options.lip_threshold)
-    return bc_all.with_release_bands(mesh, options.release_width).with_sliding(sliding), bc_all
+    bc = bc_all.with_release_bands(mesh, options.release_width).with_sliding(sliding).with_corner_sliding(mesh)
+    return bc, bc_all
 
 
 def _build_model(face, material, sliding, segments, options: SimulationOptions,
