@@ -66,3 +66,27 @@ def test_set_threads_reaches_libraries_loaded_later_and_child_processes():
                " capture_output=True, text=True).stdout.strip()\n"
                "print(torch.get_num_threads(), child)")
     assert out == "1 1"
+
+
+def test_a_ctrl_c_during_an_import_is_raised_once_the_import_ends(tmp_path):
+    """With the command line's SIGINT handler, an interrupt 0.3 s into a 1 s import lets the
+    import finish, then raises KeyboardInterrupt (Python's default handler raises it inside the
+    import, which a compiled module's initialisation turns into an abort)."""
+    (tmp_path / "slow_module.py").write_text(
+        "import time\nt0 = time.monotonic()\nwhile time.monotonic() - t0 < 1.0:\n    pass\nDONE = True\n")
+    script = (
+        "import signal, sys, threading, time\n"
+        "from toolkit.common.runtime import interrupt_outside_imports\n"
+        "if sys.argv[2] == 'toolkit':\n"
+        "    signal.signal(signal.SIGINT, interrupt_outside_imports)\n"
+        "sys.path.insert(0, sys.argv[1])\n"
+        "threading.Timer(0.3, signal.raise_signal, (signal.SIGINT,)).start()\n"
+        "try:\n"
+        "    import slow_module\n"
+        "    time.sleep(5)\n"
+        "    print('not interrupted')\n"
+        "except KeyboardInterrupt:\n"
+        "    print('after the import' if 'slow_module' in sys.modules else 'inside the import')\n")
+    out = {h: subprocess.run([sys.executable, "-c", script, str(tmp_path), h], capture_output=True, text=True,
+                             timeout=60).stdout.strip() for h in ("toolkit", "default")}
+    assert out == {"toolkit": "after the import", "default": "inside the import"}

@@ -3,7 +3,8 @@
 ``error: ...`` on stderr with exit code 2; so is a full disk or another failed write
 (``OSError``). A Ctrl-C exits with 130 and one line, ``interrupted: ...``, saying what the
 command left and how to finish it; once a command has finished, a Ctrl-C while the interpreter
-shuts down is ignored (run as a program)."""
+shuts down is ignored, and one during a module's import is raised when the import ends (run as
+a program: :func:`~toolkit.common.runtime.interrupt_outside_imports`)."""
 
 from __future__ import annotations
 
@@ -48,6 +49,10 @@ def main(argv: list[str] | None = None) -> int:
     from toolkit.common.errors import ToolkitError
 
     program = argv is None
+    if program and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        from toolkit.common.runtime import interrupt_outside_imports
+
+        signal.signal(signal.SIGINT, interrupt_outside_imports)
     argv = sys.argv[1:] if argv is None else list(argv)
     args = None
     try:

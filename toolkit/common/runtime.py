@@ -14,7 +14,8 @@ import sys
 import threading
 from contextlib import contextmanager
 
-__all__ = ["set_threads", "configure_headless_rendering", "default_threads", "deferred_interrupt"]
+__all__ = ["set_threads", "configure_headless_rendering", "default_threads", "deferred_interrupt",
+           "interrupt_outside_imports"]
 
 _threadpool_limiter = None
 
@@ -78,6 +79,25 @@ def configure_headless_rendering() -> None:
     """
     if not os.environ.get("DISPLAY"):
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+
+def interrupt_outside_imports(signum, frame) -> None:
+    """SIGINT handler of the command line: raise ``KeyboardInterrupt``, except while a module is
+    being imported, when the interrupt is sent again 0.1 s later (until no import runs).
+
+    A ``KeyboardInterrupt`` raised in Python code that a compiled module runs while it
+    initialises (pybind11's, importing torch) aborts the process (exit -6) instead of reaching
+    the command's handler. Installed by the command line only, when Ctrl-C has Python's default
+    handler (a process started in the background, which ignores it, keeps ignoring it).
+    """
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            timer = threading.Timer(0.1, signal.raise_signal, (signal.SIGINT,))
+            timer.daemon = True
+            timer.start()
+            return
+        frame = frame.f_back
+    raise KeyboardInterrupt
 
 
 @contextmanager
