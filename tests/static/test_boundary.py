@@ -242,30 +242,3 @@ def test_a_bone_no_plan_moves_counts_as_fixed():
     z = ph.mesh.points[released_skull, 2]
     lefort_cut = ph.mesh.points[ph.mesh.node_sets["maxilla"], 2].max()
     assert released_skull.size and z.max() < lefort_cut + 10.0  # only next to the Le Fort segment
-
-
-def test_corner_sliding_frees_only_the_mid_edge_nodes_of_sliding_mucosa():
-    """On a tet10 block whose bottom face slides on segment 0 and top face is fixed, the
-    sliding mid-edge nodes (and only they) become free, with no segment and not counted as
-    released; corners keep sliding; a hex mesh is returned as it is."""
-    from toolkit.common.phantom import block
-
-    mesh = block([np.linspace(0, 20, 3)] * 3, "tet10")
-    z = mesh.points[:, 2]
-    types = np.where(z == 0, NodeType.MUCOSA_SLIDING, np.where(z == 20, NodeType.FIXED, NodeType.FREE))
-    bc = BoundaryConditions(types, np.where(z == 0, 0, -1), ("lefort",), np.zeros(0, np.int64),
-                            np.zeros(0, np.int64), released=np.array([5]))
-    out = bc.with_corner_sliding(mesh)
-    mid = np.zeros(mesh.n_points, dtype=bool)
-    mid[mesh.cells["tet10"][:, 4:]] = True
-    bottom = z == 0
-    assert (bottom & mid).sum() == 16 and (bottom & ~mid).sum() == 9
-    assert np.all(out.types[bottom & mid] == NodeType.FREE) and np.all(out.segment[bottom & mid] == -1)
-    np.testing.assert_array_equal(out.types[~(bottom & mid)], bc.types[~(bottom & mid)])
-    np.testing.assert_array_equal(out.segment[~(bottom & mid)], bc.segment[~(bottom & mid)])
-    np.testing.assert_array_equal(out.released, [5])
-    hexes = block([np.linspace(0, 20, 3)] * 3)
-    hz = hexes.points[:, 2]
-    hbc = BoundaryConditions(np.where(hz == 0, NodeType.MUCOSA_SLIDING, np.where(hz == 20, NodeType.FIXED, 0)),
-                             np.where(hz == 0, 0, -1), ("lefort",), np.zeros(0, np.int64), np.zeros(0, np.int64))
-    assert hbc.with_corner_sliding(hexes) is hbc

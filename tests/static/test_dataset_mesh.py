@@ -65,6 +65,28 @@ def test_database_holds_the_meshed_face_and_its_plans(face, database):
     assert (db.samples.min_scaled_jacobian > 0).all()
 
 
+def test_sliding_mid_edge_nodes_stay_on_their_straight_edges(face, database):
+    """On the meshed face (straight tet10 edges) a sliding mucosa mid-edge node between two sliding
+    corners is placed between them after every increment, not projected onto the bone on its own
+    (which folds elements where the corners slid over an osteotomy border): at their midpoint, to
+    the 1e-4 mm of the database's single-precision displacements."""
+    from toolkit.common.fem.reference import TET_EDGES
+    from toolkit.static.boundary import NodeType
+
+    db = StaticDatabase.open(database)
+    conn = db.cells["tet10"]
+    mid, a, b = conn[:, 4:].ravel(), conn[:, TET_EDGES[:, 0]].ravel(), conn[:, TET_EDGES[:, 1]].ravel()
+    X = db.points[0]
+    np.testing.assert_allclose(X[mid], 0.5 * (X[a] + X[b]), atol=1e-9)
+    types = db.types[0]
+    sliding = (types[mid] == NodeType.MUCOSA_SLIDING) & (types[a] == types[mid]) & (types[b] == types[mid])
+    assert sliding.sum() > 100
+    for key in db.samples.key.unique():
+        x = X + db.displacements(key)[1:]
+        gap = np.linalg.norm(x[:, mid[sliding]] - 0.5 * (x[:, a[sliding]] + x[:, b[sliding]]), axis=2)
+        assert gap.max() < 1e-4, (key, gap.max())
+
+
 def test_train_evaluate_and_predict_on_the_meshed_face(face, database, tmp_path, capsys):
     model = tmp_path / "model"
     assert main(["static", "train", "--data", str(database), "--out", str(model), "--network", "tiny",

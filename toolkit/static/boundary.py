@@ -204,24 +204,6 @@ class BoundaryConditions:
                                   self.upper_lip if lips else empty, self.lower_lip if lips else empty,
                                   self.released)
 
-    def with_corner_sliding(self, mesh: Mesh) -> BoundaryConditions:
-        """Copy in which the mid-edge nodes of ``mesh``'s ``tet10`` elements do not slide (they
-        are free): the sliding constraint holds the corners of a quadratic edge on the bone, and
-        its mid-edge node follows the tissue, as a linear element's edge does. Held node by node,
-        a mid-edge node between two corners that have slid over a curved bone is pulled onto the
-        bone between them and folds its element."""
-        if "tet10" not in mesh.cells:
-            return self
-        mid = np.unique(mesh.cells["tet10"][:, 4:])
-        types = self.types.copy()
-        sliding = mid[types[mid] == NodeType.MUCOSA_SLIDING]
-        if not sliding.size:
-            return self
-        types[sliding] = NodeType.FREE
-        segment = self.segment.copy()
-        segment[sliding] = -1
-        return BoundaryConditions(types, segment, self.segment_names, self.upper_lip, self.lower_lip, self.released)
-
     def drivers(self) -> np.ndarray:
         """What moves each node, ``(n,)`` int: -1 nothing (free, lip), 0 fixed (the skull),
         ``1 + s`` bony segment ``s`` (attached or sliding on it)."""

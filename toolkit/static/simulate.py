@@ -361,6 +361,8 @@ class _Model:
     far_mucosa: np.ndarray = field(init=False)  # of those, the ones left free (beyond max_mucosa_offset)
     offset: np.ndarray = field(init=False)  # (m,) mm, offset d0 of each sliding mucosa node
     side: np.ndarray = field(init=False)  # (m,) +-1, side of its bone triangle's normal it lies on
+    # tet10 mid-edge mucosa nodes and their edges (:func:`_edge_followers`)
+    edge_followers: tuple = field(init=False)
 
     def __post_init__(self):
         self.quality0 = element_quality(self.mesh, self.mesh.points)
@@ -375,6 +377,7 @@ class _Model:
         self.moving = self.bc.nodes(NodeType.MOVING)
         self.fixed = self.bc.nodes(NodeType.FIXED)
         self.mucosa = self.bc.nodes(NodeType.MUCOSA_SLIDING)
+        self.edge_followers = _edge_followers(self.mesh, self.mucosa)
         # what regulation may move: free nodes off the skin (the prediction) and off the lip pairs,
         # and mucosa nodes along their bone (they are put back on it exactly afterwards)
         movable = np.isin(self.bc.types, (NodeType.FREE, NodeType.MUCOSA_SLIDING))
@@ -550,12 +553,40 @@ def _sliding_constraints(model: _Model, state: _State, plan: SurgicalPlan, base:
     return Constraints(n, nodes, values, mucosa, normals, g)
 
 
-def _projection(model: _Model, plan: SurgicalPlan, positions: np.ndarray) -> tuple[np.ndarray, float]:
-    """Step 2: closest points ``(m, 3)`` mm of the mucosa ``positions`` on their moved bone
-    (extended beyond its edge by the planes of its edge triangles), each moved by its offset
+def _edge_followers(mesh: Mesh, mucosa: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The ``tet10`` mid-edge nodes among ``mucosa``: their positions in ``mucosa`` ``(k,)``, the
+    node ids of their edge's two corners ``(k,)`` each, the corners' positions in ``mucosa``
+    (-1 for a corner that does not slide) and the node's pre-operative offset ``(k, 3)`` mm from
+    the corners' midpoint (0 for straight edges)."""
+    from toolkit.common.fem.reference import TET_EDGES
+
+    none = np.zeros(0, np.int64)
+    if "tet10" not in mesh.cells or not mucosa.size:
+        return none, none, none, none, none, np.zeros((0, 3))
+    conn = mesh.cells["tet10"]
+    mid, first = np.unique(conn[:, 4:].ravel(), return_index=True)
+    a, b = conn[:, TET_EDGES[:, 0]].ravel()[first], conn[:, TET_EDGES[:, 1]].ravel()[first]
+    where = np.full(mesh.n_points, -1, np.int64)
+    where[mucosa] = np.arange(mucosa.size)
+    keep = where[mid] >= 0
+    mid, a, b = mid[keep], a[keep], b[keep]
+    X = mesh.points
+    return where[mid], a, b, where[a], where[b], X[mid] - 0.5 * (X[a] + X[b])
+
+
+def _projection(model: _Model, plan: SurgicalPlan, x: np.ndarray) -> tuple[np.ndarray, float]:
+    """Step 2: closest points ``(m, 3)`` mm of the mucosa nodes at ``x (n, 3)`` on their moved
+    bone (extended beyond its edge by the planes of its edge triangles), each moved by its offset
     ``d0`` along the normal there (onto the offset surface), and the largest distance to
-    them (the gap closed by the projection), mm."""
+    them (the gap closed by the projection), mm.
+
+    A ``tet10`` mid-edge node is put where its edge's shape puts it between its corners (its
+    pre-operative offset from their midpoint; a corner that does not slide stays at ``x``), not
+    on the bone on its own: corners that slid over a sharp or curved part of the bone (an
+    osteotomy border), or a free corner beside a sliding one, would otherwise have it pulled onto
+    the bone between them and fold the element."""
     mucosa = model.mucosa
+    positions = x[mucosa]
     proj = np.empty_like(positions)
     dist = np.zeros(mucosa.size)
     seg = model.bc.segment[mucosa]
@@ -572,6 +603,11 @@ def _projection(model: _Model, plan: SurgicalPlan, positions: np.ndarray) -> tup
                 proj[o] = _onto_offset(positions[o], model.offset[o], model.side[o], cp.point[off], cp.normal[off],
                                        moved, surf, model.rims[name])
                 dist[o] = np.linalg.norm(positions[o] - proj[o], axis=1)
+    mid, a, b, at_a, at_b, offset = model.edge_followers
+    if mid.size:
+        ends = [np.where((at >= 0)[:, None], proj[np.maximum(at, 0)], x[node]) for node, at in ((a, at_a), (b, at_b))]
+        proj[mid] = 0.5 * (ends[0] + ends[1]) + offset
+        dist[mid] = np.linalg.norm(positions[mid] - proj[mid], axis=1)
     return proj, float(dist.max(initial=0.0))
 
 
@@ -607,7 +643,7 @@ def _step(model: _Model, state: _State, plan: SurgicalPlan) -> tuple[_State, _St
         t1 = time.perf_counter()
         sol, contact, gap_before, gap_after = sol1, contact1, 0.0, 0.0
         if model.mucosa.size:
-            proj, gap_before = _projection(model, plan, base[model.mucosa] + sol1.displacement[model.mucosa])
+            proj, gap_before = _projection(model, plan, base + sol1.displacement)
             c2 = Constraints(X.shape[0], np.concatenate([nodes, model.mucosa]),
                              np.vstack([values, proj - base[model.mucosa]]))
             sol, contact = _solve(model, problem, c2, sol1.displacement)
@@ -624,7 +660,7 @@ def _step(model: _Model, state: _State, plan: SurgicalPlan) -> tuple[_State, _St
         if reg.moved and reg.min_quality_after > model.options.min_scaled_jacobian:
             x_reg = reg.points.copy()
             if model.mucosa.size:  # back onto the bone, exactly
-                x_reg[model.mucosa] = _projection(model, plan, x_reg[model.mucosa])[0]
+                x_reg[model.mucosa] = _projection(model, plan, x_reg)[0]
             u, regulated, shift = x_reg - X, reg.moved, reg.max_shift
             sj, worst = _quality(model, u)
     if sj[worst] <= model.options.min_scaled_jacobian:
@@ -803,8 +839,7 @@ def boundary_conditions(mesh: Mesh, segments: Mapping, sliding: str,
     if sliding not in SLIDING_MODELS:
         raise ValueError(f"unknown sliding model {sliding!r}; expected one of {SLIDING_MODELS}")
     bc_all = BoundaryConditions.from_mesh(mesh, segments, lip_threshold=options.lip_threshold)
-    bc = bc_all.with_release_bands(mesh, options.release_width).with_sliding(sliding).with_corner_sliding(mesh)
-    return bc, bc_all
+    return bc_all.with_release_bands(mesh, options.release_width).with_sliding(sliding), bc_all
 
 
 def _build_model(face, material, sliding, segments, options: SimulationOptions,
