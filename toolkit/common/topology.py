@@ -25,6 +25,7 @@ __all__ = [
     "unique_edges",
     "rim_edges",
     "tet10_from_tet4",
+    "tet10_mid_edges",
     "kuhn_tets",
     "orient_tets",
     "wedges_from_hexes",
@@ -119,6 +120,14 @@ def rim_edges(triangles) -> np.ndarray:
     t = np.asarray(triangles, dtype=np.int64)
     edges, tri_edges = unique_edges(t, REFERENCE_ELEMENTS["tri3"].edges)
     return edges[np.bincount(tri_edges.ravel(), minlength=edges.shape[0]) == 1]
+
+
+def tet10_mid_edges(cells10: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mid-edge nodes of tet10 cells ``(t, 10)``, each once ``(k,)`` in increasing order,
+    and the two corner nodes of the edge each lies on ``(k,)``, ``(k,)``."""
+    cells10 = np.asarray(cells10, dtype=np.int64)
+    mid, first = np.unique(cells10[:, 4:].ravel(), return_index=True)
+    return mid, cells10[:, TET_EDGES[:, 0]].ravel()[first], cells10[:, TET_EDGES[:, 1]].ravel()[first]
 
 
 def tet10_from_tet4(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

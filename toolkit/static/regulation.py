@@ -131,7 +131,7 @@ def _place_mid_edge_nodes(mesh: Mesh, x: np.ndarray, elements: np.ndarray, movab
     """``x`` with the movable mid-edge nodes of the given ``tet10`` elements at their offset
     from their edge's midpoint in ``mesh.points`` (the pre-operative mesh): a straight edge is
     made straight again, a curved one gets its own curvature back."""
-    from toolkit.common.fem.reference import TET_EDGES
+    from toolkit.common.topology import tet10_mid_edges
 
     X, offset, out = mesh.points, 0, x.copy()
     for ctype, conn in mesh.cells.items():
@@ -141,9 +141,7 @@ def _place_mid_edge_nodes(mesh: Mesh, x: np.ndarray, elements: np.ndarray, movab
         offset += conn.shape[0]
         if ctype != "tet10" or not sel.size:
             continue
-        c = conn[sel]
-        mid, first = np.unique(c[:, 4:].ravel(), return_index=True)
-        a, b = c[:, TET_EDGES[:, 0]].ravel()[first], c[:, TET_EDGES[:, 1]].ravel()[first]
+        mid, a, b = tet10_mid_edges(conn[sel])
         placed = 0.5 * (x[a] + x[b]) + X[mid] - 0.5 * (X[a] + X[b])
         out[mid] = np.where(movable[mid][:, None], placed, x[mid])
     return out

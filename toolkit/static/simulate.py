@@ -558,14 +558,12 @@ def _edge_followers(mesh: Mesh, mucosa: np.ndarray) -> tuple[np.ndarray, ...]:
     node ids of their edge's two corners ``(k,)`` each, the corners' positions in ``mucosa``
     (-1 for a corner that does not slide) and the node's pre-operative offset ``(k, 3)`` mm from
     the corners' midpoint (0 for straight edges)."""
-    from toolkit.common.fem.reference import TET_EDGES
+    from toolkit.common.topology import tet10_mid_edges
 
     none = np.zeros(0, np.int64)
     if "tet10" not in mesh.cells or not mucosa.size:
         return none, none, none, none, none, np.zeros((0, 3))
-    conn = mesh.cells["tet10"]
-    mid, first = np.unique(conn[:, 4:].ravel(), return_index=True)
-    a, b = conn[:, TET_EDGES[:, 0]].ravel()[first], conn[:, TET_EDGES[:, 1]].ravel()[first]
+    mid, a, b = tet10_mid_edges(mesh.cells["tet10"])
     where = np.full(mesh.n_points, -1, np.int64)
     where[mucosa] = np.arange(mucosa.size)
     keep = where[mid] >= 0
