@@ -82,22 +82,35 @@ def configure_headless_rendering() -> None:
 
 
 def interrupt_outside_imports(signum, frame) -> None:
-    """SIGINT handler of the command line: raise ``KeyboardInterrupt``, except while a module is
-    being imported, when the interrupt is sent again 0.1 s later (until no import runs).
+    """SIGINT handler of the command line: raise ``KeyboardInterrupt``, or, while a module is
+    being imported, raise it in the code that started the import as soon as the import returns.
 
     A ``KeyboardInterrupt`` raised in Python code that a compiled module runs while it
     initialises (pybind11's, importing torch) aborts the process (exit -6) instead of reaching
-    the command's handler. Installed by the command line only, when Ctrl-C has Python's default
-    handler (a process started in the background, which ignores it, keeps ignoring it).
+    the command's handler. The deferred interrupt is delivered by a trace function on the
+    importing frame (tracing is on only until then). Installed by the command line only, when
+    Ctrl-C has Python's default handler (a process started in the background, which ignores it,
+    keeps ignoring it).
     """
+    importer = None
     while frame is not None:
         if frame.f_code.co_filename.startswith("<frozen importlib"):
-            timer = threading.Timer(0.1, signal.raise_signal, (signal.SIGINT,))
-            timer.daemon = True
-            timer.start()
-            return
+            importer = frame.f_back  # the outermost import's caller, once the walk ends
         frame = frame.f_back
-    raise KeyboardInterrupt
+    if importer is None:
+        raise KeyboardInterrupt
+
+    previous = sys.gettrace()  # a coverage tool's or debugger's, given back on delivery
+
+    def deliver(frame, event, arg):
+        sys.settrace(previous)
+        frame.f_trace = None
+        raise KeyboardInterrupt
+
+    importer.f_trace = deliver
+    importer.f_trace_lines = True
+    if previous is None:
+        sys.settrace(lambda frame, event, arg: None)  # tracing on, so that the importer's trace runs
 
 
 @contextmanager
