@@ -504,8 +504,6 @@ def _own_face(data):
     parts = []
     if "own_face" in data:
         df = data["own_face"][0].copy()
-        if "labels" not in df:
-            df["labels"] = "rules"
         df["lip_muscle"] = df["lip_muscle"].map({"fibres": "transversely isotropic", "none": "none (isotropic)"}).where(
             df["simulate_s"].notna(), "–")
         df["stages"] = df.apply(lambda r: ", ".join(f"{k} {r[k + '_s']:.1f}" for k in

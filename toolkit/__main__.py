@@ -3,12 +3,9 @@
 import sys
 
 if __name__ == "__main__":
-    import signal
+    from toolkit.common.runtime import install_interrupt_outside_imports
 
-    from toolkit.common.runtime import interrupt_outside_imports
-
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, interrupt_outside_imports)
+    install_interrupt_outside_imports()
     try:
         from toolkit.cli import main
     except KeyboardInterrupt:  # Ctrl-C while the command line loads: nothing has started

@@ -49,10 +49,10 @@ def main(argv: list[str] | None = None) -> int:
     from toolkit.common.errors import ToolkitError
 
     program = argv is None
-    if program and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        from toolkit.common.runtime import interrupt_outside_imports
+    if program:
+        from toolkit.common.runtime import install_interrupt_outside_imports
 
-        signal.signal(signal.SIGINT, interrupt_outside_imports)
+        install_interrupt_outside_imports()
     argv = sys.argv[1:] if argv is None else list(argv)
     args = None
     try:

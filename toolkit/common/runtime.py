@@ -15,7 +15,7 @@ import threading
 from contextlib import contextmanager
 
 __all__ = ["set_threads", "configure_headless_rendering", "default_threads", "deferred_interrupt",
-           "interrupt_outside_imports"]
+           "interrupt_outside_imports", "install_interrupt_outside_imports"]
 
 _threadpool_limiter = None
 
@@ -88,9 +88,8 @@ def interrupt_outside_imports(signum, frame) -> None:
     A ``KeyboardInterrupt`` raised in Python code that a compiled module runs while it
     initialises (pybind11's, importing torch) aborts the process (exit -6) instead of reaching
     the command's handler. The deferred interrupt is delivered by a trace function on the
-    importing frame (tracing is on only until then). Installed by the command line only, when
-    Ctrl-C has Python's default handler (a process started in the background, which ignores it,
-    keeps ignoring it).
+    importing frame (tracing is on only until then). Installed by the command line only
+    (:func:`install_interrupt_outside_imports`).
     """
     importer = None
     while frame is not None:
@@ -111,6 +110,14 @@ def interrupt_outside_imports(signum, frame) -> None:
     importer.f_trace_lines = True
     if previous is None:
         sys.settrace(lambda frame, event, arg: None)  # tracing on, so that the importer's trace runs
+
+
+def install_interrupt_outside_imports() -> None:
+    """Make :func:`interrupt_outside_imports` the SIGINT handler if Ctrl-C has Python's default
+    one (a process started in the background ignores it and keeps ignoring it); the command
+    line's entry points call it, the library never does."""
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, interrupt_outside_imports)
 
 
 @contextmanager

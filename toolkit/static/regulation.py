@@ -65,18 +65,27 @@ def element_quality(mesh: Mesh, points: np.ndarray) -> np.ndarray:
                            if ctype in VOLUME_TYPES])
 
 
-def _corner_tables(mesh: Mesh, elements: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Node ids ``(k, 4)`` (corner, three edge ends) of every corner of the given elements,
-    and the element of each corner ``(k,)``."""
-    out, owner, offset = [], [], 0
+def _by_block(mesh: Mesh, elements: np.ndarray):
+    """``(cell type, connectivity, local ids, offset)`` of every volume block holding some of the
+    global ``elements``."""
+    offset = 0
     for ctype, conn in mesh.cells.items():
         if ctype not in VOLUME_TYPES:
             continue
         sel = elements[(elements >= offset) & (elements < offset + conn.shape[0])] - offset
-        if sel.size and ctype in CORNERS:
+        if sel.size:
+            yield ctype, conn, sel, offset
+        offset += conn.shape[0]
+
+
+def _corner_tables(mesh: Mesh, elements: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Node ids ``(k, 4)`` (corner, three edge ends) of every corner of the given elements,
+    and the element of each corner ``(k,)``."""
+    out, owner = [], []
+    for ctype, conn, sel, offset in _by_block(mesh, elements):
+        if ctype in CORNERS:
             out.append(conn[sel][:, CORNERS[ctype]].reshape(-1, 4))
             owner.append(np.repeat(sel + offset, len(CORNERS[ctype])))
-        offset += conn.shape[0]
     if not out:
         return np.zeros((0, 4), dtype=np.int64), np.zeros(0, dtype=np.int64)
     return np.concatenate(out), np.concatenate(owner)
@@ -133,13 +142,9 @@ def _place_mid_edge_nodes(mesh: Mesh, x: np.ndarray, elements: np.ndarray, movab
     made straight again, a curved one gets its own curvature back."""
     from toolkit.common.topology import tet10_mid_edges
 
-    X, offset, out = mesh.points, 0, x.copy()
-    for ctype, conn in mesh.cells.items():
-        if ctype not in VOLUME_TYPES:
-            continue
-        sel = elements[(elements >= offset) & (elements < offset + conn.shape[0])] - offset
-        offset += conn.shape[0]
-        if ctype != "tet10" or not sel.size:
+    X, out = mesh.points, x.copy()
+    for ctype, conn, sel, _ in _by_block(mesh, elements):
+        if ctype != "tet10":
             continue
         mid, a, b = tet10_mid_edges(conn[sel])
         placed = 0.5 * (x[a] + x[b]) + X[mid] - 0.5 * (X[a] + X[b])

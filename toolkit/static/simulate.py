@@ -587,7 +587,9 @@ def _projection(model: _Model, plan: SurgicalPlan, x: np.ndarray) -> tuple[np.nd
     positions = x[mucosa]
     proj = np.empty_like(positions)
     dist = np.zeros(mucosa.size)
-    seg = model.bc.segment[mucosa]
+    mid, a, b, at_a, at_b, offset = model.edge_followers
+    seg = model.bc.segment[mucosa].copy()
+    seg[mid] = -1  # placed from their corners below
     for s, name in enumerate(model.bc.segment_names):
         sel = np.flatnonzero(seg == s)
         if sel.size:
@@ -601,7 +603,6 @@ def _projection(model: _Model, plan: SurgicalPlan, x: np.ndarray) -> tuple[np.nd
                 proj[o] = _onto_offset(positions[o], model.offset[o], model.side[o], cp.point[off], cp.normal[off],
                                        moved, surf, model.rims[name])
                 dist[o] = np.linalg.norm(positions[o] - proj[o], axis=1)
-    mid, a, b, at_a, at_b, offset = model.edge_followers
     if mid.size:
         ends = [np.where((at >= 0)[:, None], proj[np.maximum(at, 0)], x[node]) for node, at in ((a, at_a), (b, at_b))]
         proj[mid] = 0.5 * (ends[0] + ends[1]) + offset
