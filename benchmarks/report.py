@@ -590,7 +590,7 @@ def _surrogate_trust(data):
     kinds = net.groupby("kind", sort=False).agg(
         cases=("case", "size"), fe_ok=("ok", "sum"), error=("error_mm", "median"),
         error_max=("error_mm", "max"), flagged=("ood", "mean"), bound=("bound_90_mm", "median"),
-        network_s=("surrogate_s", "median"), fe_s=("fe_s", "median")).reset_index()
+        network_s=("network_s", "median"), baseline_s=("baseline_s", "median"), fe_s=("fe_s", "median")).reset_index()
     b = base.groupby("kind", sort=False).agg(base_error=("error_mm", "median"), base_max=("error_mm", "max"),
                                              base_bound=("bound_90_mm", "median")).reset_index()
     kinds = kinds.merge(b, on="kind", how="left")
@@ -610,7 +610,8 @@ def _surrogate_trust(data):
                            ("base_error", "baseline median error (mm)", "{:.2f}"), ("base_max", "max (mm)", "{:.2f}"),
                            ("base_bound", "median bound (mm)", "{:.2f}"), *ensemble_cols,
                            ("flagged", "flagged out of distribution", "{:.0%}"),
-                           ("network_s", "network (s)", "{:.2f}"), ("fe_s", "FE (s)", "{:.2f}")])]
+                           ("network_s", "network (s)", "{:.2f}"), ("baseline_s", "baseline (s)", "{:.3f}"),
+                           ("fe_s", "FE (s)", "{:.2f}")])]
     cal = dict(extra.get("calibration", {}))
     ensemble = cal.pop("ensemble", None)
     if cal:

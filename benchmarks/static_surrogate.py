@@ -11,8 +11,10 @@ Stages (each resumable; rerun the same command to continue):
    channels) and ``hard+prior`` (the residual over the linear influence-matrix solution) trained
    on the 70/10/20 split by plan, each within ``--max-minutes``; ``explicit+extra`` and
    ``hard+prior`` trained on all subjects but the last and tested on the last; the baselines
-   (the linear influence matrix, POD + quadratic ridge regression on the plan parameters, and
-   the linear solution plus a POD regression of its residual) fit on the same training samples
+   (the linear influence matrix, POD + quadratic ridge regression on the plan parameters,
+   the linear solution plus a POD regression of its residual, the face's sliding response
+   (:mod:`toolkit.static.sliding_response`) and it plus a POD regression of its residual) fit on
+   the same training samples
    and scored on the same test samples. Errors are per-sample mean nodal Euclidean errors (mm);
    times per prediction at batch 1; ``fe_ms`` is the FE time of the same increments. The
    explicit-vs-implicit ablation is a Wilcoxon signed-rank test on paired samples. A model
@@ -110,32 +112,38 @@ def _pointnet(db_path, name, config, out: Path, subject: int = 0) -> dict:
 
 
 def _baselines(db, test_rows, train_rows) -> dict:
-    """Influence matrix, POD regression and linear + POD residual regression, fit on ``train_rows``
-    of ``db`` and scored on ``test_rows`` (the influence matrix of each sample's own face)."""
+    """Influence matrix, POD regression, linear + POD residual regression, the sliding response and
+    the sliding response + POD residual, fit on ``train_rows`` of ``db`` and scored on
+    ``test_rows`` (the influence matrix and sliding response of each sample's own face)."""
     from toolkit.common.metrics import nodal_errors
     from toolkit.static.baselines import LinearPlusPOD, PODRegression
     from toolkit.static.dataset import PLAN_FEATURES, subject_phantom
+    from toolkit.static.sliding_response import SlidingResponse
     from toolkit.static.surrogate import linear_prior
 
-    priors, build_s = {}, 0.0
+    operators, build_s = {"influence": {}, "sliding": {}}, {"influence": 0.0, "sliding": 0.0}
 
-    def linear(rows, arrays):
-        nonlocal build_s
+    def linear(rows, arrays, kind="influence"):
         subject = db.samples.subject.to_numpy()[rows]
-        out, seconds = np.empty_like(arrays["v"]), 0.0
+        out, seconds, ops = np.empty_like(arrays["v"]), 0.0, operators[kind]
         for sid in np.unique(subject):
-            if sid not in priors:
-                priors[sid] = linear_prior(subject_phantom(db.config.resolution, int(sid)).mesh, db.types[int(sid)])
-                build_s += priors[sid].seconds
+            if sid not in ops:
+                face = subject_phantom(db.config.resolution, int(sid))
+                ops[sid] = (linear_prior(face.mesh, db.types[int(sid)]) if kind == "influence"
+                            else SlidingResponse.build(face, db.config.sliding))
+                build_s[kind] += ops[sid].seconds
             idx = np.flatnonzero(subject == sid)
             t0 = time.perf_counter()
-            out[idx] = np.stack([priors[sid].predict(s) for s in arrays["s"][idx]])
+            out[idx] = np.stack([ops[sid].predict(s) for s in arrays["s"][idx]] if kind == "influence" else
+                                [ops[sid].increment(b, x) for b, x in zip(arrays["bone"][idx], arrays["x"][idx])])
             seconds += time.perf_counter() - t0
         return out, 1e3 * seconds / len(rows)
 
     test, train = db.arrays(test_rows), db.arrays(train_rows)
     lin_test, im_ms = linear(test_rows, test)
     lin_train, _ = linear(train_rows, train)
+    slide_test, slide_ms = linear(test_rows, test, "sliding")
+    slide_train, _ = linear(train_rows, train, "sliding")
     params = db.samples[list(PLAN_FEATURES)].to_numpy()
     t0 = time.perf_counter()
     pod = PODRegression.fit(params[train_rows], train["v"])  # the increment's displacement v from the plan
@@ -145,14 +153,22 @@ def _baselines(db, test_rows, train_rows) -> dict:
     pod_ms = 1e3 * (time.perf_counter() - t0) / len(test_rows)
     t0 = time.perf_counter()
     hybrid = LinearPlusPOD.fit(params[train_rows], train["v"], lin_train)
-    hybrid_s = time.perf_counter() - t0 + build_s
+    hybrid_s = time.perf_counter() - t0 + build_s["influence"]
     t0 = time.perf_counter()
     pred_hybrid = hybrid.predict(params[test_rows], lin_test)
     hybrid_ms = im_ms + 1e3 * (time.perf_counter() - t0) / len(test_rows)
+    t0 = time.perf_counter()
+    sliding = LinearPlusPOD.fit(params[train_rows], train["v"], slide_train)
+    sliding_s = time.perf_counter() - t0 + build_s["sliding"]
+    t0 = time.perf_counter()
+    pred_sliding = sliding.predict(params[test_rows], slide_test)
+    sliding_ms = slide_ms + 1e3 * (time.perf_counter() - t0) / len(test_rows)
     out = {}
-    for name, pred, ms, train_s in (("influence matrix", lin_test, im_ms, build_s),
+    for name, pred, ms, train_s in (("influence matrix", lin_test, im_ms, build_s["influence"]),
                                     ("POD regression", pred_pod, pod_ms, pod_s),
-                                    ("linear + POD residual", pred_hybrid, hybrid_ms, hybrid_s)):
+                                    ("linear + POD residual", pred_hybrid, hybrid_ms, hybrid_s),
+                                    ("sliding response", slide_test, slide_ms, build_s["sliding"]),
+                                    ("sliding response + POD residual", pred_sliding, sliding_ms, sliding_s)):
         err = nodal_errors(pred.reshape(-1, 3), test["v"].reshape(-1, 3)).reshape(test["v"].shape[:2])
         per = err.mean(axis=1)
         free = np.array([e[t == 0].mean() for e, t in zip(err, test["types"])])

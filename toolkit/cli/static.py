@@ -254,11 +254,12 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--coverage", type=probability, default=0.9,
                         help="probability that the error bound holds for a plan like these")
     parser.add_argument("--scale", choices=STATIC_SCALES + ("auto",), default="auto",
-                        help="disagreement: with the linear + POD residual baseline; constant: one bound for all; "
-                             "auto: with --answerer auto, the pair whose bound is narrowest over the plans")
+                        help="disagreement: with the sliding response + POD residual baseline; constant: one bound "
+                             "for all; auto: with --answerer auto, the cheapest pair whose mean bound over the "
+                             "plans is within 10%% of the narrowest")
     parser.add_argument("--answerer", choices=STATIC_ANSWERERS, default=STATIC_ANSWERERS[0],
                         help="whose answer `predict --tolerance` gives and bounds: the network, the linear + POD "
-                             "residual baseline, or auto: the one with the smaller calibrated bound")
+                             "residual baseline, or auto (see --scale)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
 
 
@@ -357,7 +358,7 @@ def _predict_within(args, model, case) -> int:
         result.write(args.out, preview=not args.no_preview)
     s = result.summary()
     a, sec = s["answer"], result.seconds
-    who = {"surrogate": "the surrogate", "baseline": "the linear + POD residual baseline", "fe": "the FE"}
+    who = {"surrogate": "the surrogate", "baseline": "the sliding response + POD residual baseline", "fe": "the FE"}
     print(f"answered by {who[a['answered_by']]}: {a['reason']}")
     print(f"plan: {describe_extrapolation(a['out_of_distribution']['plan'])}")
     print(f"{s['nodes']} nodes: max displacement {s['max_displacement_mm']:.2f} mm; surrogate "

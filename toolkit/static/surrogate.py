@@ -292,6 +292,7 @@ class Surrogate:
     directory: Path | None = None
     _hierarchy_cache: dict = field(default_factory=dict, repr=False)
     _prior_cache: dict = field(default_factory=dict, repr=False)
+    _response_cache: dict = field(default_factory=dict, repr=False)
 
     @property
     def out_scale(self) -> float:
@@ -345,6 +346,21 @@ class Surrogate:
             self._prior_cache[key] = linear_prior(mesh, types)
         return self._prior_cache[key]
 
+    def sliding_response(self, face, segments=None):
+        """The :class:`~toolkit.static.sliding_response.SlidingResponse` of ``face`` (a
+        FacePhantom, or a Mesh with ``segments``) under the training database's sliding model
+        (built once per face and bone surfaces, cached)."""
+        from toolkit.static.simulate import face_mesh_and_segments
+        from toolkit.static.sliding_response import SlidingResponse
+
+        mesh, segments = face_mesh_and_segments(face, segments)
+        key = (_points_key(mesh.points),) + tuple(sorted((name, _points_key(seg.surface.points))
+                                                         for name, seg in segments.items()))
+        if key not in self._response_cache:
+            sliding = self.bundle.data["database"]["sliding"]
+            self._response_cache[key] = SlidingResponse.build(mesh, sliding, segments)
+        return self._response_cache[key]
+
     def predict(self, features: np.ndarray, prescribed: np.ndarray, mask: np.ndarray, hierarchy,
                 prior: np.ndarray | None = None) -> np.ndarray:
         """Displacement ``(B, n, 3)`` mm from raw features ``(B, n, C)``, the prescribed
@@ -372,7 +388,7 @@ class Surrogate:
         out = out.double().cpu().numpy() * self.out_scale
         return out + np.asarray(prior) if self.config.features.linear_prior else out
 
-    def predict_plan(self, face, plan, *, segments=None, any_mesh: bool = False, network: bool = True):
+    def predict_plan(self, face, plan, *, segments=None, any_mesh: bool = False):
         """Run ``plan`` on a face like :func:`~toolkit.static.simulate.simulate`, increment by
         increment with the network, with the increments and sliding model of the training
         database.
@@ -385,9 +401,6 @@ class Surrogate:
         any_mesh : predict on a mesh of another node count or topology than the training meshes
             (PointNet++ reads a point cloud; a face remeshed by ``toolkit mesh`` is measured in
             ``docs/own-face.md``); by default such a mesh is refused
-        network : False: the influence-matrix solution alone (the linear prior, summed over the
-            increments), without running the network; its ``prescribed`` values are the same (what
-            the linear + POD residual baseline reads), in a fraction of the time
 
         Returns
         -------
@@ -408,12 +421,11 @@ class Surrogate:
                           "linear prior alone (docs/own-face.md); train on a database of this face", stacklevel=2)
         bc, _ = boundary_conditions(mesh, segments, data.sliding)
         X = mesh.points
-        if network:
-            h = self.hierarchy(X)
-            sets = {k: mesh.node_sets[k] for k in ("upper_lip_face", "lower_lip_face") if k in mesh.node_sets}
-            side = jaw_side(bc.segment, sets, X.shape[0], tuple(bc.segment_names))
-            mask = np.isin(bc.types, (1, 2))
-        im = self.prior(mesh, bc.types) if self.config.features.linear_prior or not network else None
+        h = self.hierarchy(X)
+        sets = {k: mesh.node_sets[k] for k in ("upper_lip_face", "lower_lip_face") if k in mesh.node_sets}
+        side = jaw_side(bc.segment, sets, X.shape[0], tuple(bc.segment_names))
+        mask = np.isin(bc.types, (1, 2))
+        im = self.prior(mesh, bc.types) if self.config.features.linear_prior else None
         U, previous, quality, given = [np.zeros_like(X)], None, [], []
         with warnings.catch_warnings():  # the plan warned of its range where it was built
             warnings.simplefilter("ignore", PlanRangeWarning)
@@ -424,19 +436,15 @@ class Surrogate:
             prescribed = np.where((bc.types == 1)[:, None], bone, 0.0)
             given.append(prescribed)
             prior = im.predict(prescribed) if im is not None else None
-            if not network:
-                U.append(U[-1] + prior)
-            else:
-                feats = encode(self.config.features, x, bc.types, prescribed, bone, side, TISSUE_NU, prior)
-                U.append(U[-1] + self.predict(feats[None], prescribed[None], mask[None], h,
-                                              None if prior is None else prior[None])[0])
+            feats = encode(self.config.features, x, bc.types, prescribed, bone, side, TISSUE_NU, prior)
+            U.append(U[-1] + self.predict(feats[None], prescribed[None], mask[None], h,
+                                          None if prior is None else prior[None])[0])
             quality.append(mesh.with_points(X + U[-1]).scaled_jacobian())
             previous = p
         wall = time.perf_counter() - t0
         reports = [IncrementReport(k, wall / len(quality), 0.0, 0, 0, 0, float(q.min()), int(np.argmin(q)),
                                    0.0, 0.0, 0.0, 0) for k, q in enumerate(quality, start=1)]
-        what = f"surrogate ({self.config.features.variant})" if network else "linear prior (influence matrix)"
-        return PlanPrediction(mesh, np.stack(U), bc, reports, wall, what,
+        return PlanPrediction(mesh, np.stack(U), bc, reports, wall, f"surrogate ({self.config.features.variant})",
                               data.sliding, extrapolation=self.extrapolation(plan), prescribed=np.stack(given))
 
     def extrapolation(self, plan) -> dict:

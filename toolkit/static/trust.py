@@ -7,11 +7,15 @@ whole simulations of a database the model neither trained nor validated on, the 
 error to a *scale* the model can compute without the FE:
 
 - ``disagreement``: the 95th percentile over nodes of the distance between the
-  network's prediction and the linear + POD residual baseline (:class:`~toolkit.static.baselines.LinearPlusPOD`,
-  fit here on the simulations the model was trained and validated on) along the same increments,
-  plus 0.01 mm. Two models built differently seldom miss the same way; where they disagree, at
-  least one is wrong;
+  network's prediction and the sliding response + POD residual baseline, plus 0.01 mm. Two models built
+  differently seldom miss the same way; where they disagree, at least one is wrong;
 - ``constant``: 1 mm for every plan (plain split-conformal: one bound for every answer).
+
+The baseline is the face's linear response under the FE's boundary conditions
+(:class:`~toolkit.static.sliding_response.SlidingResponse`: mucosa sliding, lips in contact) plus
+a POD regression of what it misses on the plan's parameters
+(:class:`~toolkit.static.baselines.LinearPlusPOD`), fit here on the simulations the model was
+trained and validated on and run increment by increment like the FE.
 
 Split-conformal calibration (:mod:`toolkit.common.training.conformal`) turns the ratios into a
 factor whose bound holds at the stated coverage for a new plan exchangeable with the
@@ -21,13 +25,14 @@ face mesh of another topology or farther from every training subject than they l
 other, another material), and :func:`answer` runs the FE for such inputs whatever the estimate says.
 
 Which answer is given (``answerer``) and with which scale is chosen at calibration: ``auto``
-(default, for both) calibrates the network's and the linear + POD residual baseline's errors
-against each scale and keeps the pair whose bound, averaged over the calibration plans, is the
+(default, for both) calibrates the network's and the sliding response + POD residual baseline's errors
+against each scale and keeps the cheapest pair (the disagreement scale runs both models) among
+those whose bound, averaged over the calibration plans, is within :data:`AUTO_BOUND_SLACK` of the
 narrowest; the bound given always belongs to the answer given. ``network``, ``baseline`` and a
 named scale force the choice. The choice is made on the calibration plans themselves, so the
 coverage of the chosen pair is that of the best of (at most) four calibrated bounds, slightly
 optimistic for few plans. On the paper phantom subjects the baseline with the constant scale is
-the narrowest (``benchmarks/surrogate_trust.py``).
+kept (``benchmarks/surrogate_trust.py``); the network is then not run at all.
 
 The calibration is saved beside the model (``calibration.json`` and ``calibration.npz``).
 """
@@ -51,13 +56,20 @@ from toolkit.common.training.conformal import (
     save_calibration,
 )
 
-__all__ = ["SCALES", "ANSWERERS", "Calibration", "calibrate_surrogate", "estimate", "out_of_distribution", "answer",
-           "TrustedAnswer"]
+__all__ = ["SCALES", "ANSWERERS", "BASELINE", "Calibration", "calibrate_surrogate", "baseline_prediction", "estimate",
+           "out_of_distribution", "answer", "TrustedAnswer"]
 
 #: how the error estimate's scale is computed (see the module)
 SCALES = ("disagreement", "constant")
 #: which answer a calibration bounds: the network's, the baseline's, or the one with the smaller factor
 ANSWERERS = ("auto", "network", "baseline")
+#: the linear part of the baseline a calibration's residual regression is fit on
+#: (:class:`~toolkit.static.sliding_response.SlidingResponse`)
+BASELINE = "sliding response"
+#: ``auto`` keeps the cheapest scale and answerer whose mean bound over the calibration plans is
+#: within this factor of the narrowest: a conformal factor over tens of plans is an order
+#: statistic whose sampling spread is wider than that
+AUTO_BOUND_SLACK = 1.1
 #: mm added to the disagreement so that a scale is never zero
 SCALE_FLOOR_MM = 0.01
 #: mm: a face farther (RMS over nodes) from every training subject than they lie from each other,
@@ -82,7 +94,8 @@ class Calibration:
     scale : one of :data:`SCALES`
     bound : ConformalBound (its ``factor`` times a plan's scale bounds the error of the
         ``answerer``'s answer)
-    residual : the linear + POD residual companion
+    residual : LinearPlusPOD, the regression of what the sliding response misses (the baseline's
+        second part)
     train_plans : (m, 12) the plan parameters (last increment) of the simulations the model saw
     plan_ranges : parameter -> [min, max] over them
     subjects : (s, n, 3) mm, the training subjects' pre-operative points
@@ -94,6 +107,7 @@ class Calibration:
     source : database path and how its plans were chosen
     answerer : ``network`` or ``baseline``, whose answer the bound is for
     bounds : answerer -> its ConformalBound (both, for the record)
+    baseline : what the baseline's linear part is (:data:`BASELINE`)
     """
 
     scale: str
@@ -108,6 +122,7 @@ class Calibration:
     source: dict = field(default_factory=dict)
     answerer: str = "network"
     bounds: dict = field(default_factory=dict)
+    baseline: str = BASELINE
 
     def save(self, directory) -> Path:
         """Write ``calibration.json`` and ``calibration.npz`` into the model directory."""
@@ -119,7 +134,7 @@ class Calibration:
         meta = {"scale": self.scale, "bound": self.bound.to_dict(), "plan_ranges": self.plan_ranges,
                 "shape_spread_mm": self.shape_spread_mm, "material": self.material, "cases": self.cases,
                 "source": self.source, "answerer": self.answerer,
-                "bounds": {k: b.to_dict() for k, b in self.bounds.items()}}
+                "bounds": {k: b.to_dict() for k, b in self.bounds.items()}, "baseline": self.baseline}
         return save_calibration(directory, meta, arrays)
 
     @classmethod
@@ -129,6 +144,10 @@ class Calibration:
         from toolkit.static.baselines import LinearPlusPOD, PODRegression
 
         meta, arrays = load_calibration(directory, "toolkit static calibrate")
+        if meta.get("baseline") != BASELINE:
+            raise ValueError(f"{Path(directory) / 'calibration.json'}: its baseline was fit on the influence matrix "
+                             f"(mucosa and lips free), not on the {BASELINE} response this version adds it to; "
+                             f"calibrate again: toolkit static calibrate --model {directory} --data DB.h5")
         residual = None
         if "modes" in arrays:
             residual = LinearPlusPOD(PODRegression(arrays["mean"], arrays["modes"], arrays["coef"],
@@ -136,7 +155,7 @@ class Calibration:
         return cls(meta["scale"], ConformalBound.from_dict(meta["bound"]), residual, arrays["train_plans"],
                    meta["plan_ranges"], arrays["subjects"], float(meta["shape_spread_mm"]), meta["material"],
                    meta["cases"], meta["source"], meta.get("answerer", "network"),
-                   {k: ConformalBound.from_dict(b) for k, b in meta.get("bounds", {}).items()})
+                   {k: ConformalBound.from_dict(b) for k, b in meta.get("bounds", {}).items()}, meta["baseline"])
 
     @property
     def plan_margin(self) -> float:
@@ -156,25 +175,41 @@ class Calibration:
         return replace(self, bound=self.bound.at(coverage), bounds={k: b.at(coverage) for k, b in self.bounds.items()})
 
 
-def _companion(model, residual, prediction, plan, increments: int) -> np.ndarray:
-    """The linear + POD residual baseline along the prediction's increments: cumulative
-    displacement ``(increments + 1, n, 3)`` mm (row 0 zero)."""
-    from toolkit.static.dataset import plan_features
+def baseline_prediction(model, residual, face, plan, segments=None):
+    """The sliding response + POD residual baseline's answer to ``plan`` on ``face`` (as for
+    :meth:`~toolkit.static.surrogate.Surrogate.predict_plan`): the face's sliding response
+    (:meth:`~toolkit.static.surrogate.Surrogate.sliding_response`) plus ``residual``'s regression on
+    the plan, increment by increment along the training database's increments.
 
-    im = model.prior(prediction.reference, prediction.boundary.types)
+    Returns a PlanPrediction: displacements ``(increments + 1, n, 3)`` mm, each increment's
+    element quality, ``prescribed`` each increment's bone motion (moving nodes)."""
+    from toolkit.static.dataset import DatasetConfig, plan_features
+    from toolkit.static.simulate import IncrementReport, face_mesh_and_segments
+    from toolkit.static.surrogate import PlanPrediction
+
+    t0 = time.perf_counter()
+    data = DatasetConfig(**model.bundle.data["database"])
+    response = model.sliding_response(face, segments)
     with warnings.catch_warnings():  # the plan warned of its range where it was built
         warnings.simplefilter("ignore")
-        params = plan_features(plan, increments)
-    steps = np.stack([im.predict(p) for p in prediction.prescribed]) + residual.residual.predict(params)
-    return np.concatenate([np.zeros((1,) + steps.shape[1:]), np.cumsum(steps, axis=0)])
+        params = plan_features(plan, data.increments)
+    U, bones = response.trajectory(plan, data.increments, residual.residual.predict(params))
+    mesh = face_mesh_and_segments(face, segments)[0]
+    quality = [mesh.with_points(mesh.points + u).scaled_jacobian() for u in U[1:]]
+    wall = time.perf_counter() - t0
+    reports = [IncrementReport(k, wall / len(quality), 0.0, 0, 0, 0, float(q.min()), int(np.argmin(q)),
+                               0.0, 0.0, 0.0, 0) for k, q in enumerate(quality, start=1)]
+    prescribed = np.where((response.bc.types == 1)[None, :, None], bones, 0.0)
+    return PlanPrediction(mesh, U, response.bc, reports, wall, "baseline (sliding response + POD residual)",
+                          data.sliding, extrapolation=model.extrapolation(plan), prescribed=prescribed)
 
 
-def _scale_field(calibration_scale: str, prediction, companion: np.ndarray) -> np.ndarray:
-    """Per-node scale ``(n,)`` mm of a PlanPrediction (see the module)."""
-    n = prediction.displacement.shape[0]
+def _scale_field(calibration_scale: str, network: np.ndarray | None, baseline: np.ndarray) -> np.ndarray:
+    """Per-node scale ``(n,)`` mm from the network's and the baseline's final displacements
+    ``(n, 3)`` mm (see the module)."""
     if calibration_scale == "constant":
-        return np.ones(n)
-    return np.linalg.norm(prediction.displacement - companion[-1], axis=1) + SCALE_FLOOR_MM
+        return np.ones(baseline.shape[0])
+    return np.linalg.norm(network - baseline, axis=1) + SCALE_FLOOR_MM
 
 
 def _case_scale(node_scale: np.ndarray) -> float:
@@ -193,11 +228,12 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
         the model did not train or validate on)
     coverage : probability the bound holds for a new plan like these (at least
         :func:`~toolkit.common.training.conformal.min_calibration_cases` plans are needed)
-    scale : one of :data:`SCALES`, or ``auto`` (default): with ``answerer="auto"``, the scale and
-        answerer whose bound, averaged over the calibration plans, is the narrowest (see the module)
+    scale : one of :data:`SCALES`, or ``auto`` (default): with ``answerer="auto"``, the cheapest
+        scale and answerer whose bound, averaged over the calibration plans, is within
+        :data:`AUTO_BOUND_SLACK` of the narrowest (see the module)
     keys : calibrate on these simulations instead
-    training : the database the model was trained on (default ``database``): the linear + POD
-        residual companion, the training plans and subjects come from its simulations the model
+    training : the database the model was trained on (default ``database``): the baseline's
+        residual regression, the training plans and subjects come from its simulations the model
         trained or validated on
     answerer : one of :data:`ANSWERERS` (see the module)
     progress : tqdm over the plans
@@ -232,12 +268,15 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     if len(keys) < need:
         raise ValueError(f"{len(keys)} held-out simulation(s) in {db.path} ({how}); a bound at {coverage:.0%} needs "
                          f"at least {need}: generate more plans (`toolkit static dataset --plans`) or lower --coverage")
-    # the companion: the disagreement's other member and the baseline answer
+    # the baseline: each seen simulation's sliding response, and the regression of what it misses
     rows = np.flatnonzero(train_db.samples.key.isin(seen_keys).to_numpy())
     seen_data = train_db.arrays(rows)
-    priors = {int(s): model.prior(train_db.subject_mesh(int(s)), train_db.types[int(s)])
-              for s in np.unique(seen_data["subject"])}
-    linear = np.stack([priors[int(sid)].predict(s) for sid, s in zip(seen_data["subject"], seen_data["s"])])
+    responses = {}
+    for sid in np.unique(seen_data["subject"]):
+        subject = train_db.subject(int(sid))
+        responses[int(sid)] = model.sliding_response(_face(subject), subject.segments)
+    linear = np.stack([responses[int(sid)].increment(b, x)
+                       for sid, b, x in zip(seen_data["subject"], seen_data["bone"], seen_data["x"])])
     params = train_db.samples[list(PLAN_FEATURES)].to_numpy(np.float64)[rows]
     residual = LinearPlusPOD.fit(params, seen_data["v"], linear)
     last = train_db.samples[train_db.samples.key.isin(seen_keys)].sort_values("increment").groupby("key").tail(1)
@@ -254,27 +293,40 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
         subject, plan = db.subject(sid), db.plan(key)
         t0 = time.perf_counter()
         pred = model.predict_plan(_face(subject), plan, segments=subject.segments)
-        companion = _companion(model, residual, pred, plan, db.config.increments)
+        t1 = time.perf_counter()
+        base = baseline_prediction(model, residual, _face(subject), plan, subject.segments).displacement
+        t2 = time.perf_counter()
         fe = db.displacements(key)[-1]
         cases.append({"key": str(key), "subject": sid, "error_mm": answer_error(pred.displacement, fe),
-                      "baseline_error_mm": answer_error(companion[-1], fe),
-                      "disagreement_mm": _case_scale(_scale_field("disagreement", pred, companion)),
-                      "surrogate_s": time.perf_counter() - t0, "fe_s": float(fe_s[key])})
-    candidates = {}  # (scale, answerer) -> (bounds by answerer, mean bound over the calibration plans)
-    for s in SCALES if scale == "auto" else (scale,):
-        scales = np.array([1.0 if s == "constant" else c["disagreement_mm"] for c in cases])
-        bounds = {"network": calibrate([c["error_mm"] for c in cases], scales, coverage),
-                  "baseline": calibrate([c["baseline_error_mm"] for c in cases], scales, coverage)}
-        for a in ("network", "baseline") if answerer == "auto" else (answerer,):
-            candidates[s, a] = (bounds, float(np.mean(bounds[a].bound(scales))))
-    scale, answerer = min(candidates, key=lambda k: candidates[k][1])
-    bounds = candidates[scale, answerer][0]
+                      "baseline_error_mm": answer_error(base, fe),
+                      "disagreement_mm": _case_scale(_scale_field("disagreement", pred.displacement, base)),
+                      "network_s": t1 - t0, "baseline_s": t2 - t1, "fe_s": float(fe_s[key])})
+    scale, answerer, bounds = _choose(cases, coverage, scale, answerer)
     for c in cases:
         c["scale_mm"] = 1.0 if scale == "constant" else c["disagreement_mm"]
     return Calibration(scale, bounds[answerer], residual, train_plans, plan_ranges, pts, float(spread),
                        db.config.material, cases, {"database": str(Path(db.path).resolve()), "plans": how,
                                                    "training_database": str(Path(train_db.path).resolve())},
                        answerer, bounds)
+
+
+def _choose(cases: list, coverage: float, scale: str, answerer: str) -> tuple[str, str, dict]:
+    """The scale and answerer a calibration keeps (see the module), and the bounds by answerer
+    with that scale: among the pairs asked, the cheapest (median seconds per calibration plan)
+    whose mean bound is within :data:`AUTO_BOUND_SLACK` of the narrowest."""
+    seconds = {a: float(np.median([c[f"{a}_s"] for c in cases])) for a in ("network", "baseline")}
+    candidates = {}  # (scale, answerer) -> (bounds by answerer, mean bound, seconds per answer)
+    for s in SCALES if scale == "auto" else (scale,):
+        scales = np.array([1.0 if s == "constant" else c["disagreement_mm"] for c in cases])
+        bounds = {"network": calibrate([c["error_mm"] for c in cases], scales, coverage),
+                  "baseline": calibrate([c["baseline_error_mm"] for c in cases], scales, coverage)}
+        for a in ("network", "baseline") if answerer == "auto" else (answerer,):
+            cost = sum(seconds.values()) if s == "disagreement" else seconds[a]
+            candidates[s, a] = (bounds, float(np.mean(bounds[a].bound(scales))), cost)
+    narrowest = min(c[1] for c in candidates.values())
+    near = [k for k, c in candidates.items() if c[1] <= AUTO_BOUND_SLACK * narrowest]
+    scale, answerer = min(near, key=lambda k: (candidates[k][2], candidates[k][1]))
+    return scale, answerer, candidates[scale, answerer][0]
 
 
 def _face(subject):
@@ -288,23 +340,30 @@ def _rms(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
 
 
-def estimate(model, calibration: Calibration, prediction, plan) -> dict:
-    """The calibrated error estimate of a PlanPrediction.
+def estimate(calibration: Calibration, network=None, baseline=None) -> dict:
+    """The calibrated error estimate of an answer.
 
-    Returns ``{"bound_mm", "coverage", "scale", "scale_mm", "node_mm"}``: ``bound_mm`` bounds
-    the error of the ``answerer``'s answer (95th percentile of the nodal error) with probability
-    ``coverage`` for a plan like the calibration ones; ``node_mm`` ``(n,)`` is the per-node
-    estimate (the factor times each node's scale; its 95th percentile is ``bound_mm``);
-    ``answerer`` and ``companion`` ``(increments + 1, n, 3)`` mm, the baseline's answer.
+    Parameters
+    ----------
+    calibration : Calibration
+    network, baseline : the network's PlanPrediction (:meth:`~toolkit.static.surrogate.Surrogate.predict_plan`)
+        and the baseline's (:func:`baseline_prediction`) of the same plan: the disagreement scale
+        needs both, the constant scale only the answerer's
+
+    Returns ``{"bound_mm", "coverage", "scale", "scale_mm", "node_mm", "answerer"}``: ``bound_mm``
+    bounds the error of the ``answerer``'s answer (95th percentile of the nodal error) with
+    probability ``coverage`` for a plan like the calibration ones; ``node_mm`` ``(n,)`` is the
+    per-node estimate (the factor times each node's scale; its 95th percentile is ``bound_mm``).
     """
-    from toolkit.static.dataset import DatasetConfig
-
-    increments = DatasetConfig(**model.bundle.data["database"]).increments
-    companion = _companion(model, calibration.residual, prediction, plan, increments)
-    node = _scale_field(calibration.scale, prediction, companion)
+    given = network if calibration.answerer == "network" else baseline
+    if given is None or (calibration.scale == "disagreement" and (network is None or baseline is None)):
+        need = "both predictions" if calibration.scale == "disagreement" else f"the {calibration.answerer}'s prediction"
+        raise ValueError(f"the {calibration.scale} scale of this calibration needs {need}")
+    node = _scale_field(calibration.scale, None if network is None else network.displacement,
+                        given.displacement if baseline is None else baseline.displacement)
     return {"bound_mm": float(calibration.bound.bound(_case_scale(node))), "coverage": calibration.bound.coverage,
             "scale": calibration.scale, "scale_mm": _case_scale(node), "node_mm": calibration.bound.bound(node),
-            "answerer": calibration.answerer, "companion": companion}
+            "answerer": calibration.answerer}
 
 
 def out_of_distribution(calibration: Calibration, mesh, plan, material: str | None = None,
@@ -368,11 +427,11 @@ class TrustedAnswer:
     """An answer within a tolerance: the surrogate's prediction or the FE's result.
 
     result : PlanPrediction (``answered_by == "surrogate"``) or SimulationResult (``"fe"``)
-    answered_by : ``surrogate`` (the network), ``baseline`` (the linear + POD residual baseline,
+    answered_by : ``surrogate`` (the network), ``baseline`` (the sliding response + POD residual baseline,
         when the calibration chose it) or ``fe``
     reason : why (one line)
     tolerance_mm : the tolerance asked
-    estimate : :func:`estimate` of the surrogate's prediction (``node_mm`` left out of the summary)
+    estimate : :func:`estimate` of the answer (``node_mm`` left out of the summary)
     ood : :func:`out_of_distribution`
     seconds : ``surrogate``, ``estimate``, ``fe`` (0 when not run), ``total``
     """
@@ -386,7 +445,7 @@ class TrustedAnswer:
     seconds: dict
 
     def summary(self) -> dict:
-        est = {k: v for k, v in self.estimate.items() if k not in ("node_mm", "companion")}
+        est = {k: v for k, v in self.estimate.items() if k != "node_mm"}
         return {**self.result.summary(), "answer": {
             "answered_by": self.answered_by, "reason": self.reason, "tolerance_mm": self.tolerance_mm,
             "estimate": est, "out_of_distribution": self.ood, "seconds": self.seconds}}
@@ -406,14 +465,16 @@ class TrustedAnswer:
 def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration: Calibration | None = None,
            coverage: float | None = None, material: str | None = None, any_mesh: bool = False,
            options=None) -> TrustedAnswer:
-    """The calibrated answer (the network's or the linear + POD residual baseline's, as the
+    """The calibrated answer (the network's or the sliding response + POD residual baseline's, as the
     calibration chose: ``Calibration.answerer``) when its estimate is within ``tolerance_mm`` and
     the inputs are like the training data; otherwise the FE of the same plan.
 
     Parameters
     ----------
     model : Surrogate (its directory must hold a calibration, or pass ``calibration``)
-    face, plan, segments, any_mesh : as for :meth:`~toolkit.static.surrogate.Surrogate.predict_plan`
+    face, plan, segments : as for :meth:`~toolkit.static.surrogate.Surrogate.predict_plan`
+    any_mesh : accepted like ``predict_plan``'s; a mesh of another topology than the training
+        meshes has no error estimate (the baseline's residual is node-indexed), so the FE answers
     tolerance_mm : mm, > 0: the largest answer error (95th percentile of the nodal error) accepted
     calibration : default :meth:`Calibration.load` of the model's directory
     coverage : the estimate's coverage (default the calibration's)
@@ -434,17 +495,19 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
     same = _same_topology(model, mesh)
     ood = out_of_distribution(calibration, mesh, plan, material, same_topology=same)
     t0 = time.perf_counter()
-    est, pred = {}, None
+    est, given = {}, None
     seconds = {"surrogate": 0.0, "estimate": 0.0, "fe": 0.0}
-    if same or any_mesh:
-        # the baseline answering with the constant scale reads only the prescribed values: no network
-        network = not same or calibration.answerer == "network" or calibration.scale != "constant"
-        pred = model.predict_plan(face, plan, segments=segments, any_mesh=any_mesh or not same, network=network)
+    if same:  # the baseline's residual is node-indexed: the training topology only
+        network = base = None
+        if calibration.answerer == "network" or calibration.scale == "disagreement":
+            network = model.predict_plan(face, plan, segments=segments)
+        if calibration.answerer == "baseline" or calibration.scale == "disagreement":
+            base = baseline_prediction(model, calibration.residual, face, plan, segments)
+        given = network if calibration.answerer == "network" else base
         seconds["surrogate"] = time.perf_counter() - t0
-        if same:  # the baseline and its disagreement are node-indexed: the training topology only
-            t1 = time.perf_counter()
-            est = estimate(model, calibration, pred, plan)
-            seconds["estimate"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
+        est = estimate(calibration, network, base)
+        seconds["estimate"] = time.perf_counter() - t1
     if ood["outside"]:
         reason = "out of distribution: " + "; ".join(ood["reasons"])
     elif not est:
@@ -454,9 +517,8 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
                   f"{tolerance_mm:g} mm")
     else:
         who = "surrogate" if calibration.answerer == "network" else "baseline"
-        result = pred if who == "surrogate" else _baseline_result(pred, est["companion"])
         seconds["total"] = time.perf_counter() - t0
-        return TrustedAnswer(result, who, f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) "
+        return TrustedAnswer(given, who, f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) "
                              f"is within the tolerance {tolerance_mm:g} mm", float(tolerance_mm), est, ood, seconds)
     t1 = time.perf_counter()
     fe = simulate(face, plan, data.increments, material or data.material, data.sliding, segments=segments,
@@ -464,17 +526,6 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
     seconds["fe"] = time.perf_counter() - t1
     seconds["total"] = time.perf_counter() - t0
     return TrustedAnswer(fe, "fe", reason, float(tolerance_mm), est, ood, seconds)
-
-
-def _baseline_result(prediction, companion: np.ndarray):
-    """The PlanPrediction with the linear + POD residual baseline's displacements
-    ``(increments + 1, n, 3)`` mm and their element quality."""
-    X = prediction.reference.points
-    reports = [replace(r, min_scaled_jacobian=float(q.min()), worst_element=int(np.argmin(q)))
-               for r, q in zip(prediction.reports, (prediction.reference.with_points(X + u).scaled_jacobian()
-                                                    for u in companion[1:]))]
-    return replace(prediction, displacements=companion, reports=reports,
-                   material="baseline (linear + POD residual)")
 
 
 def _same_topology(model, mesh) -> bool:
