@@ -623,6 +623,12 @@ def _surrogate_trust(data):
                if ensemble else "") + "."
             + (" The defaults (`auto`) choose the {scale} scale and the {answerer}'s answers.".format(**extra["auto"])
                if extra.get("auto") else ""))
+    if extra.get("warm_start"):
+        parts.append("Warm start: the FE of the {cases} Neo-Hookean cases started from the baseline's answer "
+                     "(`simulate(initial_guess=)`) took {warm_s:.1f} s and {warm_newton:.0f} Newton iterations on "
+                     "average, against {cold_s:.1f} s and {cold_newton:.0f} from each increment's previous "
+                     "equilibrium; the two answers agree to {max_diff_mm:.1g} mm."
+                     .format(**extra["warm_start"]))
     if extra.get("methods"):
         parts.append("Estimates (coverage: share of cases whose error is within the bound; AUROC: flagging errors "
                      "above 0.5, 1, 2 and 4 mm where both classes occur):")

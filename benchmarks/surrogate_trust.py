@@ -24,8 +24,11 @@ Stages (each resumable: rerun the same command to continue):
 
 4. per case and scale: the answer error (95th percentile over all nodes of the network's nodal
    error against the FE), the bound at 90 % and 95 %, the out-of-distribution check, the time of
-   the network, the estimate and the FE, for the network's answer and for the linear + POD
-   residual baseline's (the two answerers a calibration can choose); and the policy of
+   the network, the baseline, the estimate and the FE, for the network's answer and for the
+   sliding response + POD residual baseline's (the two answerers a calibration can choose); for
+   the Neo-Hookean cases, the FE again started from the baseline's answer
+   (``simulate(initial_guess=)``): its time, Newton iterations and largest difference to the
+   cold run; and the policy of
    ``toolkit static predict --tolerance`` at each of ``--tolerances`` mm (the baseline with the
    constant scale is timed without the network, as ``answer`` runs it): the share of delivered
    answers within it, the share of in-distribution cases the surrogate answers, and the mean time
@@ -58,7 +61,7 @@ from surrogate_remeshed import add_training_arguments, stage_database, stage_mod
 
 FIGURES = Path(__file__).resolve().parent.parent / "docs" / "figures"
 COVERAGES = (0.9, 0.95)
-#: whose answer each row bounds: PointNet++ or the linear + POD residual baseline
+#: whose answer each row bounds: PointNet++ or the sliding response + POD residual baseline
 ANSWERED_BY = ("network", "baseline")
 #: mm: the AUROC of each estimate for flagging answers whose error exceeds these
 AUROC_AT_MM = (0.5, 1.0, 2.0, 4.0)
@@ -169,28 +172,36 @@ def case_face(case):
     return face_hex("paper", case["shape"]) if case["shape"] is not None else subject_phantom("paper", case["subject"])
 
 
-def fe_of(case, face, data: dict, cache: Path) -> tuple[np.ndarray | None, float, str]:
-    """The FE's final displacement (cached), its time and status."""
+def fe_of(case, face, data: dict, cache: Path, guess: np.ndarray | None = None
+          ) -> tuple[np.ndarray | None, float, str, float]:
+    """The FE's final displacement (cached), its time, status and Newton iterations (nan when the
+    cached run did not record them; a Neo-Hookean case's run is then redone); ``guess``: the FE
+    started from that answer (``simulate(initial_guess=)``), cached apart."""
     from toolkit.static.simulate import simulate
 
     tag = hashlib.sha1(json.dumps([case["plan"].as_dict(), case["material"], case["subject"],
                                    None if case["shape"] is None else str(case["shape"]), data["increments"],
-                                   data["sliding"]], sort_keys=True, default=str).encode()).hexdigest()[:16]
+                                   data["sliding"]] + ([] if guess is None else ["warm"]),
+                                  sort_keys=True, default=str).encode()).hexdigest()[:16]
     file = cache / f"{tag}.npz"
     if file.exists():
         z = np.load(file)
-        return (z["u"] if z["u"].size else None), float(z["seconds"]), str(z["status"])
+        if "newton" in z or case["material"] == "linear":
+            return ((z["u"] if z["u"].size else None), float(z["seconds"]), str(z["status"]),
+                    float(z["newton"]) if "newton" in z else np.nan)
     t0 = time.perf_counter()
+    newton = np.nan
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            u = simulate(face, case["plan"], data["increments"], case["material"], data["sliding"]).displacement
-        status = "ok"
+            result = simulate(face, case["plan"], data["increments"], case["material"], data["sliding"],
+                              initial_guess=guess)
+        u, status, newton = result.displacement, "ok", float(sum(r.newton_iterations for r in result.reports))
     except Exception as exc:  # noqa: BLE001 - recorded
         u, status = None, f"{type(exc).__name__}: {str(exc)[:160]}"
     seconds = time.perf_counter() - t0
-    np.savez(file, u=np.zeros(0) if u is None else u, seconds=seconds, status=status)
-    return u, seconds, status
+    np.savez(file, u=np.zeros(0) if u is None else u, seconds=seconds, status=status, newton=newton)
+    return u, seconds, status, newton
 
 
 def _bound_at(bound, coverage: float, scale_mm: float) -> float:
@@ -244,7 +255,7 @@ def plot(df: pd.DataFrame, tolerance: float, out: Path) -> None:
 
     d = df[(df.scale == "disagreement") & (df.fe_status == "ok")]
     fig, axes = plt.subplots(1, 2, figsize=(9.6, 4.4), dpi=120)
-    for ax, answerer, name in zip(axes, ANSWERED_BY, ("PointNet++", "linear + POD residual")):
+    for ax, answerer, name in zip(axes, ANSWERED_BY, ("PointNet++", "sliding response + POD residual")):
         a = d[d.answerer == answerer]
         for kind, marker in (("in", "o"), ("plan 1.2-2x", "^"), ("shape", "s"), ("neo-hookean", "D")):
             k = a[a.kind == kind]
@@ -330,7 +341,7 @@ def main(argv=None):
     rows = []
     for i, case in enumerate(tqdm(make_cases(args, list(range(args.subjects))), desc="cases")):
         face = case_face(case)
-        fe, fe_s, status = fe_of(case, face, data, cache)
+        fe, fe_s, status, fe_newton = fe_of(case, face, data, cache)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             t0 = time.perf_counter()
@@ -340,7 +351,12 @@ def main(argv=None):
             base_pred = baseline_prediction(model, calibrations["constant"].residual, face, case["plan"])
             baseline_s = time.perf_counter() - t0
         base = {"case": i, "kind": case["kind"], "subject": case["subject"], "material": case["material"],
-                "fe_status": status, "fe_s": fe_s, "network_s": network_s, "baseline_s": baseline_s}
+                "fe_status": status, "fe_s": fe_s, "fe_newton": fe_newton, "network_s": network_s,
+                "baseline_s": baseline_s}
+        if case["material"] != data["material"] and fe is not None:  # Newton: the FE warm-started from the baseline
+            warm, warm_s, warm_status, warm_newton = fe_of(case, face, data, cache, guess=base_pred.displacements)
+            base.update(fe_warm_s=warm_s, fe_warm_newton=warm_newton, fe_warm_status=warm_status,
+                        fe_warm_max_diff_mm=float(np.abs(warm - fe).max()) if warm is not None else np.nan)
         for scale, cal in calibrations.items():
             ood = out_of_distribution(cal, face.mesh, case["plan"], case["material"])
             for answerer in ANSWERED_BY:
@@ -384,9 +400,15 @@ def main(argv=None):
         calib["ensemble"] = {"plans": ensemble_bound.n, "members": len(members), "factor_90": ensemble_bound.factor,
                              "factor_95": (ensemble_bound.at(0.95).factor
                                            if ensemble_bound.n >= min_calibration_cases(0.95) else None)}
+    one_row = (table.scale == "constant") & (table.answerer == "baseline")  # one row per case
+    warm = table[one_row].dropna(subset=["fe_warm_s"]) if "fe_warm_s" in table else table[:0]
+    warm_start = {"cases": int(len(warm)), "cold_s": float(warm.fe_s.mean()), "warm_s": float(warm.fe_warm_s.mean()),
+                  "cold_newton": float(warm.fe_newton.mean()), "warm_newton": float(warm.fe_warm_newton.mean()),
+                  "max_diff_mm": float(warm.fe_warm_max_diff_mm.max())} if len(warm) else None
     write_result(args.out, table, argv=argv, extra={"methods": methods, "policies": policies,
                                                     "calibration": calib, "tolerances_mm": args.tolerances,
-                                                    "auto": {"scale": auto.scale, "answerer": auto.answerer}})
+                                                    "auto": {"scale": auto.scale, "answerer": auto.answerer},
+                                                    "warm_start": warm_start})
     if args.out.resolve().parent == RESULTS.resolve():
         FIGURES.mkdir(parents=True, exist_ok=True)
         plot(table, args.tolerances[0], FIGURES / f"{args.out.stem}.png")

@@ -213,3 +213,22 @@ def test_points_beyond_the_rim_of_an_open_surface_go_onto_the_edge_plane():
     np.testing.assert_allclose(ext.point, [[0.3, 0.6, 0.0], [1.4, 0.5, 0.0], [1.5, 1.5, 0.0]], atol=1e-12)
     np.testing.assert_allclose(ext.distance, [0.5, 0.2, 0.3], atol=1e-12)
     np.testing.assert_allclose(cp.point[1], [1.0, 0.5, 0.0], atol=1e-12)  # the plain closest point: on the edge
+
+
+@pytest.mark.parametrize("guess", ["linear run", "inverting"])
+def test_a_newton_run_from_an_initial_guess_reaches_the_same_equilibrium(phantom, plan, linear3, guess):
+    """Neo-Hookean increments started from another run's displacements (the linear one: close),
+    or from a guess that inverts elements (Newton cannot start there and starts from the previous
+    equilibrium instead), end at the cold run's equilibrium to 1e-6 mm."""
+    cold = simulate(phantom, plan, 3, "neo-hookean", "mucosa+lip")
+    start = linear3.displacements if guess == "linear run" else 50.0 * linear3.displacements
+    warm = simulate(phantom, plan, 3, "neo-hookean", "mucosa+lip", initial_guess=start)
+    np.testing.assert_allclose(warm.displacements, cold.displacements, rtol=0, atol=1e-6)
+    assert all(r.newton_iterations > 0 for r in warm.reports)
+
+
+def test_an_initial_guess_of_the_wrong_shape_is_refused(phantom, plan):
+    with pytest.raises(ValueError, match=r"initial_guess has shape \(3, 5, 3\); expected finite \(4, 771, 3\)"):
+        simulate(phantom, plan, 3, "neo-hookean", "mucosa+lip", initial_guess=np.zeros((3, 5, 3)))
+    with pytest.raises(ValueError, match="expected finite"):
+        simulate(phantom, plan, 3, "neo-hookean", "mucosa+lip", initial_guess=np.full((4, 771, 3), np.nan))

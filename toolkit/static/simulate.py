@@ -351,6 +351,7 @@ class _Model:
     total_lagrangian: bool
     pattern: SparsePattern | None = None
     reference_problem: StaticProblem | None = None
+    guess: np.ndarray | None = None  # (increments + 1, n, 3) mm, a predicted displacement after each increment
     moving: np.ndarray = field(init=False)
     fixed: np.ndarray = field(init=False)
     mucosa: np.ndarray = field(init=False)
@@ -404,6 +405,15 @@ class _Model:
                 offset[sel] = ext.distance
                 side[sel] = np.where(np.einsum("ij,ij->i", X[mucosa[sel]] - ext.point, ext.normal) < 0, -1.0, 1.0)
         return offset, side
+
+    def guess_at(self, fraction: float) -> np.ndarray | None:
+        """The initial guess's displacement ``(n, 3)`` mm at ``fraction`` of the plan (linear
+        between increments), or None without one."""
+        if self.guess is None:
+            return None
+        t = fraction * (self.guess.shape[0] - 1)
+        k = min(int(np.floor(t)), self.guess.shape[0] - 2)
+        return self.guess[k] + (t - k) * (self.guess[k + 1] - self.guess[k])
 
     def problem(self, x: np.ndarray) -> StaticProblem:
         """The problem a step solves: on the current geometry ``x`` (linear, updated) or on
@@ -610,6 +620,19 @@ def _projection(model: _Model, plan: SurgicalPlan, x: np.ndarray) -> tuple[np.nd
     return proj, float(dist.max(initial=0.0))
 
 
+def _solve_from(model: _Model, problem: StaticProblem, constraints: Constraints, starts: tuple):
+    """:func:`_solve` from the first of ``starts`` it converges from (Newton; a linear solve is
+    direct and converges from the first); a start that inverts an element counts as not
+    converging. The last failure is raised."""
+    for i, start in enumerate(starts):
+        try:
+            return _solve(model, problem, constraints, start)
+        except (ConvergenceError, FloatingPointError):
+            if i == len(starts) - 1:
+                raise
+            log.info("Newton did not converge from the initial guess; starting from the previous equilibrium")
+
+
 def _solve(model: _Model, problem: StaticProblem, constraints: Constraints, u_start):
     """One constrained solve, with the lip-contact active set when lips slide."""
     bc = model.bc
@@ -626,19 +649,22 @@ def _quality(model: _Model, u_total: np.ndarray) -> tuple[np.ndarray, int]:
     return sj, int(np.argmin(sj))
 
 
-def _step(model: _Model, state: _State, plan: SurgicalPlan) -> tuple[_State, _StepDiagnostics]:
+def _step(model: _Model, state: _State, plan: SurgicalPlan,
+          guess: np.ndarray | None = None) -> tuple[_State, _StepDiagnostics]:
     """Advance from ``state`` to the bone positions of ``plan``: targets, sliding solve,
-    projection, re-solve, quality check. Raises :class:`_StepFailure`."""
+    projection, re-solve, quality check. A Newton solve starts from ``guess`` (the total
+    displacement ``(n, 3)`` mm expected at the end of the step) when given, and from the previous
+    equilibrium if it does not converge from there. Raises :class:`_StepFailure`."""
     X = model.mesh.points
     x = X + state.u
     base = X if model.total_lagrangian else x  # configuration the step's displacement is measured from
-    u_start = state.u if model.total_lagrangian else None
+    starts = ((state.u,) if guess is None else (guess, state.u)) if model.total_lagrangian else (None,)
     problem = model.problem(x)
     nodes, values = _targets(model, plan, base)
     t0 = time.perf_counter()
     try:
-        sol1, contact1 = _solve(model, problem, _sliding_constraints(model, state, plan, base, x, nodes, values),
-                                u_start)
+        sol1, contact1 = _solve_from(model, problem,
+                                     _sliding_constraints(model, state, plan, base, x, nodes, values), starts)
         t1 = time.perf_counter()
         sol, contact, gap_before, gap_after = sol1, contact1, 0.0, 0.0
         if model.mucosa.size:
@@ -686,7 +712,7 @@ def _advance(model: _Model, plan: SurgicalPlan, state: _State, fraction: float, 
     failed attempts. Raises :class:`_StepFailure` when ``max_cuts`` halvings do not help.
     """
     try:
-        new, diag = _step(model, state, plan.interpolated(fraction))
+        new, diag = _step(model, state, plan.interpolated(fraction), model.guess_at(fraction))
         return replace(new, fraction=fraction), [diag], 0
     except _StepFailure as exc:
         if depth >= model.options.max_cuts:
@@ -724,6 +750,7 @@ def simulate(
     *,
     segments: Mapping | None = None,
     options: SimulationOptions | None = None,
+    initial_guess: np.ndarray | None = None,
 ) -> SimulationResult:
     """Run the lip-sliding paper's incremental simulation.
 
@@ -736,6 +763,10 @@ def simulate(
     sliding : ``mucosa+lip`` (the lip-sliding paper), ``mucosa`` or ``none``
     segments : name -> BoneSegment (bone surfaces and attachment sets); default the phantom's
     options : SimulationOptions
+    initial_guess : ``(increments + 1, n, 3)`` mm, an expected total displacement after each
+        increment (a surrogate's answer): each Newton solve (Neo-Hookean) starts from it, linear
+        between increments for a cut step, and from the previous equilibrium when it does not
+        converge from there. A linear material's solve is direct and does not use it.
 
     Returns
     -------
@@ -751,12 +782,19 @@ def simulate(
     options = options or SimulationOptions()
     if int(increments) != increments or increments < 1:
         raise ValueError(f"increments must be an integer >= 1, got {increments!r}")
+    if initial_guess is not None:
+        initial_guess = np.asarray(initial_guess, dtype=float)
+        n = face_mesh_and_segments(face, segments)[0].n_points
+        if initial_guess.shape != (int(increments) + 1, n, 3) or not np.isfinite(initial_guess).all():
+            raise ValueError(f"initial_guess has shape {initial_guess.shape}; expected finite ({int(increments) + 1}, "
+                             f"{n}, 3) mm (the total displacement before and after each increment)")
     widths = (options.release_width, *(w for w in options.wider_release if w > options.release_width))
     attempt, freeings, freed = 0, 0, np.zeros(0, np.int64)
     while True:
         width = widths[attempt]
         model = _build_model(face, material, sliding, segments,
                              replace(options, release_width=width, wider_release=()), freed)
+        model.guess = initial_guess
         try:
             with warnings.catch_warnings():
                 # the plan warned of a movement beyond the physiological range where it was built;
