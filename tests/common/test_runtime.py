@@ -77,8 +77,8 @@ def test_a_ctrl_c_during_an_import_is_raised_once_the_import_ends(tmp_path):
     script = (
         "import signal, sys, threading, time\n"
         "from toolkit.common.runtime import interrupt_outside_imports\n"
-        "if sys.argv[2] == 'toolkit':\n"
-        "    signal.signal(signal.SIGINT, interrupt_outside_imports)\n"
+        "signal.signal(signal.SIGINT, interrupt_outside_imports if sys.argv[2] == 'toolkit'\n"
+        "              else signal.default_int_handler)  # also when started with SIGINT ignored (a background job)\n"
         "sys.path.insert(0, sys.argv[1])\n"
         "threading.Timer(0.3, signal.raise_signal, (signal.SIGINT,)).start()\n"
         "try:\n"

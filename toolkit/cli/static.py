@@ -258,8 +258,8 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
                              "for all; auto: with --answerer auto, the cheapest pair whose mean bound over the "
                              "plans is within 10%% of the narrowest")
     parser.add_argument("--answerer", choices=STATIC_ANSWERERS, default=STATIC_ANSWERERS[0],
-                        help="whose answer `predict --tolerance` gives and bounds: the network, the linear + POD "
-                             "residual baseline, or auto (see --scale)")
+                        help="whose answer `predict --tolerance` gives and bounds: the network, the sliding "
+                             "response + POD residual baseline, or auto (see --scale)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
 
 
