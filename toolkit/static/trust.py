@@ -6,9 +6,9 @@ against the FE of the same plan on the same face. :func:`calibrate_surrogate` me
 whole simulations of a database the model neither trained nor validated on, the ratio of that
 error to a *scale* the model can compute without the FE:
 
-- ``disagreement``: the 95th percentile over nodes of the distance between the
-  network's prediction and the sliding response + POD residual baseline, plus 0.01 mm. Two models built
-  differently seldom miss the same way; where they disagree, at least one is wrong;
+- ``disagreement``: the 95th percentile over nodes of the distance between the network's
+  prediction and the baseline's (below), plus 0.01 mm. Two models built differently seldom miss
+  the same way; where they disagree, at least one is wrong;
 - ``constant``: 1 mm for every plan (plain split-conformal: one bound for every answer).
 
 The baseline is the face's linear response under the FE's boundary conditions
@@ -25,10 +25,10 @@ face mesh of another topology or farther from every training subject than they l
 other, another material), and :func:`answer` runs the FE for such inputs whatever the estimate says.
 
 Which answer is given (``answerer``) and with which scale is chosen at calibration: ``auto``
-(default, for both) calibrates the network's and the sliding response + POD residual baseline's errors
-against each scale and keeps the cheapest pair (the disagreement scale runs both models) among
-those whose bound, averaged over the calibration plans, is within :data:`AUTO_BOUND_SLACK` of the
-narrowest; the bound given always belongs to the answer given. ``network``, ``baseline`` and a
+(default, for both) calibrates the network's and the baseline's errors against each scale and
+keeps the cheapest pair (the disagreement scale runs both models) among those whose bound,
+averaged over the calibration plans, is within :data:`AUTO_BOUND_SLACK` of the narrowest; the
+bound given always belongs to the answer given. ``network``, ``baseline`` and a
 named scale force the choice. The choice is made on the calibration plans themselves, so the
 coverage of the chosen pair is that of the best of (at most) four calibrated bounds, slightly
 optimistic for few plans. On the paper phantom subjects the baseline with the constant scale is
@@ -140,13 +140,14 @@ class Calibration:
     @classmethod
     def load(cls, directory) -> Calibration:
         """Read the calibration of a model directory (FileNotFoundError naming the command that
-        makes one)."""
+        makes one; ValueError, naming it too, for a calibration whose baseline has another linear
+        part)."""
         from toolkit.static.baselines import LinearPlusPOD, PODRegression
 
         meta, arrays = load_calibration(directory, "toolkit static calibrate")
         if meta.get("baseline") != BASELINE:
             raise ValueError(f"{Path(directory) / 'calibration.json'}: its baseline was fit on the influence matrix "
-                             f"(mucosa and lips free), not on the {BASELINE} response this version adds it to; "
+                             f"(mucosa and lips free), not on the {BASELINE} this version adds it to; "
                              f"calibrate again: toolkit static calibrate --model {directory} --data DB.h5")
         residual = None
         if "modes" in arrays:
