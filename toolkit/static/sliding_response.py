@@ -27,6 +27,7 @@ with the regression twice as accurate as the influence matrix with it (``docs/su
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -133,10 +134,11 @@ class SlidingResponse:
 
     def _tie_forces(self, opening: np.ndarray, gap: np.ndarray) -> np.ndarray:
         """The lip ties' multipliers ``(p,)`` (zero for released pairs): ``opening`` is each
-        pair's gap change without ties, ``gap`` its gap before the increment (mm)."""
+        pair's gap change without ties, ``gap`` its gap before the increment (mm). An active set
+        still changing after :data:`_MAX_CONTACT_ITERATIONS` iterations gives its last
+        multipliers (a baseline answers; the FE raises there)."""
         active = gap <= self.lip_threshold
         seen = set()
-        lam = np.zeros(gap.size)
         for _ in range(_MAX_CONTACT_ITERATIONS):
             S = np.flatnonzero(active)
             lam = np.zeros(gap.size)
@@ -162,8 +164,6 @@ class SlidingResponse:
 
         Returns the cumulative displacement ``(increments + 1, n, 3)`` mm (row 0 zero) and each
         step's bone motion ``(increments, n, 3)`` mm (zero off the bone-driven nodes)."""
-        import warnings
-
         from toolkit.static.dataset import bone_increment
         from toolkit.static.plan import PlanRangeWarning
 
