@@ -107,7 +107,6 @@ class Calibration:
     source : database path and how its plans were chosen
     answerer : ``network`` or ``baseline``, whose answer the bound is for
     bounds : answerer -> its ConformalBound (both, for the record)
-    baseline : what the baseline's linear part is (:data:`BASELINE`)
     """
 
     scale: str
@@ -122,7 +121,6 @@ class Calibration:
     source: dict = field(default_factory=dict)
     answerer: str = "network"
     bounds: dict = field(default_factory=dict)
-    baseline: str = BASELINE
 
     def save(self, directory) -> Path:
         """Write ``calibration.json`` and ``calibration.npz`` into the model directory."""
@@ -134,7 +132,7 @@ class Calibration:
         meta = {"scale": self.scale, "bound": self.bound.to_dict(), "plan_ranges": self.plan_ranges,
                 "shape_spread_mm": self.shape_spread_mm, "material": self.material, "cases": self.cases,
                 "source": self.source, "answerer": self.answerer,
-                "bounds": {k: b.to_dict() for k, b in self.bounds.items()}, "baseline": self.baseline}
+                "bounds": {k: b.to_dict() for k, b in self.bounds.items()}, "baseline": BASELINE}
         return save_calibration(directory, meta, arrays)
 
     @classmethod
@@ -156,7 +154,7 @@ class Calibration:
         return cls(meta["scale"], ConformalBound.from_dict(meta["bound"]), residual, arrays["train_plans"],
                    meta["plan_ranges"], arrays["subjects"], float(meta["shape_spread_mm"]), meta["material"],
                    meta["cases"], meta["source"], meta.get("answerer", "network"),
-                   {k: ConformalBound.from_dict(b) for k, b in meta.get("bounds", {}).items()}, meta["baseline"])
+                   {k: ConformalBound.from_dict(b) for k, b in meta.get("bounds", {}).items()})
 
     @property
     def plan_margin(self) -> float:
@@ -176,6 +174,19 @@ class Calibration:
         return replace(self, bound=self.bound.at(coverage), bounds={k: b.at(coverage) for k, b in self.bounds.items()})
 
 
+def _baseline_trajectory(model, residual, face, plan, segments=None):
+    """The face's SlidingResponse, the baseline's cumulative displacement ``(increments + 1, n, 3)``
+    mm and each increment's bone motion ``(increments, n, 3)`` mm (see :func:`baseline_prediction`)."""
+    from toolkit.static.dataset import DatasetConfig, plan_features
+
+    increments = DatasetConfig(**model.bundle.data["database"]).increments
+    response = model.sliding_response(face, segments)
+    with warnings.catch_warnings():  # the plan warned of its range where it was built
+        warnings.simplefilter("ignore")
+        params = plan_features(plan, increments)
+    return (response, *response.trajectory(plan, increments, residual.residual.predict(params)))
+
+
 def baseline_prediction(model, residual, face, plan, segments=None):
     """The sliding response + POD residual baseline's answer to ``plan`` on ``face`` (as for
     :meth:`~toolkit.static.surrogate.Surrogate.predict_plan`): the face's sliding response
@@ -184,17 +195,13 @@ def baseline_prediction(model, residual, face, plan, segments=None):
 
     Returns a PlanPrediction: displacements ``(increments + 1, n, 3)`` mm, each increment's
     element quality, ``prescribed`` each increment's bone motion (moving nodes)."""
-    from toolkit.static.dataset import DatasetConfig, plan_features
+    from toolkit.static.dataset import DatasetConfig
     from toolkit.static.simulate import IncrementReport, face_mesh_and_segments
     from toolkit.static.surrogate import PlanPrediction
 
     t0 = time.perf_counter()
     data = DatasetConfig(**model.bundle.data["database"])
-    response = model.sliding_response(face, segments)
-    with warnings.catch_warnings():  # the plan warned of its range where it was built
-        warnings.simplefilter("ignore")
-        params = plan_features(plan, data.increments)
-    U, bones = response.trajectory(plan, data.increments, residual.residual.predict(params))
+    response, U, bones = _baseline_trajectory(model, residual, face, plan, segments)
     mesh = face_mesh_and_segments(face, segments)[0]
     quality = [mesh.with_points(mesh.points + u).scaled_jacobian() for u in U[1:]]
     wall = time.perf_counter() - t0
@@ -295,7 +302,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
         t0 = time.perf_counter()
         pred = model.predict_plan(_face(subject), plan, segments=subject.segments)
         t1 = time.perf_counter()
-        base = baseline_prediction(model, residual, _face(subject), plan, subject.segments).displacement
+        base = _baseline_trajectory(model, residual, _face(subject), plan, subject.segments)[1][-1]
         t2 = time.perf_counter()
         fe = db.displacements(key)[-1]
         cases.append({"key": str(key), "subject": sid, "error_mm": answer_error(pred.displacement, fe),
