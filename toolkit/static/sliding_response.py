@@ -69,7 +69,8 @@ class SlidingResponse:
     _B: sp.csr_matrix  # (3n, d): the driven values (moving dofs, mucosa normal) -> u
     _KAB: sp.csr_matrix  # (q, d): A^T K B
     _solve: object  # (A^T K A)^-1
-    _C: sp.csr_matrix  # (p, q): each lip pair's craniocaudal gap change
+    _C: sp.csr_matrix  # (p, q): each lip pair's craniocaudal gap change from the free unknowns
+    _CB: sp.csr_matrix  # (p, d): ... from the driven values
     _Z: np.ndarray  # (q, p): (A^T K A)^-1 C^T
     _CZ: np.ndarray  # (p, p)
 
@@ -81,7 +82,7 @@ class SlidingResponse:
         the linear material. Raises ValueError for a mesh whose moving and fixed nodes leave it
         free to move rigidly."""
         from toolkit.common.fem.solvers import superlu
-        from toolkit.static.constraints import tangent_frames
+        from toolkit.static.constraints import Constraints
         from toolkit.static.plan import SurgicalPlan
         from toolkit.static.problem import StaticProblem
         from toolkit.static.simulate import SimulationOptions, _build_model, _sliding_constraints, _State
@@ -95,9 +96,10 @@ class SlidingResponse:
         c = _sliding_constraints(model, at_rest, SurgicalPlan({}), X, X, np.zeros(0, np.int64), np.zeros((0, 3)))
         mucosa, normals = c.sliding_nodes, c.sliding_normals
         moving = model.moving
-        free = np.setdiff1d(np.arange(n), np.concatenate([moving, model.fixed, mucosa]))
-        A = _basis(n, [free], [mucosa], tangent_frames(normals) if mucosa.size else ())
-        B = _basis(n, [moving], [mucosa], (normals,) if mucosa.size else ())
+        held = np.concatenate([model.fixed, moving])
+        # the free unknowns: the FE's own elimination of these constraints (values 0)
+        A = Constraints(n, held, np.zeros((held.size, 3)), mucosa, normals, np.zeros(mucosa.size)).reduction()[0]
+        B = _driven_basis(n, moving, mucosa, normals)
         K = StaticProblem(model.mesh, model.materials, "superlu").stiffness.tocsr()
         try:
             solve = superlu((A.T @ K @ A).tocsc())
@@ -105,16 +107,14 @@ class SlidingResponse:
             raise ValueError(f"the face's reduced stiffness cannot be factorized ({exc}): its moving and fixed "
                              "nodes must hold it against rigid motion") from exc
         upper, lower = model.bc.upper_lip.astype(np.int64), model.bc.lower_lip.astype(np.int64)
-        position = np.full(n, -1, np.int64)
-        position[free] = np.arange(free.size)
-        if np.any(position[upper] < 0) or np.any(position[lower] < 0):
-            raise ValueError("a lip pair node is also driven by a bone; lip nodes must be free")
         p = upper.size
-        rows, cols = np.r_[np.arange(p), np.arange(p)], np.r_[3 * position[upper] + 2, 3 * position[lower] + 2]
-        C = sp.csr_matrix((np.r_[np.ones(p), -np.ones(p)], (rows, cols)), shape=(p, A.shape[1]))
+        rows, cols = np.r_[np.arange(p), np.arange(p)], np.r_[3 * upper + 2, 3 * lower + 2]
+        gap_change = sp.csr_matrix((np.r_[np.ones(p), -np.ones(p)], (rows, cols)), shape=(p, 3 * n))
+        C = (gap_change @ A).tocsr()
         Z = solve(C.T.toarray()).reshape(A.shape[1], p) if p else np.zeros((A.shape[1], 0))
         return cls(X, model.bc, moving, mucosa, normals, upper, lower, float(options.lip_threshold),
-                   time.perf_counter() - t0, A, B, (A.T @ K @ B).tocsr(), solve, C, Z, np.asarray(C @ Z))
+                   time.perf_counter() - t0, A, B, (A.T @ K @ B).tocsr(), solve, C, (gap_change @ B).tocsr(), Z,
+                   np.asarray(C @ Z))
 
     def increment(self, bone: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
         """Displacement ``(n, 3)`` mm of one increment whose bones move each bone-driven node by
@@ -129,7 +129,7 @@ class SlidingResponse:
         if self.upper.size:
             gap = (np.zeros(self.upper.size) if x is None
                    else np.asarray(x)[self.upper, 2] - np.asarray(x)[self.lower, 2])
-            q = q - self._Z @ self._tie_forces(self._C @ q, gap)
+            q = q - self._Z @ self._tie_forces(self._C @ q + self._CB @ d, gap)
         return np.asarray(self._A @ q + self._B @ d).reshape(-1, 3)
 
     def _tie_forces(self, opening: np.ndarray, gap: np.ndarray) -> np.ndarray:
@@ -180,25 +180,11 @@ class SlidingResponse:
         return np.stack(U), np.stack(bones)
 
 
-def _basis(n: int, full: list, partial: list, directions) -> sp.csr_matrix:
-    """Columns mapping reduced values to the ``3 n`` nodal components: three unit columns per
-    node of ``full``, then one column per node of ``partial`` and per direction
-    ``(k, 3)`` of ``directions``."""
-    rows, cols, vals = [], [], []
-    k = 0
-    for nodes in full:
-        dof = (3 * np.asarray(nodes, np.int64)[:, None] + np.arange(3)).ravel()
-        rows.append(dof)
-        cols.append(k + np.arange(dof.size))
-        vals.append(np.ones(dof.size))
-        k += dof.size
-    for nodes in partial:
-        for direction in directions:
-            for a in range(3):
-                rows.append(3 * np.asarray(nodes, np.int64) + a)
-                cols.append(k + np.arange(len(nodes)))
-                vals.append(direction[:, a])
-            k += len(nodes)
-    if not rows:
-        return sp.csr_matrix((3 * n, 0))
-    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, k))
+def _driven_basis(n: int, moving: np.ndarray, mucosa: np.ndarray, normals: np.ndarray) -> sp.csr_matrix:
+    """``(3 n, 3 m + s)``: the driven values (each moving node's three components, then each
+    mucosa node's displacement along its normal) to the nodal components."""
+    dof = (3 * moving[:, None] + np.arange(3)).ravel()
+    rows = np.r_[dof, (3 * mucosa[:, None] + np.arange(3)).ravel()]
+    cols = np.r_[np.arange(dof.size), np.repeat(dof.size + np.arange(mucosa.size), 3)]
+    vals = np.r_[np.ones(dof.size), normals.ravel()]
+    return sp.csr_matrix((vals, (rows, cols)), shape=(3 * n, dof.size + mucosa.size))
