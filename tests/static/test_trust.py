@@ -79,18 +79,22 @@ def test_calibration_measures_held_out_plans_and_round_trips(calibrated, db100):
     assert loaded.bound == cal.bound and loaded.scale == cal.scale and loaded.answerer == cal.answerer
     assert loaded.bounds == cal.bounds and loaded.at(0.5).bounds["network"].factor <= cal.bounds["network"].factor
     np.testing.assert_array_equal(loaded.residual.residual.modes, cal.residual.residual.modes)
-    assert loaded.plan_ranges == cal.plan_ranges
+    assert loaded.plan_ranges == cal.plan_ranges and loaded.plan_support == cal.plan_support
+    np.testing.assert_array_equal(loaded.arch_nodes, cal.arch_nodes)
 
 
-def test_a_calibration_without_the_sliding_response_baseline_is_refused(calibrated, tmp_path):
+@pytest.mark.parametrize("key, what", [("baseline", "influence matrix"), ("plan_support", "plan_support")])
+def test_a_calibration_of_an_earlier_version_is_refused(calibrated, tmp_path, key, what):
     """A calibration whose residual regression was fit on another linear part would add it to
-    the wrong one: loading names the file and the command that makes a new one."""
+    the wrong one, and one without the training plans' support cannot check a plan: loading
+    names the file, what it lacks and the command that makes a new one."""
     model, _ = calibrated
     shutil.copytree(model.directory, tmp_path / "model")
     meta = json.loads((tmp_path / "model" / "calibration.json").read_text())
-    del meta["baseline"]
+    del meta[key]
     (tmp_path / "model" / "calibration.json").write_text(json.dumps(meta))
-    with pytest.raises(ValueError, match=r"calibration.json.*toolkit static calibrate --model"):
+    with pytest.raises(ValueError, match=rf"calibration.json was written by an earlier version: .*{what}.*"
+                                         r"toolkit static calibrate --model"):
         Calibration.load(tmp_path / "model")
 
 
@@ -114,22 +118,48 @@ def test_a_plan_far_outside_the_training_data_falls_back_to_the_fe_and_is_the_fe
     assert got.seconds["fe"] > 0 and got.seconds["surrogate"] > 0
 
 
-@pytest.mark.parametrize("beyond", [0.5, 1.5])
-def test_a_plan_beyond_the_training_range_by_less_than_the_margin_is_in_distribution(calibrated, beyond):
-    _, cal = calibrated
-    assert cal.plan_margin == pytest.approx(min(0.1, math.log(50) / len(cal.train_plans)))
-    lo, hi = cal.plan_ranges["lefort.translation_y_mm"]
-    value = hi + beyond * cal.plan_margin * (hi - lo)
-    case = load_case(resolution="coarse")
+#: a distal movement the sampler can draw (5 mm setback, 5 degrees)
+DISTAL = {"translation_mm": [0.0, -5.0, 0.0], "rotation_vector_deg": [5.0, 0.0, 0.0]}
+
+
+def _plan(case, lefort, distal):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        plan = SurgicalPlan.from_dict({"lefort": {"translation_mm": [0.0, value, 0.0]}}, phantom=case.subject)
-    ood = out_of_distribution(cal, case.subject.mesh, plan)
-    assert ood["plan"]["margin"] == cal.plan_margin
-    moved = "within_margin" if beyond < 1 else "parameters"
-    assert ood["plan"][moved]["lefort.translation_y_mm"]["outside_by"] == pytest.approx(value - hi)
-    assert ood["outside"] is (beyond > 1)
-    assert any(r.startswith("plan:") for r in ood["reasons"]) is (beyond > 1)
+        return SurgicalPlan.from_dict({"lefort": lefort, "distal": distal}, phantom=case.subject)
+
+
+def test_a_plan_the_sampler_can_draw_is_in_distribution_beyond_the_training_plans_box(calibrated):
+    """The support is where the database's sampler draws (translation lengths and angles within the
+    physiological ranges, sagittal, jaws closing by at most 10 mm), not the box of the plans it drew:
+    a plan at the top of every range, straight up, lies outside that box and is in distribution."""
+    _, cal = calibrated
+    case = load_case(resolution="coarse")
+    assert cal.plan_support["distal.translation_mm"] == [2.1, 11.5]
+    assert cal.plan_support["lefort.lateral_translation_mm"] == [0.0, 0.0]
+    edge = _plan(case, {"translation_mm": [0.0, 0.0, 6.3], "rotation_vector_deg": [9.8, 0, 0]},
+                 {"translation_mm": [0.0, 0.0, 11.5], "rotation_vector_deg": [-13.3, 0, 0]})
+    assert plan_features(edge, 1)[0][8] > cal.plan_ranges["distal.translation_z_mm"][1]  # beyond the box
+    ood = out_of_distribution(cal, case.subject.mesh, edge)
+    assert not ood["outside"], ood["reasons"]
+    assert 0 < ood["plan"]["nearest_plan_distance"]
+
+
+@pytest.mark.parametrize("lefort, distal, parameter", [
+    ({"translation_mm": [0.0, 6.6, 0.0]}, {**DISTAL, "translation_mm": [0.0, -5.0, 0.0]}, "lefort.translation_mm"),
+    ({"translation_mm": [0.0, 3.0, 0.0]}, {**DISTAL, "translation_mm": [0.0, -1.0, 0.0]}, "distal.translation_mm"),
+    ({"translation_mm": [0.0, 3.0, 0.0]}, {**DISTAL, "rotation_vector_deg": [0.2, 0.0, 0.0]}, "distal.rotation_deg"),
+    ({"translation_mm": [0.5, 3.0, 0.0]}, DISTAL, "lefort.lateral_translation_mm"),
+    ({"translation_mm": [0.0, 3.0, 0.0]}, {**DISTAL, "rotation_vector_deg": [5.0, 0.0, 2.0]},
+     "distal.off_axis_rotation_deg"),
+    ({"translation_mm": [0.0, 0.0, -6.0]}, {**DISTAL, "translation_mm": [0.0, 0.0, 11.0]}, "jaw_closing_mm"),
+], ids=["lefort beyond the range", "distal below the range", "distal unrotated", "lateral", "yaw",
+        "jaws through each other"])
+def test_a_plan_the_sampler_cannot_draw_is_out_of_distribution(calibrated, lefort, distal, parameter):
+    _, cal = calibrated
+    case = load_case(resolution="coarse")
+    ood = out_of_distribution(cal, case.subject.mesh, _plan(case, lefort, distal))
+    assert ood["outside"] and list(ood["plan"]["parameters"]) == [parameter]
+    assert any(r.startswith("plan:") and parameter in r for r in ood["reasons"])
 
 
 def test_in_distribution_plan_answered_by_whichever_the_tolerance_allows(calibrated, db100):

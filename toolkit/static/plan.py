@@ -61,6 +61,9 @@ __all__ = [
     "MotionRange",
     "PHYSIOLOGICAL_RANGES",
     "SAMPLING_MODES",
+    "SAMPLED_SEGMENTS",
+    "sampled_parameters",
+    "sampling_support",
     "PLAN_FORMATS",
     "SEGMENTS",
     "PlanError",
@@ -705,6 +708,55 @@ def jaw_closing(plan: SurgicalPlan, arch: np.ndarray) -> float:
     return float(max(0.0, dz.max(initial=0.0)))
 
 
+#: the segments :func:`sample_plans` moves (the proximal ones follow the distal one)
+SAMPLED_SEGMENTS = ("lefort", "distal")
+
+
+def sampled_parameters(plan: SurgicalPlan, arch: np.ndarray | None = None) -> dict[str, float]:
+    """What :func:`sample_plans` draws, read back from ``plan``.
+
+    Per moved segment (:data:`SAMPLED_SEGMENTS`): ``<segment>.translation_mm`` the length of
+    the pivot's translation, ``<segment>.rotation_deg`` the rotation angle,
+    ``<segment>.lateral_translation_mm`` the translation's ``|x|`` and
+    ``<segment>.off_axis_rotation_deg`` the rotation about axes other than x (both zero in a
+    sagittal plan); with ``arch`` ``(k, 3)`` mm (:func:`dental_arch`), ``jaw_closing_mm``
+    (:func:`jaw_closing`). Units mm and degrees.
+    """
+    values = {}
+    for name in SAMPLED_SEGMENTS:
+        m = plan.motion(name)
+        t, r = np.asarray(m.translation, float), np.asarray(m.rotation_vector_deg, float)
+        values.update({f"{name}.translation_mm": float(np.linalg.norm(t)),
+                       f"{name}.rotation_deg": float(np.linalg.norm(r)),
+                       f"{name}.lateral_translation_mm": float(abs(t[0])),
+                       f"{name}.off_axis_rotation_deg": float(np.linalg.norm(r[1:]))})
+    if arch is not None:
+        values["jaw_closing_mm"] = jaw_closing(plan, arch)
+    return values
+
+
+def sampling_support(mode: str = "sagittal", ranges: Mapping[str, MotionRange] = PHYSIOLOGICAL_RANGES,
+                     max_jaw_closing_mm: float | None = MAX_JAW_CLOSING_MM) -> dict[str, list[float]]:
+    """Where :func:`sample_plans` draws with these settings: :func:`sampled_parameters`'s name ->
+    ``[min, max]`` over every plan it can return (mm, degrees). Its translation lengths and
+    angles are uniform in ``ranges``; a ``sagittal`` plan has no lateral translation and no
+    rotation off the x axis (a ``full`` one up to the whole length and angle);
+    ``jaw_closing_mm`` is bounded when ``max_jaw_closing_mm`` is set."""
+    if mode not in SAMPLING_MODES:
+        raise PlanError(f"unknown sampling mode {mode!r}; expected one of {SAMPLING_MODES}")
+    support = {}
+    for name in SAMPLED_SEGMENTS:
+        rg = ranges[name]
+        sagittal = mode == "sagittal"
+        support.update({f"{name}.translation_mm": list(rg.translation_mm),
+                        f"{name}.rotation_deg": list(rg.rotation_deg),
+                        f"{name}.lateral_translation_mm": [0.0, 0.0 if sagittal else rg.translation_mm[1]],
+                        f"{name}.off_axis_rotation_deg": [0.0, 0.0 if sagittal else rg.rotation_deg[1]]})
+    if max_jaw_closing_mm is not None:
+        support["jaw_closing_mm"] = [0.0, float(max_jaw_closing_mm)]
+    return support
+
+
 def sample_plans(n: int, seed: int | np.random.Generator, mode: str = "sagittal",
                  ranges: Mapping[str, MotionRange] = PHYSIOLOGICAL_RANGES, *,
                  phantom: FacePhantom | FaceAnatomy,
@@ -754,7 +806,7 @@ def sample_plans(n: int, seed: int | np.random.Generator, mode: str = "sagittal"
     for r in streams:
         for _ in range(1000):
             motions = {}
-            for name in ("lefort", "distal"):
+            for name in SAMPLED_SEGMENTS:
                 rg = ranges[name]
                 t = r.uniform(*rg.translation_mm) * _directions(r, 1, mode)[0]
                 axis = np.array([r.choice([-1.0, 1.0]), 0.0, 0.0]) if mode == "sagittal" \

@@ -200,17 +200,16 @@ def _plan_ranges(db, keys) -> dict:
     return {name: [float(values[:, j].min()), float(values[:, j].max())] for j, name in enumerate(PLAN_PARAMETERS)}
 
 
-def plan_extrapolation(plan, ranges: dict | None, margin: float = 0.0) -> dict:
+def plan_extrapolation(plan, ranges: dict | None) -> dict:
     """How far each parameter of ``plan`` (:data:`PLAN_PARAMETERS`) lies outside the training
-    ``ranges`` (name -> [min, max]), ``margin`` as for :func:`toolkit.common.training.extrapolation`
-    (``"outside": "unknown"`` when the model holds no ranges)."""
+    ``ranges`` (name -> [min, max]) (``"outside": "unknown"`` when the model holds no ranges)."""
     from toolkit.static.dataset import plan_features
 
     with warnings.catch_warnings():  # the plan warned of its range where it was built
         warnings.simplefilter("ignore", PlanRangeWarning)
         features = plan_features(plan, 1)[0]
     values = dict(zip(PLAN_PARAMETERS, features[:len(PLAN_PARAMETERS)].tolist()))
-    return extrapolation(values, ranges, "plans", margin)
+    return extrapolation(values, ranges, "plans")
 
 
 def _points_key(points: np.ndarray) -> str:

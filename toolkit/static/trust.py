@@ -20,9 +20,9 @@ trained and validated on and run increment by increment like the FE.
 Split-conformal calibration (:mod:`toolkit.common.training.conformal`) turns the ratios into a
 factor whose bound holds at the stated coverage for a new plan exchangeable with the
 calibration ones. Inputs unlike them void that guarantee, so :func:`out_of_distribution`
-checks the inputs first (plan parameters beyond the training ranges by more than a margin, a
-face mesh of another topology or farther from every training subject than they lie from each
-other, another material), and :func:`answer` runs the FE for such inputs whatever the estimate says.
+checks the inputs first (a plan the training database's sampler cannot draw, a face mesh of
+another topology or farther from every training subject than they lie from each other, another
+material), and :func:`answer` runs the FE for such inputs whatever the estimate says.
 
 Which answer is given (``answerer``) and with which scale is chosen at calibration: ``auto``
 (default, for both) calibrates the network's and the baseline's errors against each scale and
@@ -76,9 +76,6 @@ SCALE_FLOOR_MM = 0.01
 #: and at least this far, or with a node farther than this outside the box (per coordinate) its
 #: training subjects span, is another shape
 MIN_SHAPE_SPREAD_MM = 1.0
-#: a plan parameter lying beyond its training range by at most this share of the range (or
-#: :attr:`Calibration.plan_margin`, whichever is smaller) is not out of distribution
-MAX_PLAN_MARGIN = 0.1
 
 
 def answer_error(predicted: np.ndarray, reference: np.ndarray) -> float:
@@ -97,7 +94,11 @@ class Calibration:
     residual : LinearPlusPOD, the regression of what the sliding response misses (the baseline's
         second part)
     train_plans : (m, 12) the plan parameters (last increment) of the simulations the model saw
-    plan_ranges : parameter -> [min, max] over them
+    plan_ranges : parameter -> [min, max] over them (the scale of the distance to the nearest one)
+    plan_support : where the training database's plans were drawn
+        (:func:`~toolkit.static.plan.sampling_support` of its mode and jaw-closing bound)
+    arch_nodes : (k,) int, the training topology's nodes of the dental arch
+        (:func:`~toolkit.static.plan.dental_arch`), for the jaw closing of a plan
     subjects : (s, n, 3) mm, the training subjects' pre-operative points
     shape_spread_mm : the largest RMS distance between two training subjects (at least
         :data:`MIN_SHAPE_SPREAD_MM`)
@@ -121,10 +122,12 @@ class Calibration:
     source: dict = field(default_factory=dict)
     answerer: str = "network"
     bounds: dict = field(default_factory=dict)
+    plan_support: dict = field(default_factory=dict)
+    arch_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def save(self, directory) -> Path:
         """Write ``calibration.json`` and ``calibration.npz`` into the model directory."""
-        arrays = {"train_plans": self.train_plans, "subjects": self.subjects}
+        arrays = {"train_plans": self.train_plans, "subjects": self.subjects, "arch_nodes": self.arch_nodes}
         if self.residual is not None:
             r = self.residual.residual
             arrays.update(mean=r.mean, modes=r.modes, coef=r.coef, x_scale=r.x_scale,
@@ -132,21 +135,27 @@ class Calibration:
         meta = {"scale": self.scale, "bound": self.bound.to_dict(), "plan_ranges": self.plan_ranges,
                 "shape_spread_mm": self.shape_spread_mm, "material": self.material, "cases": self.cases,
                 "source": self.source, "answerer": self.answerer,
-                "bounds": {k: b.to_dict() for k, b in self.bounds.items()}, "baseline": BASELINE}
+                "bounds": {k: b.to_dict() for k, b in self.bounds.items()}, "baseline": BASELINE,
+                "plan_support": self.plan_support}
         return save_calibration(directory, meta, arrays)
 
     @classmethod
     def load(cls, directory) -> Calibration:
         """Read the calibration of a model directory (FileNotFoundError naming the command that
-        makes one; ValueError, naming it too, for a calibration whose baseline has another linear
-        part)."""
+        makes one; ValueError, naming it too, for a calibration written by an earlier version:
+        a baseline on another linear part, or no record of where the training plans were drawn)."""
         from toolkit.static.baselines import LinearPlusPOD, PODRegression
 
         meta, arrays = load_calibration(directory, "toolkit static calibrate")
-        if meta.get("baseline") != BASELINE:
-            raise ValueError(f"{Path(directory) / 'calibration.json'}: its baseline was fit on the influence matrix "
-                             f"(mucosa and lips free), not on the {BASELINE} this version adds it to; "
-                             f"calibrate again: toolkit static calibrate --model {directory} --data DB.h5")
+        missing = [what for what, ok in (
+            (f"its baseline was fit on the influence matrix (mucosa and lips free), not on the {BASELINE}",
+             meta.get("baseline") == BASELINE),
+            ("it does not record where the training plans were drawn (plan_support)",
+             "plan_support" in meta and "arch_nodes" in arrays)) if not ok]
+        if missing:
+            raise ValueError(f"{Path(directory) / 'calibration.json'} was written by an earlier version: "
+                             f"{'; '.join(missing)}; calibrate again: "
+                             f"toolkit static calibrate --model {directory} --data DB.h5")
         residual = None
         if "modes" in arrays:
             residual = LinearPlusPOD(PODRegression(arrays["mean"], arrays["modes"], arrays["coef"],
@@ -154,20 +163,8 @@ class Calibration:
         return cls(meta["scale"], ConformalBound.from_dict(meta["bound"]), residual, arrays["train_plans"],
                    meta["plan_ranges"], arrays["subjects"], float(meta["shape_spread_mm"]), meta["material"],
                    meta["cases"], meta["source"], meta.get("answerer", "network"),
-                   {k: ConformalBound.from_dict(b) for k, b in meta.get("bounds", {}).items()})
-
-    @property
-    def plan_margin(self) -> float:
-        """Share of each parameter's training range a plan may lie beyond it and still be in
-        distribution: ``ln(50) / m`` for ``m`` training plans, at most :data:`MAX_PLAN_MARGIN`.
-
-        ``m`` plans drawn uniformly over a range leave a gap of more than that share at one end
-        with probability ``(1 - ln(50) / m) ** m``, about 2 %: a plan drawn like them lies
-        beyond their box by that much about as rarely, while a plan beyond it by more comes
-        from a wider distribution. Without a margin, a plan drawn like them lies outside the
-        range of one parameter with probability ``2 / (m + 1)``: 1 time in 7 in one of the six
-        sagittal parameters of 80 plans."""
-        return float(min(MAX_PLAN_MARGIN, np.log(50.0) / max(len(self.train_plans), 1)))
+                   {k: ConformalBound.from_dict(b) for k, b in meta.get("bounds", {}).items()},
+                   meta["plan_support"], arrays["arch_nodes"].astype(np.int64))
 
     def at(self, coverage: float) -> Calibration:
         """The same calibration with its bound at another coverage."""
@@ -250,10 +247,12 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     -------
     Calibration (not saved: ``.save(model_directory)``)
     """
+    from scipy.spatial import cKDTree
     from tqdm import tqdm
 
     from toolkit.static.baselines import LinearPlusPOD
     from toolkit.static.dataset import PLAN_FEATURES, StaticDatabase
+    from toolkit.static.plan import PHYSIOLOGICAL_RANGES, dental_arch, sampling_support
     from toolkit.static.surrogate import PLAN_PARAMETERS, _simulation_identities, check_database, evaluation_keys
 
     if scale not in SCALES + ("auto",):
@@ -293,6 +292,9 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
                    for j, n in enumerate(PLAN_PARAMETERS)}
     seen_subjects = sorted({int(s) for s in train_db.samples.subject[train_db.samples.key.isin(seen_keys)]})
     pts = np.stack([train_db.points[s] for s in seen_subjects])
+    support = sampling_support(train_db.config.mode, PHYSIOLOGICAL_RANGES, train_db.config.max_jaw_closing_mm)
+    first = train_db.subject(seen_subjects[0])
+    arch_nodes = cKDTree(pts[0]).query(dental_arch(first))[1].astype(np.int64)
     spread = max([_rms(a, b) for i, a in enumerate(pts) for b in pts[i + 1:]] + [MIN_SHAPE_SPREAD_MM])
     cases = []
     fe_s = db.samples.groupby("key").seconds.sum()
@@ -315,7 +317,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     return Calibration(scale, bounds[answerer], residual, train_plans, plan_ranges, pts, float(spread),
                        db.config.material, cases, {"database": str(Path(db.path).resolve()), "plans": how,
                                                    "training_database": str(Path(train_db.path).resolve())},
-                       answerer, bounds)
+                       answerer, bounds, support, arch_nodes)
 
 
 def _choose(cases: list, coverage: float, scale: str, answerer: str) -> tuple[str, str, dict]:
@@ -381,18 +383,28 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
     Returns ``{"outside": bool, "reasons": [str], "plan": extrapolation dict with
     ``nearest_plan_distance`` (the distance to the nearest training plan, each parameter over
     its training span), "shape": {"rms_to_nearest_subject_mm", "training_spread_mm",
-    "outside_envelope_mm"}, "material": {"asked", "trained"}}``. The face is another shape when it
-    lies farther (RMS) from every training subject than they lie from each other, or when one of
-    its nodes lies more than :data:`MIN_SHAPE_SPREAD_MM` outside the per-coordinate box of that
-    node over the training subjects. A plan is outside when one of its parameters lies beyond
-    the training range by more than :attr:`Calibration.plan_margin` of that range (``"plan"``:
-    ``margin``, and ``within_margin``, the parameters beyond the range by less).
+    "outside_envelope_mm"}, "material": {"asked", "trained"}}``.
+
+    A plan is outside when the training database's sampler could not have drawn it: one of
+    its :func:`~toolkit.static.plan.sampled_parameters` (translation lengths and rotation
+    angles, out-of-plane motion for a sagittal database, and the jaw closing on a face of the
+    training topology) lies outside :attr:`Calibration.plan_support`. The calibration's
+    plans were drawn from that support, so the bound's coverage holds over all of it, edges
+    included; the box of the training plans' own parameters is narrower (80 plans leave some
+    of the support's corners uncovered). The face is another shape when it lies farther (RMS)
+    from every training subject than they lie from each other, or when one of its nodes lies
+    more than :data:`MIN_SHAPE_SPREAD_MM` outside the per-coordinate box of that node over the
+    training subjects.
     """
-    from toolkit.common.training.extrapolation import describe_extrapolation
-    from toolkit.static.surrogate import PLAN_PARAMETERS, plan_extrapolation
+    from toolkit.common.training.extrapolation import describe_extrapolation, extrapolation
+    from toolkit.static.plan import sampled_parameters
+    from toolkit.static.surrogate import PLAN_PARAMETERS
 
     reasons = []
-    ex = plan_extrapolation(plan, calibration.plan_ranges, calibration.plan_margin)
+    same_shape = same_topology and mesh.points.shape == calibration.subjects.shape[1:]
+    arch = mesh.points[calibration.arch_nodes] if same_shape and "jaw_closing_mm" in calibration.plan_support \
+        else None
+    ex = extrapolation(sampled_parameters(plan, arch), calibration.plan_support, "plans")
     values = np.array(_plan_values(plan))
     lo = np.array([calibration.plan_ranges[n][0] for n in PLAN_PARAMETERS])
     span = np.array([calibration.plan_ranges[n][1] for n in PLAN_PARAMETERS]) - lo
@@ -401,7 +413,7 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
     if ex["outside"]:
         reasons.append("plan: " + describe_extrapolation(ex))
     shape = {"training_spread_mm": calibration.shape_spread_mm}
-    if not same_topology or mesh.points.shape != calibration.subjects.shape[1:]:
+    if not same_shape:
         shape.update(rms_to_nearest_subject_mm=None, outside_envelope_mm=None)
         reasons.append("face: a mesh of another topology than the training subjects")
     else:

@@ -13,22 +13,18 @@ from collections.abc import Mapping
 __all__ = ["extrapolation", "describe_extrapolation"]
 
 
-def extrapolation(values: Mapping[str, float], ranges: Mapping[str, list] | None, what: str = "inputs",
-                  margin: float = 0.0) -> dict:
+def extrapolation(values: Mapping[str, float], ranges: Mapping[str, list] | None, what: str = "inputs") -> dict:
     """Each parameter of ``values`` outside its training range in ``ranges`` (name -> [min, max]).
 
     Returns ``{"outside": bool, "parameters": {name: {"value", "train_range", "outside_by"}}}``
     listing only the parameters outside their range (``outside_by`` > 0, in the parameter's
     unit); ``{"outside": "unknown", ...}`` with a ``note`` when ``ranges`` is empty or None (a
-    model that does not record them; ``what`` names them in the note). With ``margin`` > 0, a
-    parameter beyond its range by at most ``margin`` times the range's width (1 unit for a range
-    of one value) is listed under ``within_margin`` instead and does not count as outside; the
-    dict then holds ``margin`` too.
+    model that does not record them; ``what`` names them in the note).
     """
     if not ranges:
         return {"outside": "unknown", "parameters": {},
                 "note": f"the model does not record the range of its training {what} (retrain it to record them)"}
-    out, near = {}, {}
+    out = {}
     for name, value in values.items():
         if name not in ranges:
             raise KeyError(f"no training range for {name!r}; the model records {sorted(ranges)}")
@@ -36,10 +32,7 @@ def extrapolation(values: Mapping[str, float], ranges: Mapping[str, list] | None
         value = float(value)
         by = max(lo - value, value - hi, 0.0)
         if by > 1e-9 * max(1.0, abs(lo), abs(hi)):
-            within = by <= margin * (hi - lo if hi > lo else 1.0)
-            (near if within else out)[name] = {"value": value, "train_range": [lo, hi], "outside_by": by}
-    if margin > 0:
-        return {"outside": bool(out), "parameters": out, "margin": float(margin), "within_margin": near}
+            out[name] = {"value": value, "train_range": [lo, hi], "outside_by": by}
     return {"outside": bool(out), "parameters": out}
 
 
