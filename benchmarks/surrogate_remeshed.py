@@ -52,6 +52,7 @@ def add_training_arguments(ap: argparse.ArgumentParser) -> None:
 def stage_database(args) -> Path:
     from toolkit.static.dataset import DatasetConfig, generate
 
+    WORK.mkdir(parents=True, exist_ok=True)
     path = WORK / f"static_paper_subjects{args.suffix}.h5"
     generate(path, DatasetConfig("paper", args.subjects, args.plans, "sagittal", seed=args.seed), workers=args.workers)
     return path

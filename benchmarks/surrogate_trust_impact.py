@@ -137,6 +137,7 @@ def main(args, argv=None):
     set_threads(1)
     sc = scene(args)
     tag = f"{args.resolution}{args.suffix}"
+    WORK.mkdir(parents=True, exist_ok=True)
     train = database(WORK / f"trust_impact_train_{tag}.h5", TRAIN_VELOCITIES, HELD_OUT, sc)
     cal_v = [v for v in velocities("in", args.calibration, 1) if v not in TRAIN_VELOCITIES]
     cal_db = database(WORK / f"trust_impact_cal_{tag}.h5", cal_v, [], sc)
