@@ -346,30 +346,31 @@ def test_sample_plans_are_uniform_in_the_ranges(phantom, mode):
 
 
 @pytest.mark.parametrize("mode", ["sagittal", "full"])
-def test_sampling_support_holds_every_draw_and_no_more(phantom, mode):
-    """Every plan sample_plans draws lies in sampling_support (read back by sampled_parameters),
-    and 300 draws reach within 10 % of the top of each of its ranges: the support is where the
-    sampler draws, not wider; a plan one step beyond a range is outside."""
+def test_sampling_hull_holds_every_draw_and_no_more(phantom, mode):
+    """Every plan sample_plans draws lies in sampling_hull (read back by sampled_parameters),
+    and 300 draws reach within 10 % of the top of each of its ranges: the hull is no wider than
+    what the sampler spans; a plan one step beyond a range is outside."""
     from toolkit.common.training import extrapolation
-    from toolkit.static.plan import dental_arch, sample_plans, sampled_parameters, sampling_support
+    from toolkit.static.plan import dental_arch, sample_plans, sampled_parameters, sampling_hull
 
-    support = sampling_support(mode)
-    assert support["lefort.lateral_translation_mm"] == [0.0, 0.0 if mode == "sagittal" else 6.3]
+    hull = sampling_hull(mode)
+    assert hull["lefort.lateral_translation_mm"] == [0.0, 0.0 if mode == "sagittal" else 6.3]
+    assert hull["distal.translation_mm"] == [0.0, 11.5] and hull["distal.rotation_deg"] == [0.0, 13.3]
     arch = dental_arch(phantom)
     values = [sampled_parameters(p, arch) for p in sample_plans(300, 11, mode, phantom=phantom)]
     for v in values:
-        assert extrapolation(v, support)["outside"] is False
-    for name, (lo, hi) in support.items():
+        assert extrapolation(v, hull)["outside"] is False
+    for name, (lo, hi) in hull.items():
         if hi > lo:
             assert max(v[name] for v in values) > hi - 0.1 * (hi - lo), name
     beyond = SurgicalPlan.from_dict({"lefort": {"translation_mm": [0.0, 6.4, 0.0]},
                                      "distal": {"translation_mm": [0.0, -5.0, 0.0],
                                                 "rotation_vector_deg": [5.0, 0.0, 0.0]}}, phantom=phantom)
-    ex = extrapolation(sampled_parameters(beyond, arch), support)
+    ex = extrapolation(sampled_parameters(beyond, arch), hull)
     assert list(ex["parameters"]) == ["lefort.translation_mm"]
     assert ex["parameters"]["lefort.translation_mm"]["outside_by"] == pytest.approx(0.1)
     with pytest.raises(ValueError, match="unknown sampling mode 'axial'"):
-        sampling_support("axial")
+        sampling_hull("axial")
 
 
 def test_sample_plans_are_reproducible_and_extend(phantom):

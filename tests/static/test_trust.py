@@ -79,11 +79,11 @@ def test_calibration_measures_held_out_plans_and_round_trips(calibrated, db100):
     assert loaded.bound == cal.bound and loaded.scale == cal.scale and loaded.answerer == cal.answerer
     assert loaded.bounds == cal.bounds and loaded.at(0.5).bounds["network"].factor <= cal.bounds["network"].factor
     np.testing.assert_array_equal(loaded.residual.residual.modes, cal.residual.residual.modes)
-    assert loaded.plan_ranges == cal.plan_ranges and loaded.plan_support == cal.plan_support
+    assert loaded.plan_ranges == cal.plan_ranges and loaded.plan_hull == cal.plan_hull
     np.testing.assert_array_equal(loaded.arch_nodes, cal.arch_nodes)
 
 
-@pytest.mark.parametrize("key, what", [("baseline", "influence matrix"), ("plan_support", "plan_support")])
+@pytest.mark.parametrize("key, what", [("baseline", "influence matrix"), ("plan_hull", "plan_hull")])
 def test_a_calibration_of_an_earlier_version_is_refused(calibrated, tmp_path, key, what):
     """A calibration whose residual regression was fit on another linear part would add it to
     the wrong one, and one without the training plans' support cannot check a plan: loading
@@ -128,32 +128,33 @@ def _plan(case, lefort, distal):
         return SurgicalPlan.from_dict({"lefort": lefort, "distal": distal}, phantom=case.subject)
 
 
-def test_a_plan_the_sampler_can_draw_is_in_distribution_beyond_the_training_plans_box(calibrated):
-    """The support is where the database's sampler draws (translation lengths and angles within the
-    physiological ranges, sagittal, jaws closing by at most 10 mm), not the box of the plans it drew:
-    a plan at the top of every range, straight up, lies outside that box and is in distribution."""
+@pytest.mark.parametrize("distal", [{"translation_mm": [0.0, 0.0, 11.5], "rotation_vector_deg": [-13.3, 0, 0]},
+                                    {"translation_mm": [0.0, 1.0, 0.0]}], ids=["top of the ranges", "below them"])
+def test_a_plan_within_the_samplers_hull_is_in_distribution_beyond_the_training_plans_box(calibrated, distal):
+    """The hull is what the database's sampler spans (translation lengths and angles up to the top of
+    the physiological ranges, sagittal, jaws closing by at most 10 mm), not the box of the plans it
+    drew: a plan at the top of every range, straight up, lies outside that box and is in
+    distribution; so is an unrotated 1 mm distal advance, below the ranges' bottom (2.1 mm,
+    0.5 degrees) but between drawn motions of opposite directions."""
     _, cal = calibrated
     case = load_case(resolution="coarse")
-    assert cal.plan_support["distal.translation_mm"] == [2.1, 11.5]
-    assert cal.plan_support["lefort.lateral_translation_mm"] == [0.0, 0.0]
-    edge = _plan(case, {"translation_mm": [0.0, 0.0, 6.3], "rotation_vector_deg": [9.8, 0, 0]},
-                 {"translation_mm": [0.0, 0.0, 11.5], "rotation_vector_deg": [-13.3, 0, 0]})
-    assert plan_features(edge, 1)[0][8] > cal.plan_ranges["distal.translation_z_mm"][1]  # beyond the box
-    ood = out_of_distribution(cal, case.subject.mesh, edge)
+    assert cal.plan_hull["distal.translation_mm"] == [0.0, 11.5]
+    assert cal.plan_hull["lefort.lateral_translation_mm"] == [0.0, 0.0]
+    plan = _plan(case, {"translation_mm": [0.0, 0.0, 6.3], "rotation_vector_deg": [9.8, 0, 0]}, distal)
+    assert plan_features(plan, 1)[0][2] > cal.plan_ranges["lefort.translation_z_mm"][1]  # beyond the box
+    ood = out_of_distribution(cal, case.subject.mesh, plan)
     assert not ood["outside"], ood["reasons"]
     assert 0 < ood["plan"]["nearest_plan_distance"]
 
 
 @pytest.mark.parametrize("lefort, distal, parameter", [
     ({"translation_mm": [0.0, 6.6, 0.0]}, {**DISTAL, "translation_mm": [0.0, -5.0, 0.0]}, "lefort.translation_mm"),
-    ({"translation_mm": [0.0, 3.0, 0.0]}, {**DISTAL, "translation_mm": [0.0, -1.0, 0.0]}, "distal.translation_mm"),
-    ({"translation_mm": [0.0, 3.0, 0.0]}, {**DISTAL, "rotation_vector_deg": [0.2, 0.0, 0.0]}, "distal.rotation_deg"),
+    ({"translation_mm": [0.0, 3.0, 0.0]}, {**DISTAL, "rotation_vector_deg": [-13.5, 0.0, 0.0]}, "distal.rotation_deg"),
     ({"translation_mm": [0.5, 3.0, 0.0]}, DISTAL, "lefort.lateral_translation_mm"),
     ({"translation_mm": [0.0, 3.0, 0.0]}, {**DISTAL, "rotation_vector_deg": [5.0, 0.0, 2.0]},
      "distal.off_axis_rotation_deg"),
     ({"translation_mm": [0.0, 0.0, -6.0]}, {**DISTAL, "translation_mm": [0.0, 0.0, 11.0]}, "jaw_closing_mm"),
-], ids=["lefort beyond the range", "distal below the range", "distal unrotated", "lateral", "yaw",
-        "jaws through each other"])
+], ids=["lefort beyond the range", "distal rotated beyond it", "lateral", "yaw", "jaws through each other"])
 def test_a_plan_the_sampler_cannot_draw_is_out_of_distribution(calibrated, lefort, distal, parameter):
     _, cal = calibrated
     case = load_case(resolution="coarse")

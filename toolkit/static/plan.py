@@ -63,7 +63,7 @@ __all__ = [
     "SAMPLING_MODES",
     "SAMPLED_SEGMENTS",
     "sampled_parameters",
-    "sampling_support",
+    "sampling_hull",
     "PLAN_FORMATS",
     "SEGMENTS",
     "PlanError",
@@ -735,26 +735,30 @@ def sampled_parameters(plan: SurgicalPlan, arch: np.ndarray | None = None) -> di
     return values
 
 
-def sampling_support(mode: str = "sagittal", ranges: Mapping[str, MotionRange] = PHYSIOLOGICAL_RANGES,
-                     max_jaw_closing_mm: float | None = MAX_JAW_CLOSING_MM) -> dict[str, list[float]]:
-    """Where :func:`sample_plans` draws with these settings: :func:`sampled_parameters`'s name ->
-    ``[min, max]`` over every plan it can return (mm, degrees). Its translation lengths and
-    angles are uniform in ``ranges``; a ``sagittal`` plan has no lateral translation and no
-    rotation off the x axis (a ``full`` one up to the whole length and angle);
-    ``jaw_closing_mm`` is bounded when ``max_jaw_closing_mm`` is set."""
+def sampling_hull(mode: str = "sagittal", ranges: Mapping[str, MotionRange] = PHYSIOLOGICAL_RANGES,
+                  max_jaw_closing_mm: float | None = MAX_JAW_CLOSING_MM) -> dict[str, list[float]]:
+    """What :func:`sample_plans` spans with these settings: :func:`sampled_parameters`'s name ->
+    ``[min, max]`` (mm, degrees) bounding, segment by segment, the convex hull of the motions it
+    draws.
+
+    It draws translation lengths and rotation angles uniform in ``ranges``, in every direction of
+    the plane (``sagittal``: no lateral translation, rotation about x only) or of the space
+    (``full``), so a motion is within the hull when its length and angle are at most the top of
+    the range, wherever they are below the bottom: a shorter motion (an unrotated distal segment,
+    say) lies between drawn ones of opposite directions. ``jaw_closing_mm`` is bounded when
+    ``max_jaw_closing_mm`` is set (draws beyond it are rejected)."""
     if mode not in SAMPLING_MODES:
         raise PlanError(f"unknown sampling mode {mode!r}; expected one of {SAMPLING_MODES}")
-    support = {}
+    hull = {}
     for name in SAMPLED_SEGMENTS:
-        rg = ranges[name]
+        top_mm, top_deg = float(ranges[name].translation_mm[1]), float(ranges[name].rotation_deg[1])
         sagittal = mode == "sagittal"
-        support.update({f"{name}.translation_mm": list(rg.translation_mm),
-                        f"{name}.rotation_deg": list(rg.rotation_deg),
-                        f"{name}.lateral_translation_mm": [0.0, 0.0 if sagittal else rg.translation_mm[1]],
-                        f"{name}.off_axis_rotation_deg": [0.0, 0.0 if sagittal else rg.rotation_deg[1]]})
+        hull.update({f"{name}.translation_mm": [0.0, top_mm], f"{name}.rotation_deg": [0.0, top_deg],
+                     f"{name}.lateral_translation_mm": [0.0, 0.0 if sagittal else top_mm],
+                     f"{name}.off_axis_rotation_deg": [0.0, 0.0 if sagittal else top_deg]})
     if max_jaw_closing_mm is not None:
-        support["jaw_closing_mm"] = [0.0, float(max_jaw_closing_mm)]
-    return support
+        hull["jaw_closing_mm"] = [0.0, float(max_jaw_closing_mm)]
+    return hull
 
 
 def sample_plans(n: int, seed: int | np.random.Generator, mode: str = "sagittal",

@@ -20,7 +20,7 @@ trained and validated on and run increment by increment like the FE.
 Split-conformal calibration (:mod:`toolkit.common.training.conformal`) turns the ratios into a
 factor whose bound holds at the stated coverage for a new plan exchangeable with the
 calibration ones. Inputs unlike them void that guarantee, so :func:`out_of_distribution`
-checks the inputs first (a plan the training database's sampler cannot draw, a face mesh of
+checks the inputs first (a plan beyond what the training database's sampler spans, a face mesh of
 another topology or farther from every training subject than they lie from each other, another
 material), and :func:`answer` runs the FE for such inputs whatever the estimate says.
 
@@ -95,8 +95,8 @@ class Calibration:
         second part)
     train_plans : (m, 12) the plan parameters (last increment) of the simulations the model saw
     plan_ranges : parameter -> [min, max] over them (the scale of the distance to the nearest one)
-    plan_support : where the training database's plans were drawn
-        (:func:`~toolkit.static.plan.sampling_support` of its mode and jaw-closing bound)
+    plan_hull : parameter -> [min, max] the training database's sampler spans
+        (:func:`~toolkit.static.plan.sampling_hull` of its mode and jaw-closing bound)
     arch_nodes : (k,) int, the training topology's nodes of the dental arch
         (:func:`~toolkit.static.plan.dental_arch`), for the jaw closing of a plan
     subjects : (s, n, 3) mm, the training subjects' pre-operative points
@@ -122,7 +122,7 @@ class Calibration:
     source: dict = field(default_factory=dict)
     answerer: str = "network"
     bounds: dict = field(default_factory=dict)
-    plan_support: dict = field(default_factory=dict)
+    plan_hull: dict = field(default_factory=dict)
     arch_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def save(self, directory) -> Path:
@@ -136,7 +136,7 @@ class Calibration:
                 "shape_spread_mm": self.shape_spread_mm, "material": self.material, "cases": self.cases,
                 "source": self.source, "answerer": self.answerer,
                 "bounds": {k: b.to_dict() for k, b in self.bounds.items()}, "baseline": BASELINE,
-                "plan_support": self.plan_support}
+                "plan_hull": self.plan_hull}
         return save_calibration(directory, meta, arrays)
 
     @classmethod
@@ -150,8 +150,8 @@ class Calibration:
         missing = [what for what, ok in (
             (f"its baseline was fit on the influence matrix (mucosa and lips free), not on the {BASELINE}",
              meta.get("baseline") == BASELINE),
-            ("it does not record where the training plans were drawn (plan_support)",
-             "plan_support" in meta and "arch_nodes" in arrays)) if not ok]
+            ("it does not record what the training plans span (plan_hull)",
+             "plan_hull" in meta and "arch_nodes" in arrays)) if not ok]
         if missing:
             raise ValueError(f"{Path(directory) / 'calibration.json'} was written by an earlier version: "
                              f"{'; '.join(missing)}; calibrate again: "
@@ -164,7 +164,7 @@ class Calibration:
                    meta["plan_ranges"], arrays["subjects"], float(meta["shape_spread_mm"]), meta["material"],
                    meta["cases"], meta["source"], meta.get("answerer", "network"),
                    {k: ConformalBound.from_dict(b) for k, b in meta.get("bounds", {}).items()},
-                   meta["plan_support"], arrays["arch_nodes"].astype(np.int64))
+                   meta["plan_hull"], arrays["arch_nodes"].astype(np.int64))
 
     def at(self, coverage: float) -> Calibration:
         """The same calibration with its bound at another coverage."""
@@ -252,7 +252,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
 
     from toolkit.static.baselines import LinearPlusPOD
     from toolkit.static.dataset import PLAN_FEATURES, StaticDatabase
-    from toolkit.static.plan import PHYSIOLOGICAL_RANGES, dental_arch, sampling_support
+    from toolkit.static.plan import PHYSIOLOGICAL_RANGES, dental_arch, sampling_hull
     from toolkit.static.surrogate import PLAN_PARAMETERS, _simulation_identities, check_database, evaluation_keys
 
     if scale not in SCALES + ("auto",):
@@ -292,7 +292,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
                    for j, n in enumerate(PLAN_PARAMETERS)}
     seen_subjects = sorted({int(s) for s in train_db.samples.subject[train_db.samples.key.isin(seen_keys)]})
     pts = np.stack([train_db.points[s] for s in seen_subjects])
-    support = sampling_support(train_db.config.mode, PHYSIOLOGICAL_RANGES, train_db.config.max_jaw_closing_mm)
+    hull = sampling_hull(train_db.config.mode, PHYSIOLOGICAL_RANGES, train_db.config.max_jaw_closing_mm)
     first = train_db.subject(seen_subjects[0])
     arch_nodes = cKDTree(pts[0]).query(dental_arch(first))[1].astype(np.int64)
     spread = max([_rms(a, b) for i, a in enumerate(pts) for b in pts[i + 1:]] + [MIN_SHAPE_SPREAD_MM])
@@ -317,7 +317,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     return Calibration(scale, bounds[answerer], residual, train_plans, plan_ranges, pts, float(spread),
                        db.config.material, cases, {"database": str(Path(db.path).resolve()), "plans": how,
                                                    "training_database": str(Path(train_db.path).resolve())},
-                       answerer, bounds, support, arch_nodes)
+                       answerer, bounds, hull, arch_nodes)
 
 
 def _choose(cases: list, coverage: float, scale: str, answerer: str) -> tuple[str, str, dict]:
@@ -385,13 +385,14 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
     its training span), "shape": {"rms_to_nearest_subject_mm", "training_spread_mm",
     "outside_envelope_mm"}, "material": {"asked", "trained"}}``.
 
-    A plan is outside when the training database's sampler could not have drawn it: one of
+    A plan is outside when it lies beyond what the training database's sampler spans: one of
     its :func:`~toolkit.static.plan.sampled_parameters` (translation lengths and rotation
     angles, out-of-plane motion for a sagittal database, and the jaw closing on a face of the
-    training topology) lies outside :attr:`Calibration.plan_support`. The calibration's
-    plans were drawn from that support, so the bound's coverage holds over all of it, edges
-    included; the box of the training plans' own parameters is narrower (80 plans leave some
-    of the support's corners uncovered). The face is another shape when it lies farther (RMS)
+    training topology) lies outside :attr:`Calibration.plan_hull`. The calibration's plans
+    are drawn like the training ones, so the bound's coverage holds up to the edges of the
+    ranges; the box of the training plans' own parameters is narrower (a translation drawn
+    uniform in length and direction has components thin near their extremes, and 80 plans
+    leave corners of the ranges outside their box). The face is another shape when it lies farther (RMS)
     from every training subject than they lie from each other, or when one of its nodes lies
     more than :data:`MIN_SHAPE_SPREAD_MM` outside the per-coordinate box of that node over the
     training subjects.
@@ -402,9 +403,9 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
 
     reasons = []
     same_shape = same_topology and mesh.points.shape == calibration.subjects.shape[1:]
-    arch = mesh.points[calibration.arch_nodes] if same_shape and "jaw_closing_mm" in calibration.plan_support \
+    arch = mesh.points[calibration.arch_nodes] if same_shape and "jaw_closing_mm" in calibration.plan_hull \
         else None
-    ex = extrapolation(sampled_parameters(plan, arch), calibration.plan_support, "plans")
+    ex = extrapolation(sampled_parameters(plan, arch), calibration.plan_hull, "plans")
     values = np.array(_plan_values(plan))
     lo = np.array([calibration.plan_ranges[n][0] for n in PLAN_PARAMETERS])
     span = np.array([calibration.plan_ranges[n][1] for n in PLAN_PARAMETERS]) - lo
