@@ -705,6 +705,13 @@ def _surrogate_trust_impact_one(result):
             ("coverage_95_out", "95 %, out", "{:.0%}"), ("width_90_in_mm", "mean bound 90 %, in (mm)", "{:.3f}"),
             ("auroc_0.5mm", "AUROC 0.5 mm", "{:.2f}"), ("auroc_1mm", "1 mm", "{:.2f}"),
             ("estimate_s", "estimate (s)", "{:.4f}")]))
+    if extra.get("warm_start"):
+        parts.append("Warm start: the quasi-static FE of the {cases} out-of-distribution cases started from the "
+                     "LSTM's prediction (`simulate(initial_guess=)`) took {warm_s:.2f} s and {warm_newton:.0f} Newton "
+                     "iterations on average, against {cold_s:.2f} s and {cold_newton:.0f} from each load step's "
+                     "previous increment, run back to back; Newton failed from the prediction in {guess_failures} "
+                     "load steps (which then started from the previous increment); the two answers agree to "
+                     "{max_diff_mm:.2g} mm.".format(**extra["warm_start"]))
     if extra.get("policies"):
         parts.append("`impact predict --tolerance` over the cases whose FE completed (the FE answers "
                      "out-of-distribution inputs and estimates above the tolerance; its answer is the reference):")

@@ -28,7 +28,11 @@ Stages (each resumable: rerun the same command to continue; databases in ``bench
    nodal error against the FE), the bound at 90 % and 95 %, the out-of-distribution check, the
    time of the network, the estimate and the FE; the error of the interpolation of the
    training simulations alone (a baseline that needs their fields); and the policy of
-   ``toolkit impact predict --tolerance`` at each of ``--tolerances`` mm.
+   ``toolkit impact predict --tolerance`` at each of ``--tolerances`` mm;
+6. for each case flagged out of distribution (those the FE answers), the quasi-static FE run
+   twice back to back, from each load step's previous increment and warm-started from the LSTM's
+   prediction (``simulate(initial_guess=)``): time, Newton iterations, steps where Newton failed
+   from the prediction, and the largest difference between the two answers.
 
 Writes ``benchmarks/results/surrogate_trust_impact.csv`` (one row per case and scale), the summary
 in its sidecar's ``extra``, and ``docs/figures/surrogate_trust_impact.png``.
@@ -87,6 +91,27 @@ def stage_model(args, train_path: Path):
         return ImpactSurrogate.load(out)
     cfg = CONFIGS["strong"].with_(max_seconds=args.max_minutes * 60.0)
     return train_surrogate(train_path, cfg, "velocity", out=out, seed=0, resume=(out / "checkpoint.pt").exists())
+
+
+def warm_start(case_scene, model, u: np.ndarray) -> dict:
+    """The case's quasi-static FE from each load step's previous increment (``cold``) and from the
+    LSTM's prediction ``u`` (F, N, 3) mm (``warm``), back to back: seconds, Newton iterations, the
+    warm run's steps where Newton failed from the prediction, and the largest difference (mm)."""
+    from toolkit.common.errors import ConvergenceError
+    from toolkit.impact.simulate import simulate
+
+    times = np.asarray(model.bundle.data["times_s"], dtype=float)
+    runs = {}
+    for name, guess in (("cold", None), ("warm", (times, u))):
+        t0 = time.perf_counter()
+        try:
+            runs[name] = (simulate(case_scene, initial_guess=guess), time.perf_counter() - t0)
+        except ConvergenceError:
+            return {}
+    (cold, cold_s), (warm, warm_s) = runs["cold"], runs["warm"]
+    return {"cold_s": cold_s, "cold_newton": cold.stats["iterations"], "warm_s": warm_s,
+            "warm_newton": warm.stats["iterations"], "warm_guess_failures": warm.stats["guess_failures"],
+            "warm_max_diff_mm": float(np.abs(warm.displacement - cold.displacement).max())}
 
 
 def policy(df: pd.DataFrame, scale: str, coverage: float, tolerance: float) -> dict:
@@ -195,6 +220,8 @@ def main(args, argv=None):
                     except ValueError:  # too few calibration velocities for this coverage
                         row[f"bound_{int(c * 100)}_mm"] = np.nan
                 rows.append(row)
+            if ood["outside"]:
+                rows[-1].update(warm_start(case_scene, model, u))
     table = pd.DataFrame(rows)
     methods = [method_scores(table, s) for s in SCALES]
     policies = [policy(table, s, c, t) for t in args.tolerances for s in SCALES for c in COVERAGES]
@@ -209,8 +236,14 @@ def main(args, argv=None):
                  "interpolation_in_p90_error_mm": float(inside.interpolation_error_mm.quantile(0.9)),
                  "lstm_ms_per_answer": 1e3 * float(inside.surrogate_s.mean()),
                  "fe_s_per_case": float(inside.fe_s.mean())}
+    warm = table.dropna(subset=["warm_s"]) if "warm_s" in table else table[:0]
+    warm_summary = {"cases": int(len(warm)), "cold_s": float(warm.cold_s.mean()), "warm_s": float(warm.warm_s.mean()),
+                    "cold_newton": float(warm.cold_newton.mean()), "warm_newton": float(warm.warm_newton.mean()),
+                    "guess_failures": int(warm.warm_guess_failures.sum()),
+                    "max_diff_mm": float(warm.warm_max_diff_mm.max())} if len(warm) else None
     write_result(args.out, table, argv=argv, extra={
         "methods": methods, "policies": policies, "calibration": calib, "baselines": baselines,
+        "warm_start": warm_summary,
         "tolerances_mm": args.tolerances, "resolution": args.resolution, "duration_s": args.duration,
         "train_seconds": model.bundle.extra.get("train_seconds"), "max_minutes": args.max_minutes})
     if args.out.resolve().parent == RESULTS.resolve():

@@ -495,12 +495,18 @@ class _Newton:
 
 def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration: float, n_frames: int,
                     options: ImplicitOptions = ImplicitOptions(), on_frame: Callable | None = None,
-                    progress: bool = False) -> tuple[list, dict]:
+                    progress: bool = False, initial_guess: Callable | None = None) -> tuple[list, dict]:
     """Quasi-static equilibrium path of ``model`` over ``duration`` s with ``n_frames`` frames
     (t > 0), the same :class:`~toolkit.impact.explicit.Frame` output as
     :func:`~toolkit.impact.explicit.run_explicit` (``model.mass``, ``model.dt`` and
     ``model.contact`` are not used; ``contact`` is the step contact). Raises
     :class:`ConvergenceError` when a step fails at ``options.min_step``.
+
+    Each load step's Newton iterations start from the previous step's increment scaled to the
+    new step; with ``initial_guess``, a callable ``t -> (m, 3)`` mm displacement of the first
+    ``m`` nodes at time ``t`` s (a surrogate's prediction, say), they start from it on those
+    nodes instead, and from the previous step's increment again when Newton fails from it
+    (``stats["guess_failures"]``) before the step is cut.
     """
     from tqdm.auto import tqdm
 
@@ -516,7 +522,8 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
     internal, contact_now, _, _ = solver.forces(u, states, model.points, 0.0, duration)
     ledger = _WorkLedger(solver.prescribed)  # no kinetic energy
     frames = []
-    stats = {"steps": 0, "iterations": 0, "cuts": 0, "max_contact_force_n": 0.0, "max_penetration_mm": 0.0}
+    stats = {"steps": 0, "iterations": 0, "cuts": 0, "max_contact_force_n": 0.0, "max_penetration_mm": 0.0,
+             "guess_failures": 0}
     bar = tqdm(total=n_frames, desc="frames (quasi-static)", disable=not progress, leave=False)
     t0 = time.perf_counter()
     try:
@@ -525,7 +532,11 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
             step = t_new - t
             guess = u + (step / last_step) * last_increment if last_step else u.copy()
             try:
-                u_new, internal_new, contact_new, its = solver.solve_step(u, states, guess, t_new, step)
+                if initial_guess is not None:
+                    u_new, internal_new, contact_new, its = _solve_from_guess(solver, u, states, guess,
+                                                                              initial_guess(t_new), t_new, step, stats)
+                else:
+                    u_new, internal_new, contact_new, its = solver.solve_step(u, states, guess, t_new, step)
             except NewtonFailed as exc:
                 log.info("t = %.4g s: step %.3g s cut (%s)", t_new, step, exc)
                 if not steps.cut():
@@ -570,3 +581,18 @@ def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration:
     stats["max_energy_error"] = max((f.energies.balance_error for f in frames if f.energies.external > 1e-12),
                                     default=0.0)
     return frames, stats
+
+
+def _solve_from_guess(solver: _Newton, u: np.ndarray, states: list, predictor: np.ndarray, given: np.ndarray,
+                      t: float, h: float, stats: dict):
+    """One load step started from ``given`` ``(m, 3)`` mm on the first ``m`` nodes (``predictor``
+    on the others), then, if Newton fails from there, from ``predictor`` alone (counted in
+    ``stats["guess_failures"]``; the iterations returned are the second attempt's)."""
+    guess = predictor.copy()
+    guess[:given.shape[0]] = given
+    try:
+        return solver.solve_step(u, states, guess, t, h)
+    except NewtonFailed as exc:
+        log.info("t = %.4g s: Newton failed from the initial guess (%s); from the previous increment", t, exc)
+        stats["guess_failures"] += 1
+        return solver.solve_step(u, states, predictor, t, h)

@@ -408,7 +408,7 @@ class ImpactResult:
         }
 
 
-def _run(scene: Scene, built: BuiltScene, on_frame, progress: bool) -> tuple[list, dict]:
+def _run(scene: Scene, built: BuiltScene, on_frame, progress: bool, initial_guess=None) -> tuple[list, dict]:
     """The scene's integrator over its duration: frames and statistics."""
     if scene.fidelity.integrator == "explicit":
         return run_explicit(built.model, scene.duration, scene.n_frames, on_frame=on_frame, progress=progress)
@@ -418,17 +418,35 @@ def _run(scene: Scene, built: BuiltScene, on_frame, progress: bool) -> tuple[lis
     contact = StepContact(built.contact_pair, built.model.points.shape[0], built.ball_centre,
                           scene.ball.velocity * np.asarray(scene.ball.direction, dtype=float))
     options = ImplicitOptions(steps=fid.load_steps, tolerance=fid.tolerance)
+    guess = None
+    if initial_guess is not None:
+        times, face_u = initial_guess
+        times = np.concatenate([[0.0], times])
+        face_u = np.concatenate([np.zeros((1, *face_u.shape[1:])), face_u])
+
+        def guess(t):
+            k = int(np.clip(np.searchsorted(times, t), 1, len(times) - 1))
+            w = float(np.clip((t - times[k - 1]) / (times[k] - times[k - 1]), 0.0, 1.0))
+            return (1.0 - w) * face_u[k - 1] + w * face_u[k]
+
     return run_quasistatic(built.model, contact, scene.duration, scene.n_frames, options, on_frame=on_frame,
-                           progress=progress)
+                           progress=progress, initial_guess=guess)
 
 
 def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False, preview: bool = True,
-             fidelity=None) -> ImpactResult:
+             fidelity=None, initial_guess: tuple[np.ndarray, np.ndarray] | None = None) -> ImpactResult:
     """Run ``scene``; with ``out``, stream frames to ``out/face.xdmf`` (and ``ball.xdmf``) and write
     ``history.h5``, ``summary.json`` and ``preview.png``.
 
     ``fidelity``: the :class:`~toolkit.common.fidelity.FidelityChoice` the scene's options come
     from (:meth:`Scene.with_fidelity_choice`); its record goes to the summary as ``fidelity``.
+
+    ``initial_guess``: ``(times (F,) s, displacement (F, n_face, 3) mm)`` of the face, e.g. a
+    surrogate's prediction, where the quasi-static path's Newton iterations start (linear in
+    time between the frames, from zero at t = 0; the ball from the previous step's increment),
+    falling back to the previous step's increment where Newton fails from it
+    (:func:`~toolkit.impact.implicit.run_quasistatic`). An explicit scene has no iterations to
+    start: ValueError.
 
     ``summary.json`` has ``"status"``: ``"finished"``, or, when the run raises or is interrupted
     (``KeyboardInterrupt``), ``"failed"`` or ``"interrupted"`` with the ``reason``, the ``error``
@@ -441,6 +459,17 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
     from toolkit.common.io import TimeSeriesWriter
     from toolkit.common.outputs import check_output_dir
 
+    if initial_guess is not None:
+        if scene.fidelity.integrator == "explicit":
+            raise ValueError("initial_guess with integrator = 'explicit': an explicit run has no iterations to "
+                             "start; use scene.with_fidelity(integrator='implicit') or leave initial_guess out")
+        g_times, g_u = (np.asarray(a, dtype=float) for a in initial_guess)
+        n_face = face_mesh(scene).n_points
+        if g_times.ndim != 1 or g_u.shape != (len(g_times), n_face, 3) or not np.all(np.diff(g_times) > 0) \
+                or not g_times.size or g_times[0] <= 0:
+            raise ValueError(f"initial_guess: times {g_times.shape} and displacement {g_u.shape}; expected "
+                             f"increasing times > 0 s (F,) and (F, {n_face}, 3) mm for this scene's face")
+        initial_guess = (g_times, g_u)
     if out is not None:
         check_output_dir(out)
     t0 = time.perf_counter()
@@ -459,7 +488,7 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
         done.append(frame)
 
     try:
-        frames, stats = _run(scene, built, on_frame, progress)
+        frames, stats = _run(scene, built, on_frame, progress, initial_guess)
     except BaseException as exc:
         for w in writers:
             w.close()
