@@ -143,7 +143,7 @@ class Calibration:
     def load(cls, directory) -> Calibration:
         """Read the calibration of a model directory (FileNotFoundError naming the command that
         makes one; ValueError, naming it too, for a calibration written by an earlier version:
-        a baseline on another linear part, or no record of where the training plans were drawn)."""
+        a baseline on another linear part, or no record of what the training plans span)."""
         from toolkit.static.baselines import LinearPlusPOD, PODRegression
 
         meta, arrays = load_calibration(directory, "toolkit static calibrate")
