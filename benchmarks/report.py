@@ -621,7 +621,8 @@ def _surrogate_trust(data):
             + (f"; the deep ensemble of {ensemble['members']} PointNet++ (the default model and more trained with "
                f"other seeds on its split), its spread on the same plans, factor {ensemble['factor_90']:.3g}"
                if ensemble else "") + "."
-            + (" The defaults (`auto`) choose the {scale} scale and the {answerer}'s answers.".format(**extra["auto"])
+            + (" Without a tolerance the defaults (`auto`) keep the {scale} scale and the {answerer}'s answers; "
+               "with one, the pair marked `default` below.".format(**extra["auto"])
                if extra.get("auto") else ""))
     if extra.get("warm_start"):
         parts.append("Warm start: the FE of the {cases} Neo-Hookean cases started from the baseline's answer "
@@ -642,9 +643,13 @@ def _surrogate_trust(data):
     if extra.get("policies"):
         parts.append("`predict --tolerance` over every case (the FE answers out-of-distribution inputs and "
                      "estimates above the tolerance; its answer is the reference):")
-        parts.append(table(pd.DataFrame(extra["policies"]), [
+        policies = pd.DataFrame(extra["policies"])
+        if "default" in policies:
+            policies["default"] = ["default" if d is True else "" for d in policies["default"]]
+        parts.append(table(policies, [
             ("tolerance_mm", "tolerance (mm)", "{:g}"), ("scale", "scale"), ("answerer", "answer of"),
-            ("coverage", "coverage", "{:.0%}"), ("cases", "cases"),
+            ("coverage", "coverage", "{:.0%}"), *([("default", "chosen")] if "default" in policies else []),
+            ("cases", "cases"),
             ("answered_by_surrogate", "answered without the FE", "{:.0%}"),
             ("in_distribution_answered_by_surrogate", "in-distribution answered without it", "{:.0%}"),
             ("delivered_within_tolerance", "answers within tolerance", "{:.0%}"),

@@ -32,7 +32,8 @@ Stages (each resumable: rerun the same command to continue):
    ``toolkit static predict --tolerance`` at each of ``--tolerances`` mm (the baseline with the
    constant scale is timed without the network, as ``answer`` runs it): the share of delivered
    answers within it, the share of in-distribution cases the surrogate answers, and the mean time
-   per answer against always running the FE.
+   per answer against always running the FE, with the pair ``predict --tolerance`` takes there
+   under the default calibration (``default``).
 
 Writes ``benchmarks/results/surrogate_trust_static.csv`` (one row per case, scale and answerer), the
 summary in its sidecar's ``extra``, and ``docs/figures/surrogate_trust_static.png`` (estimated
@@ -391,6 +392,9 @@ def main(argv=None):
     pairs = [(s, a) for s in SCALES for a in ANSWERED_BY] + ([("ensemble", "ensemble")] if members else [])
     methods = [method_scores(table, s, a) for s, a in pairs]
     policies = [policy(table, s, c, t, a) for t in args.tolerances for s, a in pairs for c in COVERAGES]
+    for p in policies:  # the pair `predict --tolerance` takes with the default calibration
+        chosen = auto.at(p["coverage"]).for_tolerance(p["tolerance_mm"])
+        p["default"] = (chosen.scale, chosen.answerer) == (p["scale"], p["answerer"])
     calib = {s: {"plans": c.bound.n, "answerer": c.answerer,
                  **{f"factor_90_{a}": c.bounds[a].factor for a in ANSWERED_BY},
                  **{f"factor_95_{a}": (c.bounds[a].at(0.95).factor if c.bound.n >= min_calibration_cases(0.95)

@@ -65,13 +65,13 @@ def test_calibration_measures_held_out_plans_and_round_trips(calibrated, db100):
     # narrowest; the bound is its own
     k = math.ceil(8 * COVERAGE) - 1
     mean_bound, cost = {}, {}
-    seconds = {who: np.median([c[f"{who}_s"] for c in cal.cases]) for who in ("network", "baseline")}
     for scale in ("disagreement", "constant"):
         scales = np.array([1.0 if scale == "constant" else c["disagreement_mm"] for c in cal.cases])
         for who, key in (("network", "error_mm"), ("baseline", "baseline_error_mm")):
             factor = sorted(c[key] / s for c, s in zip(cal.cases, scales))[k]
             mean_bound[scale, who] = factor * scales.mean()
-            cost[scale, who] = sum(seconds.values()) if scale == "disagreement" else seconds[who]
+            cost[scale, who] = np.median([c["network_s"] + c["baseline_s"] if scale == "disagreement"
+                                          else c[f"{who}_s"] for c in cal.cases])
     near = [p for p, b in mean_bound.items() if b <= 1.1 * min(mean_bound.values())]
     assert (cal.scale, cal.answerer) == min(near, key=cost.get)
     assert cal.bound == cal.bounds[cal.answerer]
@@ -170,8 +170,11 @@ def test_in_distribution_plan_answered_by_whichever_the_tolerance_allows(calibra
     subject, plan = db.subject(0), db.plan(key)
     assert not out_of_distribution(cal, subject.mesh, plan)["outside"]
     loose = answer(model, subject, plan, 100.0, calibration=cal)
-    assert loose.answered_by == {"network": "surrogate", "baseline": "baseline"}[cal.answerer]
+    chosen = cal.for_tolerance(100.0)
+    assert loose.answered_by == {"network": "surrogate", "baseline": "baseline"}[chosen.answerer]
+    assert (loose.estimate["scale"], loose.estimate["answerer"]) == (chosen.scale, chosen.answerer)
     assert loose.seconds["fe"] == 0.0
+    cal = replace(cal, candidates=((cal.scale, cal.answerer),))  # the calibration's own pair only
     network_only = replace(cal, answerer="network", bound=cal.bounds["network"])
     by_network = answer(model, subject, plan, 100.0, calibration=network_only)
     assert by_network.answered_by == "surrogate"
@@ -186,13 +189,43 @@ def test_in_distribution_plan_answered_by_whichever_the_tolerance_allows(calibra
     assert no_network.result.material == by_baseline.result.material
     np.testing.assert_array_equal(no_network.result.displacements, by_baseline.result.displacements)
     assert by_baseline.result.summary()["min_scaled_jacobian"] > 0
-    est = loose.estimate
+    est = answer(model, subject, plan, 100.0, calibration=cal).estimate
     assert est["bound_mm"] == pytest.approx(cal.bound.factor * est["scale_mm"])
     assert est["node_mm"].shape == (subject.mesh.n_points,)
     assert np.percentile(est["node_mm"], 95) == pytest.approx(est["bound_mm"])
     tight = answer(model, subject, plan, est["bound_mm"] / 2, calibration=cal)
     assert tight.answered_by == "fe" and "above the tolerance" in tight.reason
     assert answer_error(tight.result.displacement, db.displacements(key)[-1]) < 1e-6
+
+
+def test_the_tolerance_chooses_the_pair_with_the_least_expected_time(calibrated):
+    """Of the four calibrated pairs (scale x answerer), a tolerance takes the one whose mean time per
+    answer over the calibration plans is least: its own time on each plan, plus the FE's on the
+    plans its bound would leave to the FE. Above every bound that is the fastest pair; below every
+    bound, every pair leaves every plan to the FE and the fastest pair still wins."""
+    _, cal = calibrated
+    assert set(cal.candidates) == {(s, a) for s in ("disagreement", "constant") for a in ("network", "baseline")}
+    k = math.ceil(8 * COVERAGE) - 1
+
+    def pair(scale, who):
+        """Each calibration plan's bound and the pair's time on it."""
+        scales = np.array([1.0 if scale == "constant" else c["disagreement_mm"] for c in cal.cases])
+        key = "error_mm" if who == "network" else "baseline_error_mm"
+        factor = sorted(c[key] / x for c, x in zip(cal.cases, scales))[k]
+        return factor * scales, np.array([c["network_s"] + c["baseline_s"] if scale == "disagreement"
+                                          else c[f"{who}_s"] for c in cal.cases])
+
+    fe = np.array([c["fe_s"] for c in cal.cases])
+    pairs = {c: pair(*c) for c in cal.candidates}
+    edges = np.unique(np.concatenate([b for b, _ in pairs.values()]))
+    for tol in (1e-6, *edges, *(edges * 1.01), 1e9):  # on and just above every bound
+        got = cal.for_tolerance(tol)
+        times = {c: np.mean(t + np.where(b > tol, fe, 0.0)) for c, (b, t) in pairs.items()}
+        assert times[got.scale, got.answerer] == pytest.approx(min(times.values()))
+        scales = np.array([1.0 if got.scale == "constant" else c["disagreement_mm"] for c in cal.cases])
+        np.testing.assert_allclose(got.bound.bound(scales), pairs[got.scale, got.answerer][0])
+    one = replace(cal, candidates=(("constant", "network"),))
+    assert one.for_tolerance(1e-6) is one
 
 
 def test_another_material_or_face_is_out_of_distribution(calibrated):
@@ -234,7 +267,7 @@ def test_cli_calibrate_and_predict_within_a_tolerance(hard_model, db100, tmp_pat
     assert not (tmp_path / "p0").exists()
     r = run("calibrate", "--model", str(model), "--data", str(db100), "--coverage", "0.8")
     assert r.returncode == 0, r.stderr
-    assert "bounds it at 80%" in r.stdout and "answers given by the" in r.stdout
+    assert "bounds it at 80%" in r.stdout and "answers with the pair whose expected time" in r.stdout
     r = run("predict", "--model", str(model), "--resolution", "coarse", "--tolerance", "1000", "--out",
             str(tmp_path / "p1"), "--no-preview")
     assert r.returncode == 0, r.stderr

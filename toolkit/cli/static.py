@@ -255,8 +255,8 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="probability that the error bound holds for a plan like these")
     parser.add_argument("--scale", choices=STATIC_SCALES + ("auto",), default="auto",
                         help="disagreement: with the sliding response + POD residual baseline; constant: one bound "
-                             "for all; auto: with --answerer auto, the cheapest pair whose mean bound over the "
-                             "plans is within 10%% of the narrowest")
+                             "for all; auto: both, and `predict --tolerance` takes the pair (with --answerer) "
+                             "whose expected time per answer over these plans is least at its tolerance")
     parser.add_argument("--answerer", choices=STATIC_ANSWERERS, default=STATIC_ANSWERERS[0],
                         help="whose answer `predict --tolerance` gives and bounds: the network, the sliding "
                              "response + POD residual baseline, or auto (see --scale)")
@@ -277,7 +277,9 @@ def calibrate(args: argparse.Namespace) -> int:
         print(f"{who}: answer error (p95 over nodes) median {errors[len(errors) // 2]:.2f} mm, max {errors[-1]:.2f} "
               f"mm over {cal.bound.n} held-out plans ({cal.source['plans']}); {cal.scale} scale x "
               f"{cal.bounds[who].factor:.3g} bounds it at {cal.bound.coverage:.0%}")
-    print(f"answers given by the {cal.answerer}, {cal.scale} scale -> {args.model}/calibration.json")
+    pairs = ", ".join(f"{a} with the {s} scale" for s, a in cal.candidates)
+    print(f"`predict --tolerance` answers with the pair whose expected time per answer is least at its tolerance "
+          f"among: {pairs} -> {args.model}/calibration.json")
     return 0
 
 

@@ -24,15 +24,18 @@ checks the inputs first (a plan beyond what the training database's sampler span
 another topology or farther from every training subject than they lie from each other, another
 material), and :func:`answer` runs the FE for such inputs whatever the estimate says.
 
-Which answer is given (``answerer``) and with which scale is chosen at calibration: ``auto``
-(default, for both) calibrates the network's and the baseline's errors against each scale and
-keeps the cheapest pair (the disagreement scale runs both models) among those whose bound,
-averaged over the calibration plans, is within :data:`AUTO_BOUND_SLACK` of the narrowest; the
-bound given always belongs to the answer given. ``network``, ``baseline`` and a
-named scale force the choice. The choice is made on the calibration plans themselves, so the
-coverage of the chosen pair is that of the best of (at most) four calibrated bounds, slightly
-optimistic for few plans. On the paper phantom subjects the baseline with the constant scale is
-kept (``benchmarks/surrogate_trust.py``); the network is then not run at all.
+Which answer is given (``answerer``) and with which scale: ``auto`` (default, for both)
+calibrates the network's and the baseline's errors against each scale. :func:`answer` then takes,
+for the tolerance asked, the pair whose expected time per answer over the calibration plans is
+least (:meth:`Calibration.for_tolerance`: its time, plus the FE's for the share of plans its bound
+would send to the FE); the calibration's own pair, for an estimate without a tolerance, is the
+cheapest (the disagreement scale runs both models) among those whose bound, averaged over the
+calibration plans, is within :data:`AUTO_BOUND_SLACK` of the narrowest. The bound given always
+belongs to the answer given. ``network``, ``baseline`` and a named scale restrict the choice.
+Either choice is made on the calibration plans themselves, so the coverage of the chosen pair is
+that of the best of (at most) four calibrated bounds, slightly optimistic for few plans. On the
+paper phantom subjects, at 0.5 mm and above the baseline with the constant scale answers
+(``benchmarks/surrogate_trust.py``); the network is then not run at all.
 
 The calibration is saved beside the model (``calibration.json`` and ``calibration.npz``).
 """
@@ -108,6 +111,8 @@ class Calibration:
     source : database path and how its plans were chosen
     answerer : ``network`` or ``baseline``, whose answer the bound is for
     bounds : answerer -> its ConformalBound (both, for the record)
+    candidates : the ``(scale, answerer)`` pairs :meth:`for_tolerance` chooses among (those the
+        calibration was asked for)
     """
 
     scale: str
@@ -124,6 +129,7 @@ class Calibration:
     bounds: dict = field(default_factory=dict)
     plan_hull: dict = field(default_factory=dict)
     arch_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    candidates: tuple = ()
 
     def save(self, directory) -> Path:
         """Write ``calibration.json`` and ``calibration.npz`` into the model directory."""
@@ -136,7 +142,7 @@ class Calibration:
                 "shape_spread_mm": self.shape_spread_mm, "material": self.material, "cases": self.cases,
                 "source": self.source, "answerer": self.answerer,
                 "bounds": {k: b.to_dict() for k, b in self.bounds.items()}, "baseline": BASELINE,
-                "plan_hull": self.plan_hull}
+                "plan_hull": self.plan_hull, "candidates": [list(c) for c in self.candidates]}
         return save_calibration(directory, meta, arrays)
 
     @classmethod
@@ -164,11 +170,34 @@ class Calibration:
                    meta["plan_ranges"], arrays["subjects"], float(meta["shape_spread_mm"]), meta["material"],
                    meta["cases"], meta["source"], meta.get("answerer", "network"),
                    {k: ConformalBound.from_dict(b) for k, b in meta.get("bounds", {}).items()},
-                   meta["plan_hull"], arrays["arch_nodes"].astype(np.int64))
+                   meta["plan_hull"], arrays["arch_nodes"].astype(np.int64),
+                   tuple(tuple(c) for c in meta.get("candidates", [[meta["scale"], meta.get("answerer", "network")]])))
 
     def at(self, coverage: float) -> Calibration:
         """The same calibration with its bound at another coverage."""
         return replace(self, bound=self.bound.at(coverage), bounds={k: b.at(coverage) for k, b in self.bounds.items()})
+
+    def expected_seconds(self, scale: str, answerer: str, tolerance_mm: float) -> float:
+        """Mean seconds per answer over the calibration plans if ``(scale, answerer)`` answered at
+        ``tolerance_mm`` (mm): the pair's time on each plan, plus the FE's time on the plans its
+        bound, at this calibration's coverage, would leave to the FE."""
+        scales = _case_scales(self.cases, scale)
+        bound = _bounds(self.cases, scales, self.bound.coverage)[answerer]
+        leaves = bound.bound(scales) > tolerance_mm
+        seconds = [_pair_seconds(c, scale, answerer) + (c["fe_s"] if out else 0.0)
+                   for c, out in zip(self.cases, leaves)]
+        return float(np.mean(seconds))
+
+    def for_tolerance(self, tolerance_mm: float) -> Calibration:
+        """The calibration whose scale, answerer and bound are those of its :attr:`candidates`
+        with the least :meth:`expected_seconds` at ``tolerance_mm`` (ties: the narrower mean
+        bound); itself when it has one candidate."""
+        if len(self.candidates) < 2:
+            return self
+        best = min(self.candidates, key=lambda c: (self.expected_seconds(*c, tolerance_mm),
+                                                   _mean_bound(self.cases, *c, self.bound.coverage)))
+        bounds = _bounds(self.cases, _case_scales(self.cases, best[0]), self.bound.coverage)
+        return replace(self, scale=best[0], answerer=best[1], bound=bounds[best[1]], bounds=bounds)
 
 
 def _baseline_trajectory(model, residual, face, plan, segments=None):
@@ -311,32 +340,47 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
                       "baseline_error_mm": answer_error(base, fe),
                       "disagreement_mm": _case_scale(_scale_field("disagreement", pred.displacement, base)),
                       "network_s": t1 - t0, "baseline_s": t2 - t1, "fe_s": float(fe_s[key])})
-    scale, answerer, bounds = _choose(cases, coverage, scale, answerer)
+    scale, answerer, bounds, candidates = _choose(cases, coverage, scale, answerer)
     for c in cases:
         c["scale_mm"] = 1.0 if scale == "constant" else c["disagreement_mm"]
     return Calibration(scale, bounds[answerer], residual, train_plans, plan_ranges, pts, float(spread),
                        db.config.material, cases, {"database": str(Path(db.path).resolve()), "plans": how,
                                                    "training_database": str(Path(train_db.path).resolve())},
-                       answerer, bounds, hull, arch_nodes)
+                       answerer, bounds, hull, arch_nodes, candidates)
 
 
-def _choose(cases: list, coverage: float, scale: str, answerer: str) -> tuple[str, str, dict]:
-    """The scale and answerer a calibration keeps (see the module), and the bounds by answerer
-    with that scale: among the pairs asked, the cheapest (median seconds per calibration plan)
-    whose mean bound is within :data:`AUTO_BOUND_SLACK` of the narrowest."""
-    seconds = {a: float(np.median([c[f"{a}_s"] for c in cases])) for a in ("network", "baseline")}
-    candidates = {}  # (scale, answerer) -> (bounds by answerer, mean bound, seconds per answer)
-    for s in SCALES if scale == "auto" else (scale,):
-        scales = np.array([1.0 if s == "constant" else c["disagreement_mm"] for c in cases])
-        bounds = {"network": calibrate([c["error_mm"] for c in cases], scales, coverage),
-                  "baseline": calibrate([c["baseline_error_mm"] for c in cases], scales, coverage)}
-        for a in ("network", "baseline") if answerer == "auto" else (answerer,):
-            cost = sum(seconds.values()) if s == "disagreement" else seconds[a]
-            candidates[s, a] = (bounds, float(np.mean(bounds[a].bound(scales))), cost)
-    narrowest = min(c[1] for c in candidates.values())
-    near = [k for k, c in candidates.items() if c[1] <= AUTO_BOUND_SLACK * narrowest]
-    scale, answerer = min(near, key=lambda k: (candidates[k][2], candidates[k][1]))
-    return scale, answerer, candidates[scale, answerer][0]
+def _choose(cases: list, coverage: float, scale: str, answerer: str) -> tuple[str, str, dict, tuple]:
+    """The scale and answerer a calibration keeps (see the module), the bounds by answerer with
+    that scale, and the candidate pairs asked for: among them, the cheapest (median seconds per
+    calibration plan) whose mean bound is within :data:`AUTO_BOUND_SLACK` of the narrowest."""
+    candidates = tuple((s, a) for s in (SCALES if scale == "auto" else (scale,))
+                       for a in (("network", "baseline") if answerer == "auto" else (answerer,)))
+    mean = {c: _mean_bound(cases, *c, coverage) for c in candidates}
+    near = [c for c in candidates if mean[c] <= AUTO_BOUND_SLACK * min(mean.values())]
+    cost = {c: float(np.median([_pair_seconds(case, *c) for case in cases])) for c in near}
+    scale, answerer = min(near, key=lambda c: (cost[c], mean[c]))
+    return scale, answerer, _bounds(cases, _case_scales(cases, scale), coverage), candidates
+
+
+def _case_scales(cases: list, scale: str) -> np.ndarray:
+    """Each calibration plan's scale (mm) under ``scale``."""
+    return np.array([1.0 if scale == "constant" else c["disagreement_mm"] for c in cases])
+
+
+def _bounds(cases: list, scales: np.ndarray, coverage: float) -> dict:
+    """answerer -> the ConformalBound of its errors over ``scales``."""
+    return {"network": calibrate([c["error_mm"] for c in cases], scales, coverage),
+            "baseline": calibrate([c["baseline_error_mm"] for c in cases], scales, coverage)}
+
+
+def _mean_bound(cases: list, scale: str, answerer: str, coverage: float) -> float:
+    scales = _case_scales(cases, scale)
+    return float(np.mean(_bounds(cases, scales, coverage)[answerer].bound(scales)))
+
+
+def _pair_seconds(case: dict, scale: str, answerer: str) -> float:
+    """Seconds of an answer on a calibration plan: the answerer, and both models for the disagreement scale."""
+    return case["network_s"] + case["baseline_s"] if scale == "disagreement" else case[f"{answerer}_s"]
 
 
 def _face(subject):
@@ -511,6 +555,7 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
     calibration = calibration or Calibration.load(model.directory)
     if coverage is not None:
         calibration = calibration.at(coverage)
+    calibration = calibration.for_tolerance(tolerance_mm)
     data = DatasetConfig(**model.bundle.data["database"])
     mesh, segments = face_mesh_and_segments(face, segments)
     same = _same_topology(model, mesh)
