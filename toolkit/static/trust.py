@@ -436,10 +436,11 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
     are drawn like the training ones, so the bound's coverage holds up to the edges of the
     ranges; the box of the training plans' own parameters is narrower (a translation drawn
     uniform in length and direction has components thin near their extremes, and 80 plans
-    leave corners of the ranges outside their box). The face is another shape when it lies farther (RMS)
-    from every training subject than they lie from each other, or when one of its nodes lies
-    more than :data:`MIN_SHAPE_SPREAD_MM` outside the per-coordinate box of that node over the
-    training subjects.
+    leave corners of the ranges outside their box).
+
+    The face is another shape when it lies farther (RMS) from every training subject than they
+    lie from each other, or when one of its nodes lies more than :data:`MIN_SHAPE_SPREAD_MM`
+    outside the per-coordinate box of that node over the training subjects.
     """
     from toolkit.common.training.extrapolation import describe_extrapolation, extrapolation
     from toolkit.static.plan import sampled_parameters
@@ -530,9 +531,10 @@ class TrustedAnswer:
 def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration: Calibration | None = None,
            coverage: float | None = None, material: str | None = None, any_mesh: bool = False,
            options=None) -> TrustedAnswer:
-    """The calibrated answer (the network's or the sliding response + POD residual baseline's, as the
-    calibration chose: ``Calibration.answerer``) when its estimate is within ``tolerance_mm`` and
-    the inputs are like the training data; otherwise the FE of the same plan.
+    """The calibrated answer (the network's or the sliding response + POD residual baseline's, with
+    the scale and answerer :meth:`Calibration.for_tolerance` takes for ``tolerance_mm``) when its
+    estimate is within ``tolerance_mm`` and the inputs are like the training data; otherwise the
+    FE of the same plan.
 
     Parameters
     ----------
