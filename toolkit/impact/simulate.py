@@ -463,17 +463,17 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
         if scene.fidelity.integrator == "explicit":
             raise ValueError("initial_guess with integrator = 'explicit': an explicit run has no iterations to "
                              "start; use scene.with_fidelity(integrator='implicit') or leave initial_guess out")
-        g_times, g_u = (np.asarray(a, dtype=float) for a in initial_guess)
-        n_face = face_mesh(scene).n_points
-        if g_times.ndim != 1 or g_u.shape != (len(g_times), n_face, 3) or not np.all(np.diff(g_times) > 0) \
-                or not g_times.size or g_times[0] <= 0:
-            raise ValueError(f"initial_guess: times {g_times.shape} and displacement {g_u.shape}; expected "
-                             f"increasing times > 0 s (F,) and (F, {n_face}, 3) mm for this scene's face")
-        initial_guess = (g_times, g_u)
+        initial_guess = tuple(np.asarray(a, dtype=float) for a in initial_guess)
     if out is not None:
         check_output_dir(out)
     t0 = time.perf_counter()
     built = build_model(scene)
+    if initial_guess is not None:  # the face's node count is known now; nothing has run yet
+        g_times, g_u = initial_guess
+        if g_times.ndim != 1 or g_u.shape != (len(g_times), built.face.n_points, 3) or not g_times.size \
+                or not np.all(np.diff(g_times) > 0) or g_times[0] <= 0:
+            raise ValueError(f"initial_guess: times {g_times.shape} and displacement {g_u.shape}; expected "
+                             f"increasing times > 0 s (F,) and (F, {built.face.n_points}, 3) mm for this scene's face")
     writers, done = [], []
     if out is not None:
         out = Path(out)

@@ -749,10 +749,9 @@ def sampling_hull(mode: str = "sagittal", ranges: Mapping[str, MotionRange] = PH
     ``max_jaw_closing_mm`` is set (draws beyond it are rejected)."""
     if mode not in SAMPLING_MODES:
         raise PlanError(f"unknown sampling mode {mode!r}; expected one of {SAMPLING_MODES}")
-    hull = {}
+    hull, sagittal = {}, mode == "sagittal"
     for name in SAMPLED_SEGMENTS:
         top_mm, top_deg = float(ranges[name].translation_mm[1]), float(ranges[name].rotation_deg[1])
-        sagittal = mode == "sagittal"
         hull.update({f"{name}.translation_mm": [0.0, top_mm], f"{name}.rotation_deg": [0.0, top_deg],
                      f"{name}.lateral_translation_mm": [0.0, 0.0 if sagittal else top_mm],
                      f"{name}.off_axis_rotation_deg": [0.0, 0.0 if sagittal else top_deg]})

@@ -156,8 +156,8 @@ class Calibration:
         missing = [what for what, ok in (
             (f"its baseline was fit on the influence matrix (mucosa and lips free), not on the {BASELINE}",
              meta.get("baseline") == BASELINE),
-            ("it does not record what the training plans span (plan_hull)",
-             "plan_hull" in meta and "arch_nodes" in arrays)) if not ok]
+            ("it does not record what the training plans span (plan_hull) or its candidate answers",
+             "plan_hull" in meta and "candidates" in meta and "arch_nodes" in arrays)) if not ok]
         if missing:
             raise ValueError(f"{Path(directory) / 'calibration.json'} was written by an earlier version: "
                              f"{'; '.join(missing)}; calibrate again: "
@@ -171,33 +171,34 @@ class Calibration:
                    meta["cases"], meta["source"], meta.get("answerer", "network"),
                    {k: ConformalBound.from_dict(b) for k, b in meta.get("bounds", {}).items()},
                    meta["plan_hull"], arrays["arch_nodes"].astype(np.int64),
-                   tuple(tuple(c) for c in meta.get("candidates", [[meta["scale"], meta.get("answerer", "network")]])))
+                   tuple(tuple(c) for c in meta["candidates"]))
 
     def at(self, coverage: float) -> Calibration:
         """The same calibration with its bound at another coverage."""
         return replace(self, bound=self.bound.at(coverage), bounds={k: b.at(coverage) for k, b in self.bounds.items()})
 
-    def expected_seconds(self, scale: str, answerer: str, tolerance_mm: float) -> float:
-        """Mean seconds per answer over the calibration plans if ``(scale, answerer)`` answered at
-        ``tolerance_mm`` (mm): the pair's time on each plan, plus the FE's time on the plans its
-        bound, at this calibration's coverage, would leave to the FE."""
-        scales = _case_scales(self.cases, scale)
-        bound = _bounds(self.cases, scales, self.bound.coverage)[answerer]
-        leaves = bound.bound(scales) > tolerance_mm
-        seconds = [_pair_seconds(c, scale, answerer) + (c["fe_s"] if out else 0.0)
-                   for c, out in zip(self.cases, leaves)]
-        return float(np.mean(seconds))
-
     def for_tolerance(self, tolerance_mm: float) -> Calibration:
         """The calibration whose scale, answerer and bound are those of its :attr:`candidates`
-        with the least :meth:`expected_seconds` at ``tolerance_mm`` (ties: the narrower mean
-        bound); itself when it has one candidate."""
+        with the least mean seconds per answer over the calibration plans at ``tolerance_mm``
+        (mm): the pair's time on each plan, plus the FE's on the plans its bound, at this
+        calibration's coverage, would leave to the FE (ties: the narrower mean bound); itself
+        when it has one candidate."""
         if len(self.candidates) < 2:
             return self
-        best = min(self.candidates, key=lambda c: (self.expected_seconds(*c, tolerance_mm),
-                                                   _mean_bound(self.cases, *c, self.bound.coverage)))
-        bounds = _bounds(self.cases, _case_scales(self.cases, best[0]), self.bound.coverage)
-        return replace(self, scale=best[0], answerer=best[1], bound=bounds[best[1]], bounds=bounds)
+        by_scale = {s: (_case_scales(self.cases, s), _bounds(self.cases, _case_scales(self.cases, s),
+                                                            self.bound.coverage))
+                    for s in {s for s, _ in self.candidates}}
+        fe = np.array([c["fe_s"] for c in self.cases])
+
+        def rank(pair):
+            scales, bounds = by_scale[pair[0]]
+            per_plan = bounds[pair[1]].bound(scales)
+            own = np.array([_pair_seconds(c, *pair) for c in self.cases])
+            return float(np.mean(own + np.where(per_plan > tolerance_mm, fe, 0.0))), float(np.mean(per_plan))
+
+        scale, answerer = min(self.candidates, key=rank)
+        bounds = by_scale[scale][1]
+        return replace(self, scale=scale, answerer=answerer, bound=bounds[answerer], bounds=bounds)
 
 
 def _baseline_trajectory(model, residual, face, plan, segments=None):
