@@ -2,9 +2,11 @@
 
 Each boundary face of the tissue mesh is classified once, then its nodes take its label:
 
-1. **bone side**: the face lies within ``contact_mm`` of a bone surface and faces it (its
-   outward normal and the bone's normal opposed within ``facing_deg``): ``bone``, and the
-   segment of the nearest such bone;
+1. **bone side**: the face lies within ``contact_mm`` of a bone surface, parallel to it within
+   ``facing_deg``, and the bone lies on its outer side (or at most ``touch_mm`` behind it):
+   ``bone``, and the segment of the nearest such bone. Every test reads the tissue's own
+   outward normal and the bone's closest point; the bone's triangle winding, which exported
+   segmentations leave inconsistent, decides nothing;
 2. **truncation cuts** (``fixed``): among the others, faces turned toward a cut direction and
    within ``margin_mm`` of the mesh's extreme along it;
 3. **skin**: the rest (the mouth slit's faces, when cut, are labelled by
@@ -23,6 +25,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from toolkit.common.mesh import Mesh
 from toolkit.common.surface_distance import closest_points
@@ -34,6 +37,8 @@ __all__ = ["FaceLabels", "label_nodes", "CARRIED_SETS"]
 #: node set carried by each segment (segments without one cannot use ``attach`` other than
 #: ``none`` or ``fixed``: the static workflow has no attachment set for them)
 CARRIED_SETS = {"lefort": "maxilla", "distal": "mandible"}
+#: mm, distances to two bones closer than this are a tie
+_TIE_MM = 1e-6
 
 
 @dataclass(frozen=True)
@@ -51,10 +56,16 @@ def _face_normals(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np
     return x.mean(axis=1), n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-def _bone_normals(surface: Mesh, triangle: np.ndarray) -> np.ndarray:
-    x = surface.points[surface.cells["tri3"][triangle]]
-    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
+def _faces_bone(centre: np.ndarray, normal: np.ndarray, cp, rules: LabelRules) -> np.ndarray:
+    """Whether tissue boundary faces (centres and outward unit normals ``(f, 3)``) lie on a bone
+    whose closest points are ``cp``: within ``contact_mm`` of it, parallel to it within
+    ``facing_deg`` (either winding: exported bone surfaces mix both), and with the bone on their
+    outer side, or behind it by at most ``touch_mm`` (a face on the bone, or sunk into it by
+    the segmentation's staircase). The skin, with the bone behind it, and the truncation cuts,
+    across the bone's surface, are not."""
+    parallel = np.abs(np.einsum("ij,ij->i", normal, cp.normal)) >= np.cos(np.radians(rules.facing_deg))
+    ahead = np.einsum("ij,ij->i", cp.point - centre, normal) >= -rules.touch_mm
+    return parallel & ahead & (cp.distance <= rules.contact_mm)
 
 
 def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh], rules: LabelRules,
@@ -65,8 +76,8 @@ def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh],
     ----------
     points : (n, 3) mm
     tets : (t, 4) positively oriented corners
-    bones : segment name -> ``tri3`` surface (mm), normals toward the tissue
-        (:func:`~toolkit.static.bones.orient_surface`)
+    bones : segment name -> ``tri3`` surface (mm), in any winding, open or closed, in one
+        piece or several
     rules : the labelling rules
     exclude_faces : (k, 3) boundary faces already labelled (the mouth slit); their nodes
         are kept out of every set made here
@@ -80,15 +91,14 @@ def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh],
         key = {tuple(k) for k in np.sort(exclude_faces, axis=1).tolist()}
         slit = np.array([tuple(k) in key for k in np.sort(faces, axis=1).tolist()], dtype=bool)
         label[slit] = "slit"
-    # 1. bone side: nearest facing bone within contact
+    # 1. bone side: the nearest bone within contact that the face lies along and does not turn
+    #    its back on (measured from the tissue: the bone's winding decides nothing)
     names = [s for s in SEGMENTS if s in bones]
     best = np.full(f, np.inf)
     seg_of = np.full(f, -1)
-    cos_facing = np.cos(np.radians(rules.facing_deg))
     for k, name in enumerate(names):
         cp = closest_points(centre, bones[name].points, bones[name].cells["tri3"])
-        facing = -np.einsum("ij,ij->i", normal, _bone_normals(bones[name], cp.triangle)) >= cos_facing
-        ok = facing & (cp.distance <= rules.contact_mm) & (cp.distance < best) & ~slit
+        ok = _faces_bone(centre, normal, cp, rules) & (cp.distance < best) & ~slit
         best[ok], seg_of[ok] = cp.distance[ok], k
     on_bone = seg_of >= 0
     label[on_bone] = np.array([f"bone:{names[k]}" for k in seg_of[on_bone]], dtype=object)
@@ -123,7 +133,9 @@ def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh],
     for k, name in enumerate(names):
         node_dist[bone_nodes, k] = closest_points(points[bone_nodes], bones[name].points,
                                                   bones[name].cells["tri3"]).distance
-    node_seg = np.argmin(node_dist, axis=1)
+    # ties (a node on the osteotomy line, on two bones' rims) go to the first segment in SEGMENTS
+    # order, whatever the triangulation's rounding
+    node_seg = np.argmax(node_dist <= node_dist.min(axis=1, keepdims=True) + _TIE_MM, axis=1)
     fixed_mask = np.zeros(n, dtype=bool)
     fixed_mask[fixed] = True
     offsets = {}
@@ -135,8 +147,10 @@ def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh],
         carried = _carried(points, mine, bones[name], rule)
         others = [o for o in names if o != name and _moves(o, rules)]
         if rule.border_mm > 0 and others and carried.any():
-            near = np.min([closest_points(points[mine], bones[o].points, bones[o].cells["tri3"]).distance
-                           for o in others], axis=0)
+            # measured to the tissue the other segments hold: their border is the osteotomy line
+            # as the tissue sees it, wherever a saw cut or an export left the bones' rims
+            theirs = bone_nodes[np.isin(node_seg[bone_nodes], [names.index(o) for o in others])]
+            near = cKDTree(points[theirs]).query(points[mine])[0] if theirs.size else np.full(mine.size, np.inf)
             carried &= near >= rule.border_mm
         if rule.attach == "fixed":
             fixed_mask[mine[carried]] = True
@@ -153,12 +167,16 @@ def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh],
 
 
 def arch_centre(bone: Mesh) -> np.ndarray:
-    """Centre ``(2,)`` mm (x, y) of the circle fitted, seen from above, to a bone surface's
-    points: for a jaw segment, the centre of its dental arch (least squares on
-    ``x^2 + y^2 = 2 a x + 2 b y + c``)."""
-    x, y = bone.points[:, 0], bone.points[:, 1]
-    a = np.column_stack([2 * x, 2 * y, np.ones_like(x)])
-    cx, cy, _ = np.linalg.lstsq(a, x**2 + y**2, rcond=None)[0]
+    """Centre ``(2,)`` mm (x, y) of the circle fitted, seen from above, to a bone surface: for
+    a jaw segment, the centre of its dental arch (least squares on ``x^2 + y^2 = 2 a x + 2 b y + c``
+    at the triangles' centroids, weighted by their areas, so that the fit is the surface's and
+    not its triangulation's)."""
+    x3 = bone.points[bone.cells["tri3"]]
+    c = x3.mean(axis=1)
+    w = np.sqrt(0.5 * np.linalg.norm(np.cross(x3[:, 1] - x3[:, 0], x3[:, 2] - x3[:, 0]), axis=1))
+    x, y = c[:, 0], c[:, 1]
+    a = np.column_stack([2 * x, 2 * y, np.ones_like(x)]) * w[:, None]
+    cx, cy, _ = np.linalg.lstsq(a, (x**2 + y**2) * w, rcond=None)[0]
     return np.array([cx, cy])
 
 

@@ -48,8 +48,9 @@ class SegmentRule:
         ``inferior`` (the lowest ``inferior_fraction`` of the height of the tissue facing
         it), ``all``, ``none`` (all slides), or ``fixed`` (held
         in place with the ``fixed`` set: an immobile segment)
-    border_mm : carried tissue lies at least this far from every other moving segment's
-        bone; nearer, it slides (the vestibule at the occlusal level, the degloved borders)
+    border_mm : carried tissue lies at least this far from the tissue on every other moving
+        segment's bone (the osteotomy line as the tissue sees it); nearer, it slides (the
+        vestibule at the occlusal level, the degloved borders)
     """
 
     attach: str = "none"
@@ -82,10 +83,16 @@ def _default_segments() -> dict[str, SegmentRule]:
 class LabelRules:
     """All labelling rules (see the module for the TOML form).
 
-    contact_mm : a tissue boundary face within this distance of a bone, facing it (normals
-        opposed by more than ``facing_deg``), lies on that bone (``bone`` set)
-    facing_deg : largest angle between the tissue face's outward normal and the direction
-        into the bone
+    contact_mm : a tissue boundary face within this distance of a bone, parallel to it (within
+        ``facing_deg``) with the bone on its outer side, lies on that bone (``bone`` set). A
+        segmentation leaves the tissue's inner surface up to 5 mm off the bone (the periosteum
+        and submucosa fall between the two thresholds, smoothing lifts the surface off concave
+        bone); the skin, 10 mm or more from the jaws, never faces a bone
+    facing_deg : largest angle between the tissue face's plane and the bone's at its closest
+        point (either winding of the bone)
+    touch_mm : how far behind a tissue face its bone may lie and the face still lie on it
+        (a face sunk into the bone by the segmentation's voxel staircase); the skin, with the
+        bone its whole thickness behind it, never does
     segments : per bony segment, its :class:`SegmentRule`
     cuts : the truncation planes held fixed
     lip_muscle_mm : with commissures, elements within this distance above or below the
@@ -93,20 +100,28 @@ class LabelRules:
         orbicularis oris (the phantom's: 18 mm for its 90 mm face height)
     lip_muscle_lateral : how far ``lip_muscle`` reaches beyond each commissure, as a fraction
         of the mouth's width (the phantom's: 0.125)
+    min_carried_mm2 : the least tissue boundary area (mm^2, lumped nodal area) that the Le Fort I
+        and distal segments must carry when ruled to carry any (``attach`` other than ``none``
+        and ``fixed``); less fails the labelling (see
+        :data:`toolkit.static.checks.MIN_CARRIED_MM2` for how it was set)
     """
 
-    contact_mm: float = 3.0
+    contact_mm: float = 6.0
     facing_deg: float = 60.0
+    touch_mm: float = 1.0
     segments: dict[str, SegmentRule] = field(default_factory=_default_segments)
     cuts: CutRule = field(default_factory=CutRule)
     lip_muscle_mm: float = 18.0
     lip_muscle_lateral: float = 0.125
+    min_carried_mm2: float = 40.0
 
     def __post_init__(self):
-        for key in ("contact_mm", "lip_muscle_mm"):
+        for key in ("contact_mm", "touch_mm", "lip_muscle_mm"):
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise RulesError(f"{key} = {v!r}; expected a positive number of mm")
+        if not (isinstance(self.min_carried_mm2, (int, float)) and self.min_carried_mm2 >= 0):
+            raise RulesError(f"min_carried_mm2 = {self.min_carried_mm2!r}; expected an area >= 0 mm^2")
         if not (isinstance(self.lip_muscle_lateral, (int, float)) and 0 <= self.lip_muscle_lateral <= 1):
             raise RulesError(f"lip_muscle_lateral = {self.lip_muscle_lateral!r}; expected a fraction of the mouth's "
                              "width in [0, 1]")
