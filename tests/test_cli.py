@@ -62,7 +62,7 @@ def test_python_m_toolkit_is_the_toolkit_command(tmp_path):
 
 def test_every_command_has_help():
     """Every command and subcommand answers ``--help`` (exit 0) with its usage line."""
-    assert len(SUBCOMMANDS) == 1 + 5 + 6 + 6  # toolkit, its 5 commands, static's 6, impact's 6
+    assert len(SUBCOMMANDS) == 1 + 6 + 6 + 6  # toolkit, its 6 commands, static's 6, impact's 6
     for path in SUBCOMMANDS:
         out = io_lib.StringIO()
         with pytest.raises(SystemExit) as done, contextlib.redirect_stdout(out):
@@ -267,6 +267,30 @@ def test_units_option_reads_a_mesh_in_metres(tmp_path, monkeypatch, capsys):
     assert main([*args, "--units", "m"]) == 2
     assert "error: stopped before simulating" in capsys.readouterr().err
     assert received["case"].mesh.points == pytest.approx(ph.mesh.points)
+
+
+def test_axes_option_reads_a_mesh_in_lps(tmp_path, monkeypatch, capsys):
+    """A face written in LPS (y posterior, as DICOM) is refused before simulating with a remedy
+    naming --axes LPS, and read back to the phantom's points with it."""
+    from toolkit.common import face_hex
+    from toolkit.common.axes import mesh_to_toolkit
+    from toolkit.static import default_plan
+
+    ph = face_hex("coarse")
+    io.write(tmp_path / "face_lps.inp", mesh_to_toolkit(ph.mesh, "LPS"))
+    default_plan(ph).write(tmp_path / "plan.toml")
+    received = {}
+    _stop_simulation(monkeypatch, received)
+    args = ["static", "simulate", "--mesh", str(tmp_path / "face_lps.inp"), "--plan", str(tmp_path / "plan.toml"),
+            "--out", str(tmp_path / "run")]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "face_lps.inp is not in the toolkit's axes" in err and "--axes LPS" in err and "case" not in received
+    assert main([*args, "--axes", "LPS"]) == 2
+    assert "error: stopped before simulating" in capsys.readouterr().err
+    assert received["case"].mesh.points == pytest.approx(ph.mesh.points)
+    assert main(["impact", "simulate", "--axes", "LPS", "--out", str(tmp_path / "impact")]) == 2
+    assert "--axes LPS applies to a --mesh file" in capsys.readouterr().err
 
 
 def test_defaults_are_the_best_measured_configurations(monkeypatch, capsys):

@@ -65,3 +65,33 @@ def test_bad_files_are_refused_before_meshing(files, tmp_path, capsys):
     assert main(_args(files, tmp_path / "face.vtu", "--units", "m")) == 2
     assert "--units" in capsys.readouterr().err
     assert not (tmp_path / "face.vtu").exists()
+
+
+@pytest.fixture(scope="module")
+def lps_files(tmp_path_factory):
+    """The coarse phantom's surfaces and commissures as DICOM/ITK-SNAP write them (LPS: y posterior)."""
+    from toolkit.common.axes import mesh_to_toolkit, to_toolkit
+    from toolkit.mesh.phantom import PhantomSurfaces
+
+    s = phantom_surfaces(face_hex("coarse"))
+    lps = PhantomSurfaces(mesh_to_toolkit(s.tissue, "LPS"), {k: mesh_to_toolkit(v, "LPS") for k, v in s.bones.items()},
+                          to_toolkit(s.commissures, "LPS"))
+    return write_surfaces(tmp_path_factory.mktemp("lps"), lps)
+
+
+def test_surfaces_in_lps_are_refused_and_meshed_with_axes_lps(lps_files, tmp_path, capsys):
+    """Without --axes the y-mirrored surfaces are refused before any meshing, naming the file, what
+    the anatomy says and --axes LPS; with it the face is meshed and labelled as the phantom is."""
+    out = tmp_path / "face.vtu"
+    args = _args(lps_files, out, "--size", "10", "--order", "1", "--no-image", "--commissures",
+                 str(lps_files["commissures"]))
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "tissue.stl with its bones" in err and "not in the toolkit's axes" in err and "--axes LPS" in err
+    assert not out.exists()
+    assert main([*args, "--axes", "LPS"]) == 0
+    mesh = read(out)
+    assert mesh.node_sets["maxilla"].size > 0 and mesh.node_sets["mandible"].size > 0
+    assert mesh.node_sets["lip_sliding"].size > 0
+    assert json.loads((tmp_path / "labels.json").read_text())["axes"] == "LPS"
+    assert mesh.points[mesh.node_sets["maxilla"], 1].mean() > 30.0  # anterior: y > 0 in the toolkit's axes

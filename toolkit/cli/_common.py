@@ -60,6 +60,19 @@ def add_units(parser: argparse.ArgumentParser) -> None:
                         help="length unit of the --mesh file, converted to mm")
 
 
+#: :data:`toolkit.common.axes.AXES` (named here so that building the parser imports no numerical
+#: library; a test keeps them equal)
+AXES = ("toolkit", "LPS", "RAS")
+
+
+def add_axes(parser: argparse.ArgumentParser, files: str = "the --mesh and --bone files") -> None:
+    """``--axes``: the anatomical axes of the input files, converted to the toolkit's on reading."""
+    parser.add_argument("--axes", default="toolkit", choices=list(AXES),
+                        help=f"axes of {files}: toolkit (x the patient's left, y anterior, z superior), LPS (DICOM, "
+                             "ITK-SNAP: y posterior) or RAS (3D Slicer: x right), converted on reading; a face whose "
+                             "anatomy says other axes is refused with the value that fits")
+
+
 def torch_threads(args: argparse.Namespace) -> None:
     """torch picks its thread count at import: apply --threads (default 1) again once it is loaded."""
     import torch  # noqa: F401

@@ -12,6 +12,7 @@ from toolkit.cli._common import (
     NOTHING_WRITTEN,
     SIMULATIONS_KEPT,
     Command,
+    add_axes,
     add_database_run,
     add_units,
     dask_client,
@@ -52,6 +53,7 @@ def _add_scene_options(parser: argparse.ArgumentParser, scene: str) -> None:
                         help="face mesh (.vtu/.inp/.xdmf, tet4 or tet10) with node sets fixed and skin (and bone for "
                              "--support skull), as `toolkit mesh` writes it (default: the phantom at --resolution)")
     add_units(parser)
+    add_axes(parser, "the --mesh file (--target is in the toolkit's axes)")
     parser.add_argument("--target", type=_point, metavar="X,Y,Z",
                         help="skin point (mm) the ball's centre line passes through (default: the scene's aim, 30 mm "
                              "above the most anterior skin point)")
@@ -378,13 +380,15 @@ def scene(args: argparse.Namespace, base):
 
     if args.mesh is not None and args.resolution is not None:
         raise ValueError(f"--mesh {args.mesh} and --resolution {args.resolution} both choose the face; give one")
+    if args.mesh is None and args.axes != "toolkit":
+        raise ValueError(f"--axes {args.axes} applies to a --mesh file; give --mesh FACE.vtu, or leave it out")
     if args.scene:
         out = Scene.read(args.scene)
-        out = out if args.mesh is None else out.with_face(mesh=str(args.mesh), units=args.units)
+        out = out if args.mesh is None else out.with_face(mesh=str(args.mesh), units=args.units, axes=args.axes)
     elif args.mesh is not None:
         from toolkit.impact.scene import meshed_scene
 
-        out = meshed_scene(args.mesh, args.units)
+        out = meshed_scene(args.mesh, args.units, axes=args.axes)
         if args.support == "band":  # held by its own fixed set (the truncation cuts), not by the bones
             out = out.with_face(fixed_set="fixed")
     else:

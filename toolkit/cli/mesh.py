@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from toolkit.cli._common import Command, positive_float, two_points
+from toolkit.cli._common import Command, add_axes, positive_float, two_points
 
 FORMATS = (".vtu", ".inp")
 
@@ -20,14 +20,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from toolkit.mesh.face import DEFAULT_ORDER, DEFAULT_SIZE_MM
 
     parser.add_argument("--tissue", required=True, type=Path,
-                        help="closed surface of the soft tissue (STL/OBJ/PLY/VTK/VTU/OFF), in the toolkit's axes "
-                             "(x left, y anterior, z superior)")
+                        help="closed surface of the soft tissue (STL/OBJ/PLY/VTK/VTU/OFF), in the axes of --axes")
     parser.add_argument("--bone", action="append", default=[], metavar="SEGMENT=FILE", required=True,
                         help="bone surface of a segment after the virtual osteotomy (lefort, distal, proximal_left, "
                              "proximal_right, skull), e.g. --bone lefort=maxilla.stl; repeatable")
     parser.add_argument("--commissures", type=commissures, default=None, metavar="X,Y,Z:X,Y,Z",
-                        help="the two corners of the mouth on the skin, mm, or a file of two lines X,Y,Z: the lips "
-                             "are cut between them and slide (default: a closed mouth without lip sliding)")
+                        help="the two corners of the mouth on the skin, mm in the surface files' axes, or a file of "
+                             "two lines X,Y,Z: the lips are cut between them and slide (default: a closed mouth "
+                             "without lip sliding)")
     parser.add_argument("--order", type=int, default=DEFAULT_ORDER, choices=[1, 2],
                         help="element order: 1 tet4, 2 tet10 (linear tetrahedra lock at the tissue's nu = 0.47)")
     parser.add_argument("--size", type=positive_float, default=DEFAULT_SIZE_MM, help="tetrahedron edge length, mm")
@@ -36,6 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="labelling rules (TOML) overriding the defaults (see docs/own-face.md)")
     parser.add_argument("--units", default="mm", choices=["mm", "m", "cm", "um"],
                         help="length unit of the surface files, converted to mm")
+    add_axes(parser, "the surface files and --commissures")
     parser.add_argument("--max-hole-edges", type=int, default=60,
                         help="holes of the tissue surface bounded by up to this many edges are closed")
     parser.add_argument("--no-image", action="store_true", help="skip labels.png")
@@ -58,8 +59,8 @@ def run(args: argparse.Namespace) -> int:
             raise FileNotFoundError(f"{str(path)!r} does not exist; expected a surface file "
                                     f"{'(--rules: TOML)' if path == args.rules else ''}".rstrip())
     face = mesh_face(args.tissue, bones(args.bone), args.commissures, size_mm=args.size, order=args.order,
-                     backend=args.backend, rules=args.rules, units=args.units, max_hole_edges=args.max_hole_edges,
-                     threads=1 if args.threads is None else args.threads)
+                     backend=args.backend, rules=args.rules, units=args.units, axes=args.axes,
+                     max_hole_edges=args.max_hole_edges, threads=1 if args.threads is None else args.threads)
     written = face.write(args.out, image=not args.no_image)
     r = face.report
     print(face.summary())

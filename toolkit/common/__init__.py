@@ -3,6 +3,7 @@
 Imports nothing from :mod:`toolkit.static` or :mod:`toolkit.impact`.
 """
 
+from toolkit.common.axes import AXES, AxesError, check_anatomical_axes, mesh_to_toolkit, to_toolkit
 from toolkit.common.errors import ConvergenceError, ToolkitError
 from toolkit.common.fidelity import FidelityChoice, FidelityError, choose_fidelity
 from toolkit.common.io import TimeSeries, TimeSeriesWriter, read, read_time_series, write, write_time_series
@@ -45,4 +46,9 @@ __all__ = [
     "choose_fidelity",
     "FidelityChoice",
     "FidelityError",
+    "AXES",
+    "AxesError",
+    "to_toolkit",
+    "mesh_to_toolkit",
+    "check_anatomical_axes",
 ]

@@ -21,6 +21,7 @@ __all__ = [
     "TET_EDGES",
     "boundary_faces",
     "boundary_face_blocks",
+    "lumped_boundary_area",
     "triangulated_boundary",
     "unique_edges",
     "rim_edges",
@@ -99,6 +100,21 @@ def triangulated_boundary(cells) -> np.ndarray:
         q = blocks["quad4"]
         tris += [q[:, [0, 1, 2]], q[:, [0, 2, 3]]]
     return np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
+
+
+def lumped_boundary_area(points: np.ndarray, cells) -> np.ndarray:
+    """Boundary area held by each node ``(n,)`` mm^2 (points in mm): every boundary face of the
+    volume blocks ``cells`` gives an equal share of its area to each of its corners (a third of a
+    triangle, a quarter of a quadrilateral); interior and mid-edge nodes hold none."""
+    out = np.zeros(points.shape[0])
+    for kind, faces in boundary_face_blocks(cells).items():
+        k = 3 if kind == "tri3" else 4
+        x = points[faces[:, :k]]
+        area = 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
+        if k == 4:
+            area += 0.5 * np.linalg.norm(np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]), axis=1)
+        out += np.bincount(faces[:, :k].ravel(), weights=np.repeat(area / k, k), minlength=points.shape[0])
+    return out
 
 
 def unique_edges(cells: np.ndarray, local_edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -76,6 +76,8 @@ def _scene_config(scene: Scene) -> dict:
     d["ball"] = {k: v for k, v in d["ball"].items() if k != "velocity"}
     if d["face"]["units"] == "mm":  # the phantoms and mm files: the configuration of databases without units
         del d["face"]["units"]
+    if d["face"]["axes"] == "toolkit":  # the phantoms and files in the toolkit's axes: databases without axes
+        del d["face"]["axes"]
     return d
 
 

@@ -78,11 +78,13 @@ YIELDING_DURATION = 0.36
 @dataclass(frozen=True)
 class FaceSpec:
     """The face: ``resolution`` (``coarse``/``paper``) or ``mesh`` (a tet4 or tet10 file,
-    length unit ``units``, with node sets ``fixed_set`` and ``skin``, and ``bone`` for
-    ``support = "skull"``, as ``toolkit mesh`` writes them; its element order must be the
-    fidelity's), its material, the fraction of the height fixed at the bottom (phantoms only;
-    0.05 = the lowest 5 mm of the 100 mm phantom, so that the ball's path over the impact
-    paper's velocities clears it, see :class:`BallSpec`), and how the face is held (``support``):
+    length unit ``units``, axes ``axes`` (:data:`toolkit.common.axes.AXES`, converted to the
+    toolkit's on reading; the ball's target and direction are in the toolkit's), with node sets
+    ``fixed_set`` and ``skin``, and ``bone`` for ``support = "skull"``, as ``toolkit mesh`` writes
+    them; its element order must be the fidelity's), its material, the fraction of the height
+    fixed at the bottom (phantoms only; 0.05 = the lowest 5 mm of the 100 mm phantom, so that the
+    ball's path over the impact paper's velocities clears it, see :class:`BallSpec`), and how the
+    face is held (``support``):
 
     - ``"band"`` (the impact paper): only node set ``fixed_set`` (the lower band) is fixed. The face is
       then a free flap: the ball turns it about the band almost rigidly, and the tissue never
@@ -103,13 +105,18 @@ class FaceSpec:
     lower_fixed_fraction: float = 0.05
     support: str = "band"
     units: str = "mm"
+    axes: str = "toolkit"
 
     def __post_init__(self):
+        from toolkit.common.axes import AXES
         from toolkit.common.io import UNIT_SCALES
 
         if self.units not in UNIT_SCALES:
             raise SceneError(f"face units {self.units!r} is not one of {sorted(UNIT_SCALES)} (the length unit of "
                              "the mesh file, converted to mm)")
+        if self.axes not in AXES:
+            raise SceneError(f"face axes {self.axes!r} is not one of {list(AXES)} (the axes of the mesh file, "
+                             "converted to the toolkit's: x left, y anterior, z superior)")
         if self.support not in SUPPORTS:
             raise SceneError(f"face support {self.support!r} is not one of {sorted(SUPPORTS)}")
         if isinstance(self.resolution, str) and self.mesh is None and self.resolution not in TET_RESOLUTIONS:
@@ -457,9 +464,10 @@ def yielding_scene(velocity: float = 50.0) -> Scene:
     return scene.with_face(support="skull")
 
 
-def meshed_scene(mesh: str | os.PathLike, units: str = "mm", velocity: float = papers.BALL_VELOCITY) -> Scene:
-    """:func:`yielding_scene` on the face mesh file ``mesh`` (length unit ``units``) as ``toolkit
-    mesh`` writes it, at ``velocity`` mm/s, in the mesh's element order: the face held by the
+def meshed_scene(mesh: str | os.PathLike, units: str = "mm", velocity: float = papers.BALL_VELOCITY, *,
+                 axes: str = "toolkit") -> Scene:
+    """:func:`yielding_scene` on the face mesh file ``mesh`` (length unit ``units``, axes ``axes``)
+    as ``toolkit mesh`` writes it, at ``velocity`` mm/s, in the mesh's element order: the face held by the
     tissue on its bones (node set ``bone``; ``fixed_set = "bone"``), the default aim (30 mm above
     the most anterior skin point), 0.36 s.
 
@@ -471,6 +479,6 @@ def meshed_scene(mesh: str | os.PathLike, units: str = "mm", velocity: float = p
     """
     from toolkit.impact.simulate import mesh_order
 
-    scene = yielding_scene(velocity).with_face(mesh=str(mesh), units=units, fixed_set="bone")
+    scene = yielding_scene(velocity).with_face(mesh=str(mesh), units=units, axes=axes, fixed_set="bone")
     order = mesh_order(mesh, units)
     return scene.with_fidelity(order=order) if order else scene

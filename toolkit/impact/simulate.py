@@ -289,13 +289,15 @@ MESH_ORDERS = {"tet4": 1, "tet10": 2}
 
 
 def _face_file(scene: Scene) -> Mesh:
-    """The face mesh file of ``scene``, checked: tetrahedra of the fidelity's order and the node
-    sets the scene holds and aims at (:class:`~toolkit.impact.scene.SceneError` otherwise)."""
+    """The face mesh file of ``scene`` in the toolkit's axes, checked: tetrahedra of the fidelity's
+    order, the node sets the scene holds and aims at (:class:`~toolkit.impact.scene.SceneError`
+    otherwise) and the anatomy (:func:`toolkit.common.axes.check_mesh_axes`)."""
+    from toolkit.common.axes import check_mesh_axes, mesh_to_toolkit
     from toolkit.common.io import read
 
     spec = scene.face
     needed = list(dict.fromkeys([spec.fixed_set, "skin"] + (["bone"] if spec.support == "skull" else [])))
-    face = read(spec.mesh, units=spec.units)
+    face = mesh_to_toolkit(read(spec.mesh, units=spec.units), spec.axes)
     missing = [n for n in needed if n not in face.node_sets]
     if missing:
         hint = (" or hold the face by its fixed set only (support = \"band\", command line --support band)"
@@ -311,6 +313,7 @@ def _face_file(scene: Scene) -> Mesh:
         raise SceneError(f"face mesh {spec.mesh} holds {types[0]} (order {order}) and the scene asks for order "
                          f"{scene.fidelity.order}; pass --order {order} (Python: Fidelity.order = {order}) or "
                          f"remesh with `toolkit mesh --order {scene.fidelity.order}`")
+    check_mesh_axes(face, axes=spec.axes, source=Path(spec.mesh).name)
     return face
 
 

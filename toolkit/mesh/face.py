@@ -4,19 +4,22 @@
 
 1. **read**: the tissue surface and the bone surfaces (STL, OBJ, PLY, VTK, VTU, OFF; unit
    check and ``units`` conversion), the tissue repaired into a closed outward surface
-   (:func:`~toolkit.mesh.surface.closed_surface`), each bone oriented toward the tissue, and
-   every bone checked to lie against the tissue (within the contact distance);
+   (:func:`~toolkit.mesh.surface.closed_surface`), the surfaces and commissures converted from
+   ``axes`` (:mod:`toolkit.common.axes`), each bone oriented toward the tissue, every bone
+   checked to lie against the tissue (within the contact distance) and the anatomy checked to be
+   in the toolkit's axes (:func:`~toolkit.common.axes.check_anatomical_axes`);
 2. **mesh**: linear tetrahedra of edge length about ``size_mm``
    (:func:`~toolkit.mesh.backends.tetrahedralize`);
 3. **mouth** (with commissures): the slit cut between them (:mod:`toolkit.mesh.mouth`);
 4. **label**: node sets by the rules (:mod:`toolkit.mesh.labels`, :mod:`toolkit.mesh.rules`);
+   a moving segment ruled to carry tissue that carries less than ``min_carried_mm2`` fails here;
 5. **order**: quadratic tetrahedra (``order=2``: mid-edge nodes, straight sides), the sets
    extended to the mid-edge nodes of their boundary edges;
 6. **quality**: minimum scaled Jacobian and the dihedral angles of the result.
 
 The result (:class:`MeshedFace`) writes itself as VTU (or Abaqus ``.inp``) with its sets,
-``labels.json`` (counts, quality, repairs, rules, times) and ``labels.png`` (the sets in colour,
-from the front and from inside).
+``labels.json`` (counts, what each segment carries, quality, repairs, rules, times) and
+``labels.png`` (the sets in colour, from the front and from inside).
 """
 
 from __future__ import annotations
@@ -29,14 +32,15 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common.axes import axes_matrix, check_anatomical_axes, mesh_to_toolkit, to_toolkit
 from toolkit.common.errors import ToolkitError
 from toolkit.common.fibres import with_lip_fibres
 from toolkit.common.mesh import Mesh
 from toolkit.mesh.backends import DEFAULT, tetrahedralize
 from toolkit.mesh.rules import SEGMENTS, LabelRules, read_rules
 
-__all__ = ["MeshedFace", "mesh_face", "FaceInputError", "dihedral_angles", "mid_edge_lookup", "DEFAULT_SIZE_MM",
-           "DEFAULT_ORDER"]
+__all__ = ["MeshedFace", "mesh_face", "carried_report", "FaceInputError", "dihedral_angles", "mid_edge_lookup",
+           "DEFAULT_SIZE_MM", "DEFAULT_ORDER"]
 
 #: mm, default tetrahedron edge length (a paper-size face: a few thousand nodes)
 DEFAULT_SIZE_MM = 3.0
@@ -219,9 +223,48 @@ def _lip_muscle(points: np.ndarray, tets: np.ndarray, slit, commissures, rules: 
                           & (np.abs((x - c[0]) @ slit.normal) <= rules.lip_muscle_mm) & (behind < 15.0))
 
 
+def carried_report(mesh: Mesh, rules: LabelRules) -> dict:
+    """Per labelled segment, what it holds of the tissue: ``attached_nodes`` (its carried set),
+    ``attached_area_mm2`` and ``facing_area_mm2`` (lumped boundary areas of the carried set and
+    of all the tissue lying on its bone, carried or sliding) and ``carried_share`` (their ratio)."""
+    from toolkit.common.topology import lumped_boundary_area
+    from toolkit.mesh.labels import CARRIED_SETS
+
+    area = lumped_boundary_area(mesh.points, mesh.cells)
+    out = {}
+    for name in SEGMENTS:
+        carried = mesh.node_sets.get(CARRIED_SETS.get(name, ""), np.zeros(0, np.int64))
+        sliding = mesh.node_sets.get(f"mucosa_{name}")
+        if sliding is None and not carried.size:
+            continue
+        facing = float(area[np.union1d(carried, np.zeros(0, np.int64) if sliding is None else sliding)].sum())
+        held = float(area[carried].sum())
+        out[name] = {"attach": rules.segments[name].attach, "attached_nodes": int(carried.size),
+                     "attached_area_mm2": round(held, 2), "facing_area_mm2": round(facing, 2),
+                     "carried_share": round(held / facing, 4) if facing > 0 else 0.0}
+    return out
+
+
+def _check_carried(segments: Mapping[str, dict], rules: LabelRules, names: Mapping[str, str]) -> None:
+    """A moving segment ruled to carry tissue must carry at least ``rules.min_carried_mm2``."""
+    for name in ("lefort", "distal"):
+        rule = rules.segments[name]
+        if name not in names or rule.attach in ("none", "fixed"):
+            continue
+        got = segments.get(name, {"attached_nodes": 0, "attached_area_mm2": 0.0, "facing_area_mm2": 0.0})
+        if got["attached_area_mm2"] < rules.min_carried_mm2:
+            raise FaceInputError(
+                f"segment {name} ({names[name]}) carries {got['attached_nodes']} nodes, {got['attached_area_mm2']:.1f} "
+                f"mm^2 of tissue (of {got['facing_area_mm2']:.1f} mm^2 lying on its bone); expected at least "
+                f"{rules.min_carried_mm2:g} mm^2 (rules key min_carried_mm2): a plan moving it would leave the tissue "
+                f"behind. Check that the bone lies against the tissue's inner side in the same axes and units, raise "
+                f"contact_mm if the tissue stands off the bone, or choose what it carries with segments.{name}.attach "
+                f"in --rules")
+
+
 def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFAULT_SIZE_MM,
               order: int = DEFAULT_ORDER, backend: str = DEFAULT, rules=None, units: str = "mm",
-              max_hole_edges: int = 60, threads: int = 1) -> MeshedFace:
+              axes: str = "toolkit", max_hole_edges: int = 60, threads: int = 1) -> MeshedFace:
     """Mesh and label a face from its segmented surfaces (see the module for the stages).
 
     Parameters
@@ -237,6 +280,10 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
     backend : the tetrahedral mesher (:data:`toolkit.mesh.backends.BACKENDS`)
     rules : :class:`~toolkit.mesh.rules.LabelRules`, a TOML file of overrides, or None (defaults)
     units : length unit of the files (``mm``, ``cm``, ``m``, ``um``)
+    axes : axes of the tissue, the bones and the commissures, files or Meshes (``toolkit``: x left,
+        y anterior, z superior; ``LPS``; ``RAS``: :data:`toolkit.common.axes.AXES`), converted to
+        the toolkit's. A face whose anatomy says other axes is refused
+        (:class:`~toolkit.common.axes.AxesError`, naming the ``axes`` that fits) before meshing
     max_hole_edges : holes of the tissue surface bounded by up to this many edges are closed
     threads : threads the mesher may use (fTetWild). fTetWild's mesh differs from run to run even
         on one thread (the coarse phantom at 10 mm: 4,193-4,558 tet10 nodes in four runs); keep the
@@ -247,6 +294,7 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
     from toolkit.static.bones import orient_surface
 
     _check_inputs(bones, size_mm, order, commissures)
+    axes_matrix(axes)
     rules = rules if isinstance(rules, LabelRules) else read_rules(rules)
     names = {k: (Path(v).name if not isinstance(v, Mesh) else "given surface") for k, v in bones.items()}
     times = {}
@@ -257,8 +305,13 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
     else:
         surface, repair = read_tissue_surface(tissue, units=units, max_hole_edges=max_hole_edges)
         tissue_name = Path(tissue).name
-    bone_surfaces = {k: _read_bone(k, v, units) for k, v in bones.items()}
+    surface = mesh_to_toolkit(surface, axes)
+    bone_surfaces = {k: mesh_to_toolkit(_read_bone(k, v, units), axes) for k, v in bones.items()}
+    if commissures is not None:
+        commissures = to_toolkit(commissures, axes)
     _check_contact(surface, bone_surfaces, rules, names)
+    check_anatomical_axes(surface.points, {k: v.points for k, v in bone_surfaces.items()}, axes=axes,
+                          source=f"{tissue_name} with its bones ({', '.join(names.values())})")
     times["read_repair"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -311,12 +364,15 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
     if sj.min() <= 0:
         raise ToolkitError(f"the {backend} mesh has {int((sj <= 0).sum())} inverted elements; try another "
                            "backend or size")
+    segments = carried_report(mesh, rules)
+    _check_carried(segments, rules, names)
     offsets = np.concatenate([v for v in labels.offsets.values()]) if labels.offsets else np.zeros(0)
     report = {
-        "tissue": tissue_name, "bones": names, "backend": backend, "size_mm": float(size_mm),
+        "tissue": tissue_name, "bones": names, "axes": axes, "backend": backend, "size_mm": float(size_mm),
         "element_type": mesh.volume_type, "nodes": int(mesh.n_points), "elements": int(mesh.n_volume_cells),
         "node_sets": {k: int(len(v)) for k, v in sorted(node_sets.items())},
         "element_sets": {k: int(len(v)) for k, v in element_sets.items()},
+        "segments": segments,
         "quality": {"min_scaled_jacobian": float(sj.min()), "p1_scaled_jacobian": float(np.percentile(sj, 1)),
                     "min_dihedral_deg": float(dihedral.min()), "max_dihedral_deg": float(dihedral.max()),
                     "slivers_below_10deg": int((dihedral.min(axis=1) < 10.0).sum())},

@@ -64,8 +64,8 @@ class CutRule:
     """Truncation planes of the model, held ``fixed``: boundary faces whose outward normal is
     within ``max_angle_deg`` of one of ``directions`` and that lie within ``margin_mm`` of the
     mesh's extreme in that direction (x left, y anterior, z superior). A cut face is held only
-    if it lies at least ``clear_of_moving_mm`` from every moving bone (nearer, as behind the
-    ramus, the tissue follows the bone it covers)."""
+    if it lies at least ``clear_of_moving_mm`` from the tissue on every moving bone (nearer, as
+    behind the ramus, the tissue follows the bone it covers)."""
 
     directions: tuple[tuple[float, float, float], ...] = ((0.0, -1.0, 0.0), (0.0, 0.0, 1.0))
     margin_mm: float = 3.0

@@ -172,7 +172,7 @@ def orient_surface(surface: Mesh, toward: np.ndarray) -> Mesh:
 
 
 def segments_from_files(face: Mesh, bones: Mapping[str, str | Path | Mesh], pivots: Mapping[str, np.ndarray],
-                        units: str = "mm") -> dict:
+                        units: str = "mm", axes: str = "toolkit") -> dict:
     """Bony segments from surface files for a face mesh.
 
     Parameters
@@ -185,11 +185,14 @@ def segments_from_files(face: Mesh, bones: Mapping[str, str | Path | Mesh], pivo
     pivots : segment name -> (3,) mm pivot (the plan's; segments without one pivot about
         their surface centroid)
     units : length unit of the files
+    axes : axes of the surfaces, files or Meshes (:data:`toolkit.common.axes.AXES`), converted to
+        the toolkit's
 
     Returns
     -------
     dict name -> BoneSegment, surfaces oriented towards the face's bone-side nodes
     """
+    from toolkit.common.axes import mesh_to_toolkit
     from toolkit.common.phantom import BoneSegment
     from toolkit.static.boundary import ATTACHMENT_SETS
 
@@ -200,7 +203,7 @@ def segments_from_files(face: Mesh, bones: Mapping[str, str | Path | Mesh], pivo
     toward = np.concatenate([face.points[c].mean(axis=1) for t, c in face.cells.items() if t in VOLUME_TYPES])
     out = {}
     for name, source in bones.items():
-        surface = source if isinstance(source, Mesh) else read_surface(source, units=units)
+        surface = mesh_to_toolkit(source if isinstance(source, Mesh) else read_surface(source, units=units), axes)
         surface = orient_surface(surface, toward)
         attached = ATTACHMENT_SETS[name]
         pivot = pivots.get(name)

@@ -108,6 +108,7 @@ def load_case(
     shape: FaceShape | None = None,
     force: bool = False,
     units: str = "mm",
+    axes: str = "toolkit",
 ) -> StaticCase:
     """The face, plan and bony segments of a static simulation.
 
@@ -128,6 +129,10 @@ def load_case(
     force : accept movements beyond twice the physiological range (they warn), also when a
         plan file does not say ``force = true``
     units : length unit of a mesh file (``mm``, ``m``, ``cm``, ``um``), converted to mm
+    axes : axes of ``mesh`` and ``bones``, files or Meshes (``toolkit``: x left, y anterior, z
+        superior; ``LPS``; ``RAS``: :data:`toolkit.common.axes.AXES`), converted to the toolkit's.
+        The plan is in the toolkit's axes. A mesh whose anatomy says other axes is refused
+        (:func:`toolkit.common.axes.check_mesh_axes`)
 
     Returns
     -------
@@ -136,11 +141,15 @@ def load_case(
     Raises
     ------
     ValueError for a mesh without a plan, or a shape given with a mesh;
-    BoundaryError when a mesh has no bone-side faces and no ``bones`` were given.
+    BoundaryError when a mesh has no bone-side faces and no ``bones`` were given;
+    AxesError for a mesh not in the toolkit's axes once converted from ``axes``, or ``axes`` other
+    than ``toolkit`` for the phantom without bone files.
     """
+    from toolkit.common.axes import AxesError, axes_matrix, check_mesh_axes, mesh_to_toolkit
     from toolkit.static.bones import segments_from_files
 
     bones = dict(bones or {})
+    axes_matrix(axes)
     if isinstance(plan, str | Path) and not Path(plan).is_file():
         raise FileNotFoundError(f"plan file {str(plan)!r} does not exist; expected a .toml or .json plan "
                                 "(command line: --plan FILE)")
@@ -148,6 +157,10 @@ def load_case(
         from toolkit.common.phantom import face_hex
         from toolkit.static.plan import default_plan
 
+        if axes != "toolkit" and not bones:
+            raise AxesError(f"axes = {axes!r} for the built-in phantom, which is in the toolkit's axes; axes applies "
+                            "to mesh and bone files: give mesh= or bones=, or leave it out (command line: --axes "
+                            "with --mesh or --bone)")
         phantom = face_hex(resolution, shape)
         if plan is None:
             plan = default_plan(phantom, force=force)
@@ -156,7 +169,8 @@ def load_case(
             if force:
                 plan = SurgicalPlan(plan.motions, force=True)
         segments = dict(phantom.segments)
-        segments.update(segments_from_files(phantom.mesh, bones, {k: s.pivot for k, s in phantom.segments.items()}))
+        segments.update(segments_from_files(phantom.mesh, bones, {k: s.pivot for k, s in phantom.segments.items()},
+                                            axes=axes))
         return StaticCase(phantom, plan, segments)
 
     if shape is not None:
@@ -169,7 +183,8 @@ def load_case(
     from toolkit.common.io import read
     from toolkit.static.boundary import BoundaryError, segments_from_mesh
 
-    face = with_lip_fibres(mesh if isinstance(mesh, Mesh) else read(mesh, units=units, require_node_sets=["fixed"]))
+    face = mesh if isinstance(mesh, Mesh) else read(mesh, units=units, require_node_sets=["fixed"])
+    face = with_lip_fibres(mesh_to_toolkit(face, axes))
     plan = plan if isinstance(plan, SurgicalPlan) else SurgicalPlan.read(plan, force=force)
     if force:
         plan = SurgicalPlan(plan.motions, force=True)
@@ -180,7 +195,9 @@ def load_case(
         if not bones:
             raise
         segments = {}
-    segments.update(segments_from_files(face, bones, pivots))
+    segments.update(segments_from_files(face, bones, pivots, axes=axes))
+    check_mesh_axes(face, {k: s.surface for k, s in segments.items()}, axes=axes,
+                    source=Path(mesh).name if isinstance(mesh, str | Path) else "the given mesh")
     return StaticCase(face, plan, segments)
 
 
