@@ -2,8 +2,8 @@
 
 A real segmentation is not the phantom's clean room. Its bone surfaces come with the triangle
 winding mixed in patches, open along the saw cuts of the virtual osteotomy, in several pieces,
-with small holes, at another resolution; its tissue surface stands off the bone by a few mm
-where thresholds and smoothing left a gap. Each function here makes one of these from clean
+with small holes, at another resolution; and the tissue's inner surface stands off the bone by a
+few mm where thresholds and smoothing left a gap. Each function here makes one of these from clean
 surfaces, so that :func:`toolkit.mesh.mesh_face` can be shown to label the damaged face as it
 labels the clean one (``benchmarks/segmentation_damage.py``, ``tests/mesh/test_damage.py``).
 
@@ -119,47 +119,52 @@ def remeshed(surface: Mesh, factor: float) -> Mesh:
 
 
 def off_bone(tissue: Mesh, bones: Mapping[str, Mesh], max_mm: float, rng: np.random.Generator,
-             on_bone_mm: float = 0.5, wavelength_mm: float = 40.0) -> Mesh:
-    """The tissue surface with its bone side moved into the tissue by 0 to ``max_mm`` (mm): a
-    smooth random field (sines of ``wavelength_mm``) along the surface's inward normal, tapered
-    to zero over ``wavelength_mm / 4`` toward the edge of the bone side. Vertices within
-    ``on_bone_mm`` of a bone are the bone side; the skin and truncation cuts stay."""
+             wavelength_mm: float = 40.0) -> dict[str, Mesh]:
+    """The bones moved away from the tissue by 0 to ``max_mm`` (mm): every bone vertex along its own
+    normal, turned away from the tissue (the side most of the bone's normals share with the tissue
+    surface's outward normal at their closest tissue points), by a smooth random field (sines of
+    ``wavelength_mm``), so that the tissue's inner surface stands 0-``max_mm`` off the bone as a
+    segmentation leaves it. The
+    tissue (a closed surface) stays as it is, so the phantom's own mesh can be run on the same
+    bones (``benchmarks/segmentation_damage.py``). Apply it to consistently wound bones, each one
+    sheet (before :func:`flipped_in_patches`)."""
     from toolkit.common.surface_distance import closest_points, vertex_normals
 
-    p, tris = tissue.points, tissue.cells["tri3"]
-    near = np.full(p.shape[0], np.inf)
-    for bone in bones.values():
-        near = np.minimum(near, closest_points(p, bone.points, bone.cells["tri3"]).distance)
-    side = near <= on_bone_mm
+    x = tissue.points[tissue.cells["tri3"]]
+    outward = 1.0 if np.einsum("ij,ij->i", x[:, 0], np.cross(x[:, 1], x[:, 2])).sum() > 0 else -1.0
     k = rng.normal(size=(3, 3))
     k *= 2 * np.pi / wavelength_mm / np.linalg.norm(k, axis=1, keepdims=True)
     phase = rng.uniform(0, 2 * np.pi, size=3)
-    field = 0.5 + np.sin(p @ k.T + phase).sum(axis=1) / 6.0  # in [0, 1]
-    rim = cKDTree(p[~side]).query(p[side])[0] if (~side).any() else np.full(side.sum(), np.inf)
-    taper = np.clip(rim / (0.25 * wavelength_mm), 0.0, 1.0)
-    moved = p.copy()
-    moved[side] -= (max_mm * field[side] * taper)[:, None] * vertex_normals(p, tris)[side]
-    return Mesh(moved, {"tri3": tris})
+    out = {}
+    for name, bone in bones.items():
+        p = bone.points
+        normal = vertex_normals(p, bone.cells["tri3"])
+        away = outward * closest_points(p, tissue.points, tissue.cells["tri3"]).normal
+        side = 1.0 if np.einsum("ij,ij->i", normal, away).sum() >= 0 else -1.0  # the bone's side, as a whole
+        field = 0.5 + np.sin(p @ k.T + phase).sum(axis=1) / 6.0  # in [0, 1]
+        out[name] = Mesh(p + side * (max_mm * field)[:, None] * normal, {"tri3": bone.cells["tri3"]})
+    return out
 
 
 def damaged(tissue: Mesh, bones: Mapping[str, Mesh], kind: str, rng: np.random.Generator):
     """``(tissue, bones)`` with one kind of :data:`DAMAGE` applied at the strength the tests and
-    the benchmark use (``all``: every kind but the resolution changes, in the order listed):
+    the benchmark use (``all``: the bones off the tissue, then every export damage but the
+    resolution changes):
 
     - ``flipped``: 30 % of each bone's triangles reversed in 8 mm patches;
     - ``kerf``: a 1 mm saw cut between every two segments;
     - ``holes``: three holes of 3 mm radius in each bone;
     - ``pieces``: each bone broken by two 1.5 mm strips;
     - ``coarser`` / ``finer``: each bone at half / four times its triangles;
-    - ``off_bone``: the tissue's bone side 0-5 mm off the bone.
+    - ``off_bone``: the bones 0-5 mm off the tissue's inner surface.
     """
     if kind not in DAMAGE:
         raise ValueError(f"damage kind {kind!r}; expected one of {list(DAMAGE)}")
     bones = dict(bones)
-    kinds = ["flipped", "kerf", "holes", "pieces", "off_bone"] if kind == "all" else [kind]
+    kinds = ["off_bone", "flipped", "kerf", "holes", "pieces"] if kind == "all" else [kind]
     for k in kinds:
         if k == "off_bone":
-            tissue = off_bone(tissue, bones, 5.0, rng)
+            bones = off_bone(tissue, bones, 5.0, rng)
         elif k == "kerf":
             bones = kerfed(bones, 1.0)
         else:

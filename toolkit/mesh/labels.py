@@ -109,10 +109,13 @@ def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh],
         d = np.asarray(d, dtype=float) / np.linalg.norm(d)
         extreme = float((points @ d).max())
         cut |= (normal @ d >= cos_cut) & (centre @ d >= extreme - rules.cuts.margin_mm)
-    moving = [s for s in names if _moves(s, rules)]
-    for name in moving:
-        idx = np.flatnonzero(cut)
-        near = closest_points(centre[idx], bones[name].points, bones[name].cells["tri3"]).distance
+    # measured to the tissue lying on a moving bone (as the Le Fort I border is): where the bone
+    # itself lies, a few mm off the tissue, does not move the held cut
+    moving = [k for k, s in enumerate(names) if _moves(s, rules)]
+    on_moving = faces[np.isin(seg_of, moving)]
+    idx = np.flatnonzero(cut)
+    if on_moving.size and idx.size:
+        near = cKDTree(points[np.unique(on_moving)]).query(centre[idx])[0]
         cut[idx[near < rules.cuts.clear_of_moving_mm]] = False
     cut &= ~on_bone & ~slit
     label[cut] = "fixed"
@@ -128,11 +131,15 @@ def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh],
     sets: dict[str, np.ndarray] = {}
     fixed = np.setdiff1d(nodes_of(cut), slit_nodes)
     bone_nodes = np.setdiff1d(nodes_of(on_bone), slit_nodes)
-    # a bone-side node takes the segment of its nearest bone
+    # a bone-side node takes the segment of the bone it lies over (its closest point inside the
+    # bone, not on its rim), the nearest of those; a node over none (in a saw cut) the nearest bone
     node_dist = np.full((n, len(names)), np.inf)
+    over = np.zeros((n, len(names)), dtype=bool)
     for k, name in enumerate(names):
-        node_dist[bone_nodes, k] = closest_points(points[bone_nodes], bones[name].points,
-                                                  bones[name].cells["tri3"]).distance
+        cp = closest_points(points[bone_nodes], bones[name].points, bones[name].cells["tri3"])
+        node_dist[bone_nodes, k] = cp.distance
+        over[bone_nodes, k] = ~_on_rim(bones[name], cp)
+    node_dist = np.where(over | ~over.any(axis=1, keepdims=True), node_dist, np.inf)
     # ties (a node on the osteotomy line, on two bones' rims) go to the first segment in SEGMENTS
     # order, whatever the triangulation's rounding
     node_seg = np.argmax(node_dist <= node_dist.min(axis=1, keepdims=True) + _TIE_MM, axis=1)
@@ -164,6 +171,26 @@ def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh],
     skin = nodes_of(label == "skin")
     sets["skin"] = skin[~np.isin(skin, bone_nodes) & ~taken[skin]]
     return FaceLabels({k: np.asarray(v, dtype=np.int64) for k, v in sets.items()}, label, offsets)
+
+
+def _on_rim(bone: Mesh, cp, tol: float = 1e-6) -> np.ndarray:
+    """Whether closest points ``cp`` on ``bone`` lie on its rim (an edge of one triangle only,
+    within ``tol`` of the triangle's size in barycentric terms): points beyond the bone's edge."""
+    from toolkit.common.surface_distance import barycentric
+    from toolkit.common.topology import rim_edges
+
+    tris = bone.cells["tri3"][cp.triangle]
+    rim = rim_edges(bone.cells["tri3"])
+    if not rim.size:
+        return np.zeros(tris.shape[0], dtype=bool)
+    m = int(bone.points.shape[0])
+    keys = np.sort(rim, axis=1) @ np.array([m, 1])
+    bary = barycentric(cp.point, bone.points[tris])
+    out = np.zeros(tris.shape[0], dtype=bool)
+    for corner, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):  # the edge opposite each corner
+        edge = np.sort(tris[:, [i, j]], axis=1) @ np.array([m, 1])
+        out |= (bary[:, corner] <= tol) & np.isin(edge, keys)
+    return out
 
 
 def arch_centre(bone: Mesh) -> np.ndarray:
