@@ -20,8 +20,8 @@ slower than one thread, so the command line runs on one thread (``--threads``); 
 ``TOOLKIT_NUM_THREADS``, default 1) before heavy work.
 """
 
-from toolkit.common.errors import ConvergenceError, ToolkitError
+from toolkit.common.errors import AnswerError, ConvergenceError, ToolkitError
 from toolkit.common.runtime import set_threads
 
 __version__ = "0.1.0"
-__all__ = ["set_threads", "ToolkitError", "ConvergenceError", "__version__"]
+__all__ = ["set_threads", "ToolkitError", "ConvergenceError", "AnswerError", "__version__"]

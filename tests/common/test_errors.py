@@ -9,9 +9,10 @@ import pytest
 
 import toolkit
 import toolkit.common
+from toolkit.common.axes import AxesError
 from toolkit.common.config_diff import IncompatibleError
 from toolkit.common.database import DatabaseError
-from toolkit.common.errors import ConvergenceError, ToolkitError
+from toolkit.common.errors import AnswerError, ConvergenceError, ToolkitError
 from toolkit.common.fem.pardiso import PardisoError
 from toolkit.common.fem.solvers import SolverError
 from toolkit.common.fidelity import FidelityError
@@ -39,6 +40,7 @@ BUILTIN_BASES = {
     InvertedElementError: ValueError,
     DegenerateElementError: ValueError,
     UnitsError: ValueError,
+    AxesError: ValueError,
     MissingSetError: KeyError,
     OutputError: ValueError,
     DatabaseError: ValueError,
@@ -51,6 +53,7 @@ BUILTIN_BASES = {
     SolverError: RuntimeError,
     PardisoError: RuntimeError,
     SimulationError: RuntimeError,
+    AnswerError: RuntimeError,
     InstabilityError: RuntimeError,
     InvertedPointError: FloatingPointError,
     SurfaceError: ValueError,

@@ -108,7 +108,12 @@ def test_train_evaluate_and_predict_on_the_meshed_face(face, database, tmp_path,
     out = tmp_path / "predicted"
     assert main(["static", "predict", "--model", str(model), "--mesh", str(face["mesh"]), "--plan", str(plan),
                  "--out", str(out), "--no-preview"]) == 0
-    assert json.loads((out / "summary.json").read_text())["nodes"] == db.points[0].shape[0]
+    predicted = json.loads((out / "summary.json").read_text())
+    assert predicted["nodes"] == db.points[0].shape[0]
+    # every answer is checked: a failed check (a 3-epoch network may invert elements) is flagged and said
+    checks = predicted["checks"]["answer"]
+    assert checks["passed"] == (checks["min_scaled_jacobian"] > 0 and checks["attached_follow_mm"] <= 1e-6)
+    assert checks["passed"] or "failed its checks" in capsys.readouterr().err
     # the model knows its face: predicting on the phantom instead is refused before any output
     assert main(["static", "predict", "--model", str(model), "--plan", str(plan), "--out",
                  str(tmp_path / "wrong")]) == 2
@@ -127,12 +132,18 @@ def test_train_evaluate_and_predict_on_the_meshed_face(face, database, tmp_path,
                  "--answerer", "network"]) == 0
     seen = sorted(set(db.samples.key) - set(json.loads((model / "config.json").read_text())["extra"]["test_keys"]))
     db.plan(seen[0]).write(plan)
+    # (a network answer that fails its checks, an inverted element, is never given: the FE answers)
     for tolerance, who in (("1000", "surrogate"), ("0.001", "fe")):
         out = tmp_path / f"answer-{who}"
         assert main(["static", "predict", "--model", str(model), "--mesh", str(face["mesh"]), "--plan", str(plan),
                      "--tolerance", tolerance, "--out", str(out), "--no-preview"]) == 0
-        answer = json.loads((out / "summary.json").read_text())["answer"]
-        assert answer["answered_by"] == who, answer["reason"]
+        summary = json.loads((out / "summary.json").read_text())
+        answer = summary["answer"]
+        if answer["answered_by"] == "fe" and who == "surrogate":
+            assert answer["reason"].startswith("the answer failed its checks"), answer["reason"]
+        else:
+            assert answer["answered_by"] == who, answer["reason"]
+        assert summary["min_scaled_jacobian"] > 0 and summary["checks"]["answer"]["passed"]
     # the baseline on the meshed face: its own sliding response (tet10, mid-edge mucosa nodes sliding) plus
     # the residual regression. On the held-out plan the sliding response alone misses under a tenth of the
     # FE's displacement (95th percentiles over nodes; what remains is the geometry update), under half what

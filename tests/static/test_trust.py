@@ -171,7 +171,7 @@ def test_in_distribution_plan_answered_by_whichever_the_tolerance_allows(calibra
     assert not out_of_distribution(cal, subject.mesh, plan)["outside"]
     loose = answer(model, subject, plan, 100.0, calibration=cal)
     chosen = cal.for_tolerance(100.0)
-    assert loose.answered_by == {"network": "surrogate", "baseline": "baseline"}[chosen.answerer]
+    assert loose.answered_by == {"network": "surrogate", "baseline": "baseline"}[chosen.answerer], loose.reason
     assert (loose.estimate["scale"], loose.estimate["answerer"]) == (chosen.scale, chosen.answerer)
     assert loose.seconds["fe"] == 0.0
     cal = replace(cal, candidates=((cal.scale, cal.answerer),))  # the calibration's own pair only

@@ -4,6 +4,7 @@ PointNet++ surrogate (the PointNet++ paper)."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from toolkit.cli._common import (
@@ -12,6 +13,7 @@ from toolkit.cli._common import (
     RESOLUTIONS,
     SIMULATIONS_KEPT,
     Command,
+    add_axes,
     add_database_run,
     add_units,
     dask_client,
@@ -58,6 +60,7 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--solver", default="auto", choices=["auto", "superlu", "amg", "cholmod"],
                         help="linear solver (auto: chosen by the expected fill of the factor)")
     add_units(parser)
+    add_axes(parser)
     parser.add_argument("--force", action="store_true",
                         help="accept movements beyond twice the physiological range (also for a --plan file)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
@@ -71,7 +74,7 @@ def simulate(args: argparse.Namespace) -> int:
     check_output_dir(args.out)
     chosen, fidelity = simulate_options(args)
     case = load_case(args.mesh, resolution=chosen["resolution"], plan=args.plan, bones=bones(args.bone),
-                     force=args.force, units=args.units)
+                     force=args.force, units=args.units, axes=args.axes)
     result = case.simulate(fidelity=fidelity, increments=chosen["increments"], material=chosen["material"],
                            sliding=chosen["sliding"], options=SimulationOptions(solver=args.solver, progress=True))
     with uninterruptible():
@@ -120,6 +123,7 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --mesh: left (x > 0) and right condyle in mm, the pivots of the mandible "
                              "(default: the top of each proximal segment's surface)")
     add_units(parser)
+    add_axes(parser, "the --mesh and --bone files and --condyles")
     parser.add_argument("--subjects", type=int, default=1,
                         help="number of phantom subjects, >= 1: subject 0 is the default shape, subject k >= 1 "
                              "FaceShape.sample(k)")
@@ -145,14 +149,15 @@ def dataset(args: argparse.Namespace) -> int:
                     material=args.material, sliding=args.sliding, seed=args.seed,
                     poisson_range=tuple(args.poisson_range) if args.poisson_range else None)
     if args.mesh is None:
-        if args.bone or args.condyles:
-            raise ValueError(f"{'--bone' if args.bone else '--condyles'} applies to a meshed face; give --mesh "
-                             "FACE.vtu, or leave it out for the phantoms")
+        if args.bone or args.condyles or args.axes != "toolkit":
+            given = "--bone" if args.bone else "--condyles" if args.condyles else f"--axes {args.axes}"
+            raise ValueError(f"{given} applies to a meshed face; give --mesh FACE.vtu, or leave it out for the "
+                             "phantoms")
         config = DatasetConfig(resolution=args.resolution, **settings)
     else:
         from toolkit.static.dataset import database_subject
 
-        config = DatasetConfig.for_mesh(args.mesh, bones(args.bone), args.condyles, args.units, **settings)
+        config = DatasetConfig.for_mesh(args.mesh, bones(args.bone), args.condyles, args.units, args.axes, **settings)
         database_subject(config, 0)  # reads the mesh and places the plans: its errors before any output
     with dask_client(args.dask, args.workers) as client:
         report = generate(args.out, config, executor=client, workers=args.workers, retry_failed=args.retry_failed)
@@ -298,6 +303,7 @@ def add_predict_arguments(parser: argparse.ArgumentParser) -> None:
                         help="predict on a mesh of another topology than the training meshes (PointNet++ reads a "
                              "point cloud; its accuracy on a remeshed face is in docs/own-face.md)")
     add_units(parser)
+    add_axes(parser)
     parser.add_argument("--force", action="store_true",
                         help="accept movements beyond twice the physiological range (also for a --plan file)")
     parser.add_argument("--tolerance", type=positive_float, default=None, metavar="MM",
@@ -328,7 +334,7 @@ def predict(args: argparse.Namespace) -> int:
                          "--any-mesh --resolution R")
     resolution = args.resolution or database["resolution"]
     case = load_case(args.mesh, resolution=resolution, plan=args.plan, bones=bones(args.bone), force=args.force,
-                     units=args.units)
+                     units=args.units, axes=args.axes)
     if args.tolerance is None:
         if args.coverage is not None or args.material is not None:
             raise ValueError("--coverage and --material go with --tolerance (an answer within a tolerance)")
@@ -344,6 +350,11 @@ def predict(args: argparse.Namespace) -> int:
     from toolkit.common.training import describe_extrapolation
 
     print(f"plan: {describe_extrapolation(s['extrapolation'])}")
+    checks = s["checks"]["answer"]
+    if not checks["passed"]:
+        print(f"warning: the answer failed its checks ({'; '.join(checks['problems'])}); summary.json flags it "
+              "(checks.answer.passed false). Rerun with --tolerance MM to have the FE answer instead",
+              file=sys.stderr)
     return 0
 
 

@@ -12,6 +12,7 @@ class                       raised when                            builtin base
 ``MeshError``               a mesh is malformed                    ``ValueError``
 ``InvertedElementError``    elements have a non-positive Jacobian  ``ValueError``
 ``UnitsError``              a mesh's size suggests another unit    ``ValueError``
+``AxesError``               a face is not in the toolkit's axes    ``ValueError``
 ``DatabaseError``           a file is not the expected database    ``ValueError``
 ``IncompatibleError``       a stored file has another config       ``ValueError``
 ``PlanError``               a surgical plan is invalid             ``ValueError``
@@ -22,21 +23,34 @@ class                       raised when                            builtin base
 ``SolverError``             a linear solve failed                  ``RuntimeError``
 ``PardisoError``            PARDISO failed a phase                 ``RuntimeError``
 ``SimulationError``         a static increment failed              ``RuntimeError``
+``AnswerError``             an answer failed its checks            ``RuntimeError``
 ``InstabilityError``        an explicit run became unstable        ``RuntimeError``
 ``InvertedPointError``      a stress update met ``det F <= 0``     ``FloatingPointError``
 ==========================  =====================================  ========================
 
-The classes live beside the code that raises them; :class:`ConvergenceError`, which both the
-static and the impact solvers raise, lives here.
+The classes live beside the code that raises them; :class:`ConvergenceError` and
+:class:`AnswerError`, which both workflows raise, live here.
 """
 
 from __future__ import annotations
 
-__all__ = ["ToolkitError", "ConvergenceError"]
+__all__ = ["ToolkitError", "ConvergenceError", "AnswerError"]
 
 
 class ToolkitError(Exception):
     """Base of every error the toolkit raises on purpose."""
+
+
+class AnswerError(ToolkitError, RuntimeError):
+    """An answer (an FE result or a surrogate's prediction) failed a check made before it is given:
+    it would have been wrong. ``checks`` (dict) holds the values measured."""
+
+    def __init__(self, message: str, checks: dict | None = None):
+        super().__init__(message)
+        self.checks = dict(checks or {})
+
+    def __reduce__(self):
+        return type(self), (str(self), self.checks)
 
 
 def _rebuild_convergence_error(cls, message, iteration, residual, time):

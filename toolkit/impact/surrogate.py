@@ -29,7 +29,10 @@ training velocities for training and the held-out velocities' simulations, never
 testing. Validation (early stopping) takes 10 % of the training items.
 
 After prediction, nodes the scene holds are given zero displacement (the boundary
-condition, enforced in the output rather than learned).
+condition, enforced in the output rather than learned), and the von Mises stress is clamped
+at zero once unscaled: the network regresses a scaled stress that can come out below zero,
+and a von Mises stress is a norm, so ``max(s, 0)`` is never farther than ``s`` from the true
+stress (every error stays the same or shrinks, with no retraining).
 """
 
 from __future__ import annotations
@@ -366,7 +369,8 @@ class ImpactSurrogate:
     # ------------------------------------------------------------------ prediction
     def predict_items(self, x: np.ndarray, batch_size: int = 20_000):
         """Outputs ``(B, F, 4)`` (mm, MPa) of item inputs ``x (B, F, k)`` in the model's input order
-        (:func:`item_features`); items whose ``fixed`` input is 1 get zero displacement."""
+        (:func:`item_features`); items whose ``fixed`` input is 1 get zero displacement, and the
+        von Mises stress (channel 3) is ``max(decoded, 0)``, never negative."""
         import torch
 
         xs = self.bundle.scalers["inputs"].transform(np.asarray(x, dtype=np.float64)).astype(np.float32)
@@ -379,12 +383,13 @@ class ImpactSurrogate:
             out *= _travel(x)
         held = np.asarray(x[:, 0, 5] > 0.5)
         out[held, :, :3] = 0.0
+        out[..., 3] = np.maximum(out[..., 3], 0.0)
         return out
 
     def predict(self, velocity: float, inputs):
         """Whole-face prediction at ``velocity`` mm/s for the scene's ``inputs``
         (:class:`~toolkit.impact.dataset.SceneInputs`): ``(displacement (F, N, 3) mm,
-        von_mises (F, N) MPa)``; warns :class:`ExtrapolationWarning` outside the trained range."""
+        von_mises (F, N) MPa, >= 0)``; warns :class:`ExtrapolationWarning` outside the trained range."""
         if self.extrapolation(velocity)["outside"] is True:
             lo, hi = self.velocity_range
             warnings.warn(f"velocity {velocity} mm/s is outside the trained range [{lo}, {hi}] mm/s: the "

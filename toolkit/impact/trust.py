@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common.config_diff import jsonable
+from toolkit.common.errors import AnswerError
 from toolkit.common.training.conformal import (
     ConformalBound,
     calibrate,
@@ -276,6 +277,10 @@ class TrustedImpactAnswer:
     ood : :func:`out_of_distribution`
     seconds : ``surrogate``, ``estimate``, ``fe`` (0 when not run), ``total``
     fe_integrator : the FE's integrator (``implicit``: quasi-static)
+
+    Construction checks a post-condition: :class:`~toolkit.common.errors.AnswerError` when the result's von Mises stress
+    ``(F, N)`` MPa is negative or NaN anywhere (the surrogate clamps its stress at zero; the FE's
+    is a square root averaged with positive weights).
     """
 
     result: object
@@ -286,6 +291,14 @@ class TrustedImpactAnswer:
     ood: dict
     seconds: dict
     fe_integrator: str = FALLBACK_INTEGRATOR
+
+    def __post_init__(self):
+        vm = np.asarray(self.result.von_mises)
+        bad = ~(vm >= 0.0)
+        if bad.any():
+            raise AnswerError(f"the {self.answered_by} answer has {int(bad.sum())} of {vm.size} node-frames with a "
+                               f"negative or NaN von Mises stress (lowest {np.nanmin(vm, initial=np.inf):g} MPa); "
+                               "expected >= 0 everywhere")
 
     @property
     def displacement(self) -> np.ndarray:

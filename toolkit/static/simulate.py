@@ -84,6 +84,7 @@ from toolkit.common.phantom import FacePhantom
 from toolkit.common.surface_distance import ClosestPoints, barycentric, beyond_rim_onto_plane, closest_points
 from toolkit.common.topology import rim_edges
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
+from toolkit.static.checks import MIN_CARRIED_MM2, check_answer, check_plan
 from toolkit.static.constraints import Constraints
 from toolkit.static.plan import PlanRangeWarning, SurgicalPlan
 from toolkit.static.problem import ConvergenceError, StaticProblem, solve_with_lip_contact
@@ -148,6 +149,9 @@ class SimulationOptions:
         again, before any wider release band (0: never)
     max_mucosa_offset : mm; a mucosa node farther than this from its bone surface on the
         pre-operative mesh is left free instead of sliding (inf: every mucosa node slides)
+    min_carried_mm2 : mm^2; a plan that moves the Le Fort I or distal segment is refused before
+        any solve when that segment's attached set covers less of the tissue's boundary
+        (:func:`~toolkit.static.checks.check_plan`; 0: only an empty set is refused)
     progress : show a tqdm bar over increments
     """
 
@@ -160,6 +164,7 @@ class SimulationOptions:
     max_cuts: int = 4
     free_cut_radius: float = 6.0
     max_mucosa_offset: float = 5.0
+    min_carried_mm2: float = MIN_CARRIED_MM2
     progress: bool = False
 
     def __post_init__(self):
@@ -224,6 +229,8 @@ class SimulationResult:
         ``SimulationOptions.max_mucosa_offset`` from their bone
     fidelity : the record of the :class:`~toolkit.common.fidelity.FidelityChoice` the run took
         its options from (``summary()["fidelity"]``), or None
+    checks : ``{"plan": ..., "answer": ...}``, the values :func:`~toolkit.static.checks.check_plan`
+        and :func:`~toolkit.static.checks.check_answer` checked (``summary()["checks"]``), or None
     """
 
     reference: Mesh
@@ -238,6 +245,7 @@ class SimulationResult:
     mucosa_offset: np.ndarray = field(default_factory=lambda: np.zeros(0))
     far_mucosa: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     fidelity: dict | None = None
+    checks: dict | None = None
 
     @property
     def displacement(self) -> np.ndarray:
@@ -285,6 +293,7 @@ class SimulationResult:
             "regulated_nodes": int(sum(r.regulated_nodes for r in self.reports)),
             "max_regulation_shift_mm": float(max(r.max_regulation_shift for r in self.reports)),
             "increments_report": [asdict(r) for r in self.reports],
+            **({} if self.checks is None else {"checks": self.checks}),
             **fidelity,
         }
 
@@ -788,6 +797,9 @@ def simulate(
         if initial_guess.shape != (int(increments) + 1, n, 3) or not np.isfinite(initial_guess).all():
             raise ValueError(f"initial_guess has shape {initial_guess.shape}; expected finite ({int(increments) + 1}, "
                              f"{n}, 3) mm (the total displacement before and after each increment)")
+    mesh, segs = face_mesh_and_segments(face, segments)
+    plan_checks = check_plan(mesh, BoundaryConditions.from_mesh(mesh, segs, lip_threshold=options.lip_threshold),
+                             segs, plan, options.min_carried_mm2)
     widths = (options.release_width, *(w for w in options.wider_release if w > options.release_width))
     attempt, freeings, freed = 0, 0, np.zeros(0, np.int64)
     while True:
@@ -818,9 +830,11 @@ def simulate(
             attempt += 1
             log.warning("%s; retrying with a %g mm release band", exc, widths[attempt])
     material_name = material if isinstance(material, str) else "custom"
+    checks = check_answer(model.mesh, model.bc, plan, displacements[-1], min(r.min_scaled_jacobian for r in reports))
     return SimulationResult(model.mesh, displacements, model.bc, reports, time.perf_counter() - t_start,
                             material_name, sliding, release_width=width, freed_cut=freed,
-                            mucosa_offset=model.mucosa_offset, far_mucosa=model.far_mucosa)
+                            mucosa_offset=model.mucosa_offset, far_mucosa=model.far_mucosa,
+                            checks={"plan": plan_checks, "answer": checks})
 
 
 def _cut_near(model: _Model, element: int | None) -> np.ndarray:

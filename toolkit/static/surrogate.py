@@ -53,7 +53,7 @@ from toolkit.common.training import (
 )
 from toolkit.common.training import train as train_loop
 from toolkit.static.features import FeatureSpec, channel_names, encode
-from toolkit.static.plan import PlanRangeWarning
+from toolkit.static.plan import SEGMENTS, PlanRangeWarning
 from toolkit.static.simulate import SimulationResult
 
 __all__ = ["SurrogateConfig", "FEATURE_PRESETS", "Surrogate", "train_surrogate", "evaluate_surrogate", "network_config",
@@ -241,6 +241,28 @@ class PlanPrediction(SimulationResult):
         return {**super().summary(), "extrapolation": self.extrapolation}
 
 
+def with_exact_attachment(U: np.ndarray, X: np.ndarray, bc, plan) -> np.ndarray:
+    """Cumulative displacements ``U`` ``(increments + 1, n, 3)`` mm with every moving node set to
+    where its segment's cumulative motion puts it at each increment (float64, exactly as the FE
+    prescribes it); a prediction accumulated increment by increment (float32 networks, a baseline
+    stepping from reached positions) drifts from it by micrometres. ``X`` ``(n, 3)`` mm."""
+    import warnings as _warnings
+
+    from toolkit.static.boundary import NodeType
+
+    U = np.array(U, dtype=float)
+    with _warnings.catch_warnings():  # the plan warned of its range where it was built
+        _warnings.simplefilter("ignore", PlanRangeWarning)
+        steps = plan.increments(U.shape[0] - 1)
+    for name in bc.segment_names:
+        nodes = bc.segment_nodes(NodeType.MOVING, name)
+        if not nodes.size or name not in SEGMENTS:
+            continue
+        for k, p in enumerate(steps, start=1):
+            U[k, nodes] = p.motion(name).apply(X[nodes]) - X[nodes]
+    return U
+
+
 def _face_module():
     import torch
     from torch import nn
@@ -404,8 +426,11 @@ class Surrogate:
         Returns
         -------
         PlanPrediction (``.write(out)`` gives the files of ``toolkit static simulate``; its summary's
-        ``extrapolation`` names the plan parameters outside the training plans)
+        ``extrapolation`` names the plan parameters outside the training plans, and ``checks``
+        holds :func:`~toolkit.static.checks.answer_checks`: a failed check is flagged there, not
+        raised). The plan is checked against the face first (:func:`~toolkit.static.checks.check_plan`)
         """
+        from toolkit.static.checks import check_plan, with_answer_checks
         from toolkit.static.dataset import DatasetConfig, bone_increment, jaw_side
         from toolkit.static.simulate import IncrementReport, boundary_conditions, face_mesh_and_segments
 
@@ -418,7 +443,8 @@ class Surrogate:
             warnings.warn("predicting on a mesh of another topology than the training meshes: on a face remeshed "
                           "by `toolkit mesh`, a network trained on the phantoms was measured less accurate than its "
                           "linear prior alone (docs/own-face.md); train on a database of this face", stacklevel=2)
-        bc, _ = boundary_conditions(mesh, segments, data.sliding)
+        bc, bc_all = boundary_conditions(mesh, segments, data.sliding)
+        check_plan(mesh, bc_all, segments, plan)
         X = mesh.points
         h = self.hierarchy(X)
         sets = {k: mesh.node_sets[k] for k in ("upper_lip_face", "lower_lip_face") if k in mesh.node_sets}
@@ -443,8 +469,10 @@ class Surrogate:
         wall = time.perf_counter() - t0
         reports = [IncrementReport(k, wall / len(quality), 0.0, 0, 0, 0, float(q.min()), int(np.argmin(q)),
                                    0.0, 0.0, 0.0, 0) for k, q in enumerate(quality, start=1)]
-        return PlanPrediction(mesh, np.stack(U), bc, reports, wall, f"surrogate ({self.config.features.variant})",
-                              data.sliding, extrapolation=self.extrapolation(plan), prescribed=np.stack(given))
+        U = with_exact_attachment(np.stack(U), X, bc, plan)
+        return with_answer_checks(
+            PlanPrediction(mesh, U, bc, reports, wall, f"surrogate ({self.config.features.variant})", data.sliding,
+                           extrapolation=self.extrapolation(plan), prescribed=np.stack(given)), plan)
 
     def extrapolation(self, plan) -> dict:
         """How far ``plan`` lies outside the plans the model was trained on (:func:`plan_extrapolation`)."""

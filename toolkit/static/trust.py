@@ -222,21 +222,24 @@ def baseline_prediction(model, residual, face, plan, segments=None):
 
     Returns a PlanPrediction: displacements ``(increments + 1, n, 3)`` mm, each increment's
     element quality, ``prescribed`` each increment's bone motion (moving nodes)."""
+    from toolkit.static.checks import with_answer_checks
     from toolkit.static.dataset import DatasetConfig
     from toolkit.static.simulate import IncrementReport, face_mesh_and_segments
-    from toolkit.static.surrogate import PlanPrediction
+    from toolkit.static.surrogate import PlanPrediction, with_exact_attachment
 
     t0 = time.perf_counter()
     data = DatasetConfig(**model.bundle.data["database"])
     response, U, bones = _baseline_trajectory(model, residual, face, plan, segments)
     mesh = face_mesh_and_segments(face, segments)[0]
+    U = with_exact_attachment(U, mesh.points, response.bc, plan)
     quality = [mesh.with_points(mesh.points + u).scaled_jacobian() for u in U[1:]]
     wall = time.perf_counter() - t0
     reports = [IncrementReport(k, wall / len(quality), 0.0, 0, 0, 0, float(q.min()), int(np.argmin(q)),
                                0.0, 0.0, 0.0, 0) for k, q in enumerate(quality, start=1)]
     prescribed = np.where((response.bc.types == 1)[None, :, None], bones, 0.0)
-    return PlanPrediction(mesh, U, response.bc, reports, wall, "baseline (sliding response + POD residual)",
-                          data.sliding, extrapolation=model.extrapolation(plan), prescribed=prescribed)
+    return with_answer_checks(
+        PlanPrediction(mesh, U, response.bc, reports, wall, "baseline (sliding response + POD residual)",
+                       data.sliding, extrapolation=model.extrapolation(plan), prescribed=prescribed), plan)
 
 
 def _scale_field(calibration_scale: str, network: np.ndarray | None, baseline: np.ndarray) -> np.ndarray:
@@ -584,6 +587,8 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
     elif est["bound_mm"] > tolerance_mm:
         reason = (f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) is above the tolerance "
                   f"{tolerance_mm:g} mm")
+    elif not given.checks["answer"]["passed"]:
+        reason = "the answer failed its checks: " + "; ".join(given.checks["answer"]["problems"])
     else:
         who = "surrogate" if calibration.answerer == "network" else "baseline"
         seconds["total"] = time.perf_counter() - t0
