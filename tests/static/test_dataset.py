@@ -58,6 +58,32 @@ def test_samples_are_increments_with_exact_inputs(small_db):
     assert len(index) == 4 and {"seconds", "jaw_closing_mm"} <= set(index.columns)
 
 
+def test_each_simulation_keeps_the_boundary_types_it_ran_with(small_db, tmp_path):
+    """A plan that needed a wider release band or freed cut nodes ran with other boundary types than
+    its subject's: its record keeps them and its samples use them (here one record's types are
+    changed by hand, as such a retry changes them); records without types read the subject's."""
+    with h5py.File(small_db) as f:
+        keys = sorted(f["records"])
+        for key in keys:
+            subject = json.loads(f["records"][key].attrs["params"])["subject"]
+            own, shared = f["records"][key]["types"][()], f["shared"][f"subject_{subject:03d}"]["types"][()]
+            np.testing.assert_array_equal(own, shared)
+    copy = tmp_path / "retried.h5"
+    shutil.copy(small_db, copy)
+    with h5py.File(copy, "r+") as f:
+        types = f["records"][keys[0]]["types"]
+        moving = np.flatnonzero(types[()] == 1)[:3]
+        changed = types[()]
+        changed[moving] = 0  # released: free
+        types[...] = changed
+        del f["records"][keys[1]]["types"]
+    db = StaticDatabase.open(copy)
+    first = db.samples.index[db.samples.key == keys[0]][0]
+    second = db.samples.index[db.samples.key == keys[1]][0]
+    assert np.all(db.sample(first)["types"][moving] == 0) and np.all(db.sample(first)["s"][moving] == 0)
+    np.testing.assert_array_equal(db.sample(second)["types"], db.types[int(db.samples.subject[second])])
+
+
 def test_rerun_resumes_and_an_interrupted_run_gives_the_same_database(small_db, tmp_path):
     """A rerun skips the 4 finished simulations. A run interrupted (Ctrl-C) after its second
     simulation keeps those two in the .h5 itself (a copy of the file alone opens, with its 6

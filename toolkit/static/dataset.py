@@ -21,7 +21,9 @@ node sets, common to all subjects; a meshed face's database also keeps every nod
 ``/shared/element_sets/<name>`` and ``/shared/cell_data/<name>``, so that
 :meth:`StaticDatabase.subject_mesh` rebuilds the mesh without its file); ``/records/<key>/``
 each simulation's cumulative displacement ``displacements (increments + 1, n, 3)`` and the increments' bone
-displacements ``bone (increments, n, 3)`` (float32, mm); ``/index`` one row per
+displacements ``bone (increments, n, 3)`` (float32, mm), and its own boundary types and segment ids
+``types``, ``segment`` ``(n,)`` (int8): a plan that needed a wider release band or freed nodes of the
+truncation cut (:func:`~toolkit.static.simulate.simulate`'s retries) has its own; ``/index`` one row per
 simulation and ``/samples`` one row per increment (subject, plan, increment, plan
 parameters, largest input displacement, solver diagnostics), both read as DataFrames with
 ``str`` strings by :func:`toolkit.common.database.read_index` (``read_index(path, "samples")``;
@@ -105,6 +107,8 @@ class DatasetConfig:
         bone-side faces (:func:`~toolkit.static.anatomy.face_anatomy`)
     condyles : ``((x, y, z), (x, y, z))`` mm, left then right, instead of the anatomy's rule
     units : length unit of the mesh and bone files
+    axes : axes of the mesh and bone files and of ``condyles`` (:data:`toolkit.common.axes.AXES`),
+        converted to the toolkit's on reading
     """
 
     resolution: str = "coarse"
@@ -122,11 +126,14 @@ class DatasetConfig:
     bones: tuple = ()
     condyles: tuple | None = None
     units: str = "mm"
+    axes: str = "toolkit"
 
     def __post_init__(self):
+        from toolkit.common.axes import axes_matrix
         from toolkit.common.phantom import FACE_RESOLUTIONS
         from toolkit.static.simulate import MATERIALS, SLIDING_MODELS
 
+        axes_matrix(self.axes)
         object.__setattr__(self, "bones", tuple(tuple(b) for b in self.bones))  # hashable, also from JSON lists
         if self.condyles is not None:
             object.__setattr__(self, "condyles", tuple(tuple(float(v) for v in c) for c in self.condyles))
@@ -153,18 +160,23 @@ class DatasetConfig:
             object.__setattr__(self, "poisson_range", (lo, hi))
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        """The attributes; ``axes`` only when not ``toolkit`` (the configuration of databases
+        without the key)."""
+        d = asdict(self)
+        if d["axes"] == "toolkit":
+            del d["axes"]
+        return d
 
     @classmethod
     def for_mesh(cls, mesh: str | os.PathLike, bones=None, condyles=None, units: str = "mm",
-                 **settings) -> DatasetConfig:
+                 axes: str = "toolkit", **settings) -> DatasetConfig:
         """A database on a meshed face: ``mesh`` and ``bones`` (segment -> surface file) are
         recorded by absolute path and content hash; ``settings`` are the other attributes."""
         bones = dict(bones or {})
         for what, path in (("mesh", mesh), *((f"bone {k}", v) for k, v in bones.items())):
             if not Path(path).is_file():
                 raise FileNotFoundError(f"{what} file {str(path)!r} does not exist")
-        return cls(**settings, mesh=str(Path(mesh).resolve()), mesh_sha1=_sha1(mesh), units=units,
+        return cls(**settings, mesh=str(Path(mesh).resolve()), mesh_sha1=_sha1(mesh), units=units, axes=axes,
                    bones=tuple(sorted((k, str(Path(v).resolve()), _sha1(v)) for k, v in bones.items())),
                    condyles=None if condyles is None else tuple(map(tuple, np.asarray(condyles, float).tolist())))
 
@@ -190,8 +202,10 @@ def database_subject(config: DatasetConfig, subject: int):
     ``segments``)."""
     if config.mesh is None:
         return subject_phantom(config.resolution, subject)
+    from toolkit.common.axes import check_mesh_axes, mesh_to_toolkit, to_toolkit
     from toolkit.common.io import read
     from toolkit.static.anatomy import face_anatomy
+    from toolkit.static.bones import read_surface
 
     for path, sha1 in ((config.mesh, config.mesh_sha1), *((p, h) for _, p, h in config.bones)):
         if not Path(path).is_file():
@@ -199,9 +213,12 @@ def database_subject(config: DatasetConfig, subject: int):
                                     "or start a new database")
         if _sha1(path) != sha1:
             raise ValueError(f"{path} changed since the database was made on it; restore it or start a new database")
-    mesh = read(config.mesh, units=config.units, require_node_sets=["fixed"])
-    return face_anatomy(mesh, {name: path for name, path, _ in config.bones}, condyles=config.condyles,
-                        units=config.units)
+    mesh = mesh_to_toolkit(read(config.mesh, units=config.units, require_node_sets=["fixed"]), config.axes)
+    bones = {name: mesh_to_toolkit(read_surface(path, units=config.units), config.axes)
+             for name, path, _ in config.bones}
+    check_mesh_axes(mesh, bones, axes=config.axes, source=Path(config.mesh).name)
+    condyles = None if config.condyles is None else to_toolkit(config.condyles, config.axes)
+    return face_anatomy(mesh, bones, condyles=condyles)
 
 
 def _boundary(phantom, sliding: str):
@@ -265,12 +282,10 @@ def simulate_job(params: dict) -> Record:
     motions = {k: v for k, v in params["motions"].items() if k != "force"}
     plan = SurgicalPlan.from_dict(motions)
     t0 = time.perf_counter()
-    # one release band and an intact cut for every plan: the database stores one set of boundary
-    # types per subject, so a plan that would need a wider band or freed cut nodes is recorded as
-    # failed rather than stored inconsistently
+    # the simulation's own retries (a wider release band, freed nodes of the truncation cut) are
+    # allowed: the record keeps the boundary types the plan was simulated with
     result = simulate(face, plan, cfg.increments, material_for(cfg.material, params.get("poisson"), phantom.mesh),
-                      cfg.sliding, segments=phantom.segments,
-                      options=SimulationOptions(wider_release=(), free_cut_radius=0.0))
+                      cfg.sliding, segments=phantom.segments, options=SimulationOptions())
     seconds = time.perf_counter() - t0
     U = result.displacements
     bc = result.boundary
@@ -290,7 +305,10 @@ def simulate_job(params: dict) -> Record:
              "jaw_closing_mm": jaw_closing(plan, dental_arch(phantom)),
              "poisson": TISSUE_NU if params.get("poisson") is None else float(params["poisson"]),
              "max_input_displacement_mm": float(np.linalg.norm(bone[:, moving], axis=-1).max(initial=0.0))}
+    attrs["release_width_mm"] = float(result.release_width)
+    attrs["freed_cut_nodes"] = int(np.size(result.freed_cut))
     return Record({"displacements": U.astype(np.float32), "bone": bone.astype(np.float32),
+                   "types": bc.types.astype(np.int8), "segment": bc.segment.astype(np.int8),
                    "seconds_per_increment": np.array(summary["seconds_per_increment"]),
                    "features": plan_features(plan, cfg.increments)}, attrs)
 
@@ -453,7 +471,8 @@ def _sample_table(path: Path):
             attrs = json.loads(g.attrs["attrs"])
             feats = g["features"][()]
             secs = g["seconds_per_increment"][()]
-            moving = f["shared"][f"subject_{params['subject']:03d}"]["types"][()] == 1
+            types = g["types"] if "types" in g else f["shared"][f"subject_{params['subject']:03d}"]["types"]
+            moving = types[()] == 1
             bone = g["bone"][()][:, moving]
             for k in range(feats.shape[0]):
                 row = {"key": key, "subject": params["subject"], "plan": params["plan"], "increment": k + 1,
@@ -520,7 +539,8 @@ class StaticDatabase:
     config : DatasetConfig it was made with
     samples : DataFrame, one row per successful increment (:func:`read_samples`)
     points : subject -> (n, 3) pre-operative points, mm
-    types : subject -> (n,) boundary types; segment : subject -> (n,) bone segment or -1
+    types : subject -> (n,) boundary types (a simulation that needed a wider release band or freed
+        cut nodes has its own: :meth:`simulation_types`); segment : subject -> (n,) bone segment or -1
     side : subject -> (n,) +1 upper jaw/lip, -1 lower, 0 elsewhere
     cells : cell type -> connectivity; sets : node set name -> ids
     """
@@ -536,6 +556,7 @@ class StaticDatabase:
     sets: dict
     _U: dict = field(default_factory=dict, repr=False)
     _bone: dict = field(default_factory=dict, repr=False)
+    _types: dict = field(default_factory=dict, repr=False)  # key -> (n,) the simulation's own boundary types
     _motions: dict = field(default_factory=dict, repr=False)  # key -> plan dict, drawn on first use
 
     @classmethod
@@ -562,11 +583,15 @@ class StaticDatabase:
             for s in range(config.subjects):
                 g = sh[f"subject_{s:03d}"]
                 points[s], types[s], segment[s] = g["points"][()], g["types"][()], g["segment"][()]
+            own = {}
             for key in samples.key.unique():
-                U[key] = f["records"][key]["displacements"][()].astype(np.float64)
-                bone[key] = f["records"][key]["bone"][()].astype(np.float64)
+                g = f["records"][key]
+                U[key] = g["displacements"][()].astype(np.float64)
+                bone[key] = g["bone"][()].astype(np.float64)
+                if "types" in g:
+                    own[key] = g["types"][()].astype(np.int64)
         side = {s: jaw_side(segment[s], sets, points[s].shape[0]) for s in points}
-        return cls(path, config, samples, points, types, segment, side, cells, sets, U, bone)
+        return cls(path, config, samples, points, types, segment, side, cells, sets, U, bone, own)
 
     def __len__(self) -> int:
         return len(self.samples)
@@ -581,12 +606,17 @@ class StaticDatabase:
         row = self.samples.iloc[int(i)]
         k, key, subject = int(row.increment), row.key, int(row.subject)
         U = self._U[key]
-        types = self.types[subject]
+        types = self.simulation_types(key, subject)
         bone = self._bone[key][k - 1]
         s = np.where((types == 1)[:, None], bone, 0.0)
         return {"x": self.points[subject] + U[k - 1], "types": types, "s": s, "bone": bone,
                 "v": U[k] - U[k - 1], "subject": subject, "side": self.side[subject], "poisson": float(row.poisson),
                 "row": row}
+
+    def simulation_types(self, key: str, subject: int) -> np.ndarray:
+        """The boundary types ``(n,)`` simulation ``key`` of ``subject`` ran with: its own when
+        stored, else the subject's."""
+        return self._types.get(key, self.types[int(subject)])
 
     def displacements(self, key: str) -> np.ndarray:
         """Cumulative FE displacement of simulation ``key`` after each increment,
