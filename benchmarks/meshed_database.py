@@ -5,7 +5,8 @@ mesh`` (:func:`toolkit.mesh.mesh_face`) at ``--size``, written with their bone s
 ``toolkit static dataset --mesh`` (:func:`toolkit.static.dataset.generate`) runs ``--plans``
 sampled plans of each ``--modes`` on it, as a user would. Per simulation: status, reason, time,
 the release band it used and the cut nodes it freed (the retries a plan may need, stored with its
-own boundary types). Writes ``benchmarks/results/meshed_database.csv``.
+own boundary types). Writes ``benchmarks/results/meshed_database.csv``; a rerun resumes on the mesh
+and databases in ``benchmarks/work/meshed_database/`` (delete the folder to start afresh).
 
 Usage::
 
@@ -35,7 +36,7 @@ def main(argv=None):
 
     import h5py
 
-    from toolkit.common.io import write
+    from toolkit.common.io import read, write
     from toolkit.common.phantom import face_hex
     from toolkit.common.runtime import set_threads
     from toolkit.mesh import mesh_face
@@ -47,8 +48,11 @@ def main(argv=None):
     work.mkdir(parents=True, exist_ok=True)
     surfaces = phantom_surfaces(face_hex(args.resolution))
     files = write_surfaces(work / "surfaces", surfaces)
-    face = mesh_face(surfaces.tissue, surfaces.bones, surfaces.commissures, size_mm=args.size)
-    write(work / "face.vtu", face.mesh)
+    if (work / "face.vtu").exists():  # a rerun resumes on the same mesh (fTetWild's differs run to run)
+        face_mesh = read(work / "face.vtu")
+    else:
+        face_mesh = mesh_face(surfaces.tissue, surfaces.bones, surfaces.commissures, size_mm=args.size).mesh
+        write(work / "face.vtu", face_mesh)
     bones = {k: files[k] for k in surfaces.bones if k != "skull"}
     rows = []
     for mode in args.modes:
@@ -59,7 +63,7 @@ def main(argv=None):
             records = {k: json.loads(g.attrs["attrs"]) for k, g in f["records"].items()} if "records" in f else {}
         for key in sorted(set(records) | set(report.failed)):
             a = records.get(key, {})
-            rows.append({"resolution": args.resolution, "size_mm": args.size, "nodes": face.mesh.n_points,
+            rows.append({"resolution": args.resolution, "size_mm": args.size, "nodes": face_mesh.n_points,
                          "mode": mode, "key": key, "status": "ok" if key in records else "failed",
                          "reason": report.failed.get(key, "")[:200], "seconds": a.get("seconds"),
                          "release_width_mm": a.get("release_width_mm"), "freed_cut_nodes": a.get("freed_cut_nodes"),

@@ -500,6 +500,33 @@ def _off_bone(data):
     return "\n\n".join(parts)
 
 
+def _segmentation_damage(data):
+    t = data["segmentation_damage"][0].copy()
+    counts = [c for c in t.columns if c.startswith("n_") and c.endswith("_ratio")]
+    t["worst_count"] = (t[counts] - 1).abs().max(axis=1)
+    areas = [c for c in t.columns if c.startswith(("facing_", "carried_")) and c.endswith("_ratio")]
+    t["worst_area"] = (t[areas] - 1).abs().max(axis=1)
+    return table(t, [
+        ("damage", "damage"), ("nodes", "nodes"), ("worst_count", "largest set count change", "{:.0%}"),
+        ("worst_area", "largest area change", "{:.0%}"), ("carried_lefort_mm2_ratio", "Le Fort I carried", "{:.2f}"),
+        ("carried_distal_mm2_ratio", "distal carried", "{:.2f}"), ("diff_mean_mm", "skin difference mean (mm)",
+                                                                     "{:.2f}"),
+        ("diff_p95_mm", "p95 (mm)", "{:.2f}"), ("same_bones_diff_mean_mm", "same bones: mean (mm)", "{:.2f}"),
+        ("same_bones_diff_p95_mm", "p95 (mm)", "{:.2f}"), ("simulate_s", "simulate (s)", "{:.0f}")])
+
+
+def _meshed_database(data):
+    t = data["meshed_database"][0]
+    g = t.groupby(["resolution", "size_mm", "nodes", "mode"], sort=False).agg(
+        plans=("status", "size"), completed=("status", lambda s: int((s == "ok").sum())),
+        median_s=("seconds", "median"), wider_band=("release_width_mm", lambda s: int((s > 10).sum())),
+        freed=("freed_cut_nodes", lambda s: int((s > 0).sum())), min_sj=("min_scaled_jacobian", "min")).reset_index()
+    return table(g, [("resolution", "phantom"), ("size_mm", "size (mm)"), ("nodes", "nodes"), ("mode", "mode"),
+                     ("plans", "plans"), ("completed", "completed"), ("median_s", "median time (s)", "{:.0f}"),
+                     ("wider_band", "wider release band"), ("freed", "freed cut nodes"),
+                     ("min_sj", "min scaled Jacobian", "{:.3f}")])
+
+
 def _own_face(data):
     parts = []
     if "own_face" in data:
@@ -808,6 +835,8 @@ SOURCES = {s.stem: s for s in (
            "--labels rules phantom", 25),
     Source("own_face_robustness", "python benchmarks/own_face.py --sizes 7 --plans 25 --no-simulate", 55),
     Source("surrogate_remeshed", "python benchmarks/surrogate_remeshed.py", 40),
+    Source("segmentation_damage", "python benchmarks/segmentation_damage.py --size 7", 20),
+    Source("meshed_database", "python benchmarks/meshed_database.py --plans 10", 25),
     Source("own_face_impact", "python benchmarks/own_face_impact.py", 20),
     Source("surrogate_trust_static", "python benchmarks/surrogate_trust.py --cases 40", 15),
     Source("surrogate_trust_impact", "python benchmarks/surrogate_trust.py --workflow impact --cases 40", 16),
@@ -926,6 +955,17 @@ BLOCKS = {b.name: b for b in (
           "change of a sliding mucosa node's distance to its moved bone over the increments. Then, on the coarse "
           "phantom with the mucosa farther off (4.8 mm median, 8.4 mm at most), each `max_mucosa_offset`.",
           (SOURCES["off_bone"], SOURCES["off_bone_far"]), _off_bone),
+    Block("segmentation_damage", "Labels under segmentation damage",
+          "The paper phantom's surfaces damaged one kind at a time (`toolkit.mesh.damage`), meshed at 7 mm (tet10) "
+          "and labelled by `toolkit mesh`, against the clean surfaces meshed twice (the mesher's own spread): the "
+          "largest change of a node set's count and of a segment's tissue area (lying on its bone, or carried), "
+          "and the round trip: the default plan's skin displacement against the phantom's own hexahedral run, "
+          "and against that run on the same damaged bones (bones standing off the tissue change the anatomy).",
+          (SOURCES["segmentation_damage"],), _segmentation_damage),
+    Block("meshed_database", "Learning databases on a meshed face",
+          "`toolkit static dataset --mesh` on the paper phantom's surfaces meshed by `toolkit mesh`: sampled plans "
+          "of each mode, with the simulation's retries (wider release band, freed cut nodes) stored per plan.",
+          (SOURCES["meshed_database"],), _meshed_database),
     Block("bad_inputs", "Bad input on the command line",
           "A catalogue of mistakes per command (bad output locations, missing, garbage, empty, binary and metres "
           "meshes, bad plans and scenes, bad option values, a database or model of the other workflow or of "
