@@ -83,7 +83,7 @@ def main(argv=None):
             maxilla_nodes=labels.get("node_sets", {}).get("maxilla", 0))
 
         rules = tmp / "rules.toml"
-        rules.write_text("[segments.distal]\nattach = \"inferior\"\ninferior_fraction = 0.001\n")
+        rules.write_text("[segments.distal]\nattach = \"anterior\"\nanterior_deg = 0.2\n")
         code, line, sec = toolkit(*mesh, "--rules", rules, "--out", tmp / "few" / "face.vtu", cwd=tmp)
         add("labels-carry-nothing", "refused naming the segment and min_carried_mm2", code, line, sec,
             code == 2 and "distal" in line and "min_carried_mm2" in line)
