@@ -62,7 +62,7 @@ def test_python_m_toolkit_is_the_toolkit_command(tmp_path):
 
 def test_every_command_has_help():
     """Every command and subcommand answers ``--help`` (exit 0) with its usage line."""
-    assert len(SUBCOMMANDS) == 1 + 5 + 6 + 6  # toolkit, its 5 commands, static's 6, impact's 6
+    assert len(SUBCOMMANDS) == 1 + 6 + 6 + 6  # toolkit, its 6 commands, static's 6, impact's 6
     for path in SUBCOMMANDS:
         out = io_lib.StringIO()
         with pytest.raises(SystemExit) as done, contextlib.redirect_stdout(out):

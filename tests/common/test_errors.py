@@ -25,10 +25,12 @@ from toolkit.impact.plasticity import InvertedPointError
 from toolkit.impact.scene import BallSpec, SceneError
 from toolkit.impact.simulate import UnstableTimeStepError
 from toolkit.mesh.backends import MeshingError
+from toolkit.mesh.ct_anatomy import CTError
 from toolkit.mesh.face import FaceInputError
 from toolkit.mesh.mouth import MouthError
 from toolkit.mesh.rules import RulesError
 from toolkit.mesh.surface import SurfaceError
+from toolkit.mesh.volume import VolumeError
 from toolkit.static.anatomy import AnatomyError
 from toolkit.static.boundary import BoundaryError
 from toolkit.static.plan import PlanError, RigidMotion, SurgicalPlan
@@ -59,6 +61,8 @@ BUILTIN_BASES = {
     SurfaceError: ValueError,
     FaceInputError: ValueError,
     RulesError: ValueError,
+    VolumeError: ValueError,
+    CTError: ValueError,
     MouthError: ValueError,
     MeshingError: RuntimeError,
     AnatomyError: ValueError,

@@ -13,14 +13,14 @@ import logging
 import signal
 import sys
 
-from toolkit.cli import demo, impact, mesh, phantom, static
+from toolkit.cli import ct, demo, impact, mesh, phantom, static
 from toolkit.cli._common import Command, HelpFormatter, add_common, with_options
 
 __all__ = ["main", "build_parser"]
 
 DESCRIPTION = "Facial soft-tissue biomechanics: phantoms, orthognathic FEM, ball-impact FEM, surrogates."
 GROUPS = {"static": static, "impact": impact}
-COMMANDS = {"demo": demo.COMMAND, "phantom": phantom.COMMAND, "mesh": mesh.COMMAND}
+COMMANDS = {"demo": demo.COMMAND, "phantom": phantom.COMMAND, "ct": ct.COMMAND, "mesh": mesh.COMMAND}
 
 
 def build_parser() -> argparse.ArgumentParser:

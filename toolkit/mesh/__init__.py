@@ -3,7 +3,9 @@
 :func:`mesh_face` is the whole pipeline (``toolkit mesh`` on the command line); the stages are
 :mod:`~toolkit.mesh.surface` (repair), :mod:`~toolkit.mesh.backends` (meshers),
 :mod:`~toolkit.mesh.mouth` (the lip slit), :mod:`~toolkit.mesh.labels` and
-:mod:`~toolkit.mesh.rules` (node sets).
+:mod:`~toolkit.mesh.rules` (node sets). From a head CT, :func:`ct_surfaces` (``toolkit ct``;
+:mod:`~toolkit.mesh.ct`, :mod:`~toolkit.mesh.ct_anatomy`, :mod:`~toolkit.mesh.volume`) makes
+the surfaces it takes.
 """
 
 import importlib
@@ -12,9 +14,11 @@ import importlib
 #: parser from this package without loading the meshing code)
 _EXPORTS = {
     **dict.fromkeys(["BACKENDS", "DEFAULT", "MeshingError", "available", "tetrahedralize"], "backends"),
+    **dict.fromkeys(["CTError", "CTRules", "CTSurfaces", "ct_surfaces"], "ct"),
     **dict.fromkeys(["FaceInputError", "MeshedFace", "mesh_face"], "face"),
     **dict.fromkeys(["LabelRules", "RulesError", "read_rules"], "rules"),
     **dict.fromkeys(["SurfaceError", "closed_surface", "read_tissue_surface"], "surface"),
+    **dict.fromkeys(["Volume", "VolumeError", "read_volume"], "volume"),
 }
 __all__ = list(_EXPORTS)
 
