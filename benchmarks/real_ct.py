@@ -21,9 +21,8 @@ Jacobian after the motion and the chin's advance: the y displacement of the skin
 anterior-inferior (largest y - z) within 5 mm of the midline below the incisal point.
 
 fTetWild keeps the input surface's resolution (the toolkit runs it without coarsening), so the
-CT's voxel-sized triangles give a mesh of a few thousand nodes per 100 cm^3 at any size: the
-tet10 mesh is measured but, by default, only the tet4 one is simulated (the tet10 face has
-about seven times its nodes).
+CT's voxel-sized triangles keep the mesh large at coarser sizes too: the tet10 mesh is measured
+but, by default, only the tet4 one is simulated (the tet10 face has about seven times its nodes).
 
 Writes ``benchmarks/results/real_ct.csv`` (one row per mesh and plan; a mesh not simulated has one
 row without a plan) with its provenance sidecar (``extra``: the CT's landmarks, planes and cuts).

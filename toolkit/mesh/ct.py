@@ -81,9 +81,9 @@ skull holds above the osteotomy, below the orbits), *posterior* through the cond
 parallel to the mandibular plane, ``inferior_mm`` below the menton (the soft-tissue chin): the
 mandibular plane is the line from the menton tangent to the lower border of the rami (the
 proximal segments' point it touches: *ramus lower border*), so the cut follows the jaw's lower
-border back to the angle and leaves
-out the neck below it, which a level cut would leave as a thin wedge between the jaw and the held
-posterior cut. Where the volume ends first, its end cuts the tissue.
+border back to the angle and leaves out the neck below it, which a level cut would leave as a thin
+wedge between the moving jaw and the held posterior cut. Where the volume ends first, its end cuts
+the tissue.
 
 **Mouth.** At CT resolution the lips' slit is not resolved, so no commissures are given: the mouth
 is closed, without lip sliding (``toolkit mesh --commissures`` adds them by hand).
