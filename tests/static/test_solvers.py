@@ -217,8 +217,8 @@ def test_factors_made_ahead_are_freed_on_the_thread_that_made_them(monkeypatch):
 
     original = FactorMaker.make
 
-    def tracked(self, A, symmetric, near_nullspace, local=None):
-        result = original(self, A, symmetric, near_nullspace, local)
+    def tracked(self, A, symmetric, near_nullspace, local=None, coarse_space=None):
+        result = original(self, A, symmetric, near_nullspace, local, coarse_space)
         record = [threading.current_thread().name, None]
         made.append(record)
         weakref.finalize(result.factor, lambda r=record: r.__setitem__(1, threading.current_thread().name))

@@ -200,6 +200,7 @@ class SparsePattern:
         self._diagonal = np.flatnonzero(self.rows == self.cols)
         self._held = None  # (dofs as bytes, entries to zero, diagonal entries to set) of the last constrain
         self._layout = None  # node blocks' places in the CSR data (assemble_tangent)
+        self._node_graph = None
 
     @property
     def dofs(self) -> np.ndarray:
@@ -209,10 +210,14 @@ class SparsePattern:
         return self.block_dofs[0]
 
     def node_graph(self) -> sp.csr_matrix:
-        """Node adjacency ``(n_nodes, n_nodes)``: 1 where two nodes share an element."""
-        keep = (self.rows % 3 == 0) & (self.cols % 3 == 0)  # one entry per node pair
-        n = self.n_dofs // 3
-        return sp.csr_matrix((np.ones(int(keep.sum())), (self.rows[keep] // 3, self.cols[keep] // 3)), shape=(n, n))
+        """Node adjacency ``(n_nodes, n_nodes)``: 1 where two nodes share an element (built at the
+        first call, then the same matrix: do not modify it)."""
+        if self._node_graph is None:
+            keep = (self.rows % 3 == 0) & (self.cols % 3 == 0)  # one entry per node pair
+            n = self.n_dofs // 3
+            self._node_graph = sp.csr_matrix((np.ones(int(keep.sum())), (self.rows[keep] // 3, self.cols[keep] // 3)),
+                                             shape=(n, n))
+        return self._node_graph
 
     def assemble(self, element_matrices: np.ndarray | Sequence[np.ndarray]) -> sp.csr_matrix:
         """The global matrix ``(3 n_nodes, 3 n_nodes)`` from one ``(E, 3n, 3n)`` array per block."""

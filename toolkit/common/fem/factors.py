@@ -174,14 +174,40 @@ class CholmodFactor:
     solve = __call__
 
 
-def amg_hierarchy(A: sp.spmatrix, near_nullspace: np.ndarray | None = None):
+def amg_hierarchy(A: sp.spmatrix, near_nullspace: np.ndarray | None = None, coarse_space=None):
     """pyamg's smoothed-aggregation hierarchy of an SPD ``A`` (m, m), ``near_nullspace`` (m, k)
-    (the rigid-body modes; None: constants): a preconditioner for conjugate gradients."""
-    import pyamg
+    (the rigid-body modes; None: constants): a preconditioner for conjugate gradients.
 
-    B = near_nullspace if near_nullspace is not None else np.ones((A.shape[0], 1))
-    return pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), B=B, symmetry="symmetric", max_coarse=500,
-                                             strength=("symmetric", {"theta": 0.0}))
+    ``coarse_space``: a :class:`~toolkit.common.fem.coarse.CoarseSpace` (a quadratic mesh's corner
+    nodes), or a function of no argument that makes it: the first coarsening is its prolongation
+    (Galerkin product), smoothed aggregation coarsens the corner-node system from there, and every
+    level smooths by two forward Gauss-Seidel sweeps before the coarse correction and two backward
+    after it (a symmetric cycle; on a 94k-node tet10 face 31 iterations and 10.9 s against 34 and
+    13.3 s with one symmetric sweep each side). The coarsest level is solved by SuperLU (a
+    dense pseudo-inverse of a 1,650-dof coarsest level cost 2.8 s per hierarchy on a 24k-node
+    tet10 face)."""
+    import pyamg
+    from pyamg.multilevel import MultilevelSolver
+    from pyamg.relaxation.smoothing import change_smoothers
+
+    A = sp.csr_matrix(A)
+    settings = dict(symmetry="symmetric", max_coarse=500, strength=("symmetric", {"theta": 0.0}),
+                    coarse_solver="splu")
+    if coarse_space is None:
+        B = near_nullspace if near_nullspace is not None else np.ones((A.shape[0], 1))
+        return pyamg.smoothed_aggregation_solver(A, B=B, **settings)
+    if callable(coarse_space):
+        coarse_space = coarse_space()
+    P = sp.csr_matrix(coarse_space.P)
+    R = P.T.tocsr()
+    inner = pyamg.smoothed_aggregation_solver((R @ A @ P).tocsr(), B=coarse_space.modes, improve_candidates=None,
+                                              **settings)
+    first = MultilevelSolver.Level()
+    first.A, first.P, first.R = A, P, R
+    ml = MultilevelSolver([first, *inner.levels], coarse_solver="splu")
+    change_smoothers(ml, presmoother=("gauss_seidel", {"sweep": "forward", "iterations": 2}),
+                     postsmoother=("gauss_seidel", {"sweep": "backward", "iterations": 2}))
+    return ml
 
 
 def factorize(A: sp.spmatrix, method: str, single: bool = False, ordering: str | np.ndarray = "nd",

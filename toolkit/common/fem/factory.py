@@ -52,13 +52,15 @@ class FactorMaker:
         return choose_method(o.method, A.shape[0], o.factor_entries, o.direct_max_entries, o.direct)
 
     def make(self, A: sp.csr_matrix, symmetric: bool, near_nullspace: np.ndarray | None,
-             local: sp.spmatrix | None = None) -> Factorization:
+             local: sp.spmatrix | None = None, coarse_space=None) -> Factorization:
         """The :class:`Factorization` of ``A``: of ``A`` itself, or of its symmetric part (AMG,
         CHOLMOD on an unsymmetric ``A``; PARDISO with ``symmetric_factor``, whose ``local`` is then
         the symmetric part of ``local``). With PARDISO the spare is refactorized on its analysed
         pattern when that holds all of ``A``, or all but some entries of ``local`` (at most
         ``max_left_out`` of its entries): those are left out of the factor and out of the
-        returned ``local``, so that the Woodbury correction takes them."""
+        returned ``local``, so that the Woodbury correction takes them. ``coarse_space``: the first
+        coarsening of an AMG hierarchy of a symmetric ``A``
+        (:func:`~toolkit.common.fem.factors.amg_hierarchy`)."""
         o = self.options
         kind = self.kind(A)
         single = o.single_precision and kind in DIRECT
@@ -73,7 +75,9 @@ class FactorMaker:
                 return Factorization(factor, kind, own and not single and left.nnz == 0,
                                      local - left if left.nnz else local)
         if kind == "amg":
-            return Factorization(amg_hierarchy(A if own else 0.5 * (A + A.T), near_nullspace), kind, own, local)
+            hierarchy = amg_hierarchy(A, near_nullspace, coarse_space) if symmetric \
+                else amg_hierarchy(0.5 * (A + A.T), near_nullspace)
+            return Factorization(hierarchy, kind, own, local)
         ordering = self.ordering(A) if kind in DIRECT and o.ordering == "nd" else o.ordering
         factor = factorize(A if own or halves else 0.5 * (A + A.T), kind, single, ordering, symmetric_part=halves)
         return Factorization(factor, kind, own and not single, local)

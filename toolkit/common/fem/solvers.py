@@ -209,7 +209,8 @@ class LinearSolver:
 
     def solve(self, A: sp.spmatrix, b: np.ndarray, near_nullspace: np.ndarray | None = None,
               x0: np.ndarray | None = None, symmetric: bool = True,
-              local: sp.spmatrix | None = None, rtol: float | None = None) -> tuple[np.ndarray, SolveInfo]:
+              local: sp.spmatrix | None = None, rtol: float | None = None,
+              coarse_space=None) -> tuple[np.ndarray, SolveInfo]:
         """Solve ``A x = b`` (``A`` (m, m) sparse, ``b`` (m,)); returns ``x`` and :class:`SolveInfo`.
 
         ``A`` is SPD when ``symmetric``. Otherwise it may be unsymmetric with a dominant SPD part
@@ -228,6 +229,10 @@ class LinearSolver:
 
         ``rtol``: the relative residual of this solve's Krylov iterations, in place of the
         solver's ``rtol`` and ``reuse_rtol`` (an inexact Newton's forcing term).
+
+        ``coarse_space``: a :class:`~toolkit.common.fem.coarse.CoarseSpace` (a quadratic mesh's
+        corner nodes in ``A``'s variables), or a function of no argument that makes it (called only
+        when a new AMG hierarchy is built): that hierarchy's first coarsening.
         """
         if not np.isfinite(b).all():
             raise SolverError("right-hand side holds NaN/inf")
@@ -253,7 +258,8 @@ class LinearSolver:
             reused = x is not None
         del stored  # a factor replaced below is freed where it was made: no reference held here
         if x is None:
-            x, iterations = self._factorize_and_solve(A, b, near_nullspace, x0, symmetric, local, fresh_rtol)
+            x, iterations = self._factorize_and_solve(A, b, near_nullspace, x0, symmetric, local, fresh_rtol,
+                                                      coarse_space)
         else:
             self.stats.reuses += 1
         bn = np.linalg.norm(b)
@@ -293,7 +299,8 @@ class LinearSolver:
         self.stats.correction_columns += stored.columns - before
         return x, iterations
 
-    def _factorize_and_solve(self, A, b, near_nullspace, x0, symmetric, local, rtol) -> tuple[np.ndarray, int]:
+    def _factorize_and_solve(self, A, b, near_nullspace, x0, symmetric, local, rtol,
+                             coarse_space=None) -> tuple[np.ndarray, int]:
         """Solve on a new factor of ``A`` (the one being made ahead for it, or a foreground one),
         and set the budget of the reuses that follow."""
         ahead = self._ahead
@@ -304,7 +311,8 @@ class LinearSolver:
         if self._stored is None or self._stored.A is not A:
             if self.options.factorize_ahead:
                 ahead.spare_alongside(A, symmetric, near_nullspace)
-            self._install(self._maker.make(A, symmetric, near_nullspace, local), A, symmetric, background=False)
+            self._install(self._maker.make(A, symmetric, near_nullspace, local, coarse_space), A, symmetric,
+                          background=False)
             self.stats.factorizations += 1
         t_apply = time.perf_counter()
         x, iterations = self._stored.solve_own(A, b, x0, rtol, local)
