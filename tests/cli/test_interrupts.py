@@ -1,17 +1,18 @@
 """A Ctrl-C in any command: exit code 130, one ``interrupted: ...`` line that says how to finish,
 no traceback, and an output folder that holds nothing or a result marked as interrupted.
 
-Each command runs as ``python -m toolkit`` in its own process group and gets SIGINT (what a
-terminal sends on Ctrl-C) while it works; the tiny coarse fixtures keep each case to seconds.
-The long matrix (every long command at several interrupt times, then rerun) is
+Each command runs as ``python -m toolkit`` does (``toolkit/__main__.py``), in its own process
+group, and gets a SIGINT (what a terminal sends on Ctrl-C) at a known point of its work, so that
+a slow machine gives the verdict a fast one gives: after its first stored simulation or written
+frame (:func:`toolkit.common.runtime.interrupt_after`), after its first increment (that
+increment's log record), or as torch starts to be imported. The tiny coarse fixtures keep each
+case to seconds. Interrupts at fractions of each command's run, then a rerun, are
 ``benchmarks/bad_inputs.py --interrupts``."""
 
 import json
-import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -19,30 +20,52 @@ import pytest
 #: coarse impact options: a rigid ball on the tet4 face
 IMPACT = ["--resolution", "coarse", "--order", "1", "--ball", "rigid"]
 
+#: SIGINT to the command's process group (its worker processes too) once its first simulation is stored
+AFTER_FIRST_JOB = "from toolkit.common.runtime import interrupt_after\ninterrupt_after('job', 1, group=True)\n"
+#: SIGINT once the second frame is written
+AFTER_SECOND_FRAME = "from toolkit.common.runtime import interrupt_after\ninterrupt_after('frame', 2)\n"
+#: SIGINT once the static simulation's first increment is logged (``increment 1/N: ...``)
+AFTER_FIRST_INCREMENT = """\
+import logging, re, signal
 
-def interrupt(args, cwd: Path, *, after: float = 0.0, when_exists: Path | None = None, timeout: float = 120):
-    """Start ``toolkit ARGS`` in ``cwd``, send SIGINT to its process group ``after`` seconds after
-    ``when_exists`` appears (or after the start), and return (exit code, stderr, whether the
-    command was still running at the interrupt)."""
+class CtrlC(logging.Handler):
+    def emit(self, record):
+        if re.match(r"increment 1/\\d+:", record.getMessage()):
+            signal.raise_signal(signal.SIGINT)
+
+log = logging.getLogger("toolkit.static.simulate")
+log.addHandler(CtrlC())
+log.setLevel(logging.INFO)
+log.propagate = False
+"""
+#: SIGINT as ``import torch`` begins (the import then runs on)
+AT_TORCH_IMPORT = """\
+import signal, sys
+
+class CtrlC:
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch":
+            sys.meta_path.remove(self)
+            signal.raise_signal(signal.SIGINT)
+        return None
+
+sys.meta_path.insert(0, CtrlC())
+"""
+
+
+def interrupted(args, cwd: Path, trigger: str, timeout: float = 120) -> tuple[int, str]:
+    """Run ``toolkit ARGS`` in ``cwd`` as ``python -m toolkit`` does, in a new process group, after
+    the Python lines ``trigger`` that arrange its SIGINT; return (exit code, stderr)."""
+    script = f"{trigger}\nimport runpy\nrunpy.run_module('toolkit', run_name='__main__', alter_sys=True)\n"
     # SIGINT's default action in the command (a test run started in the background ignores it)
-    proc = subprocess.Popen([sys.executable, "-m", "toolkit", *map(str, args)], cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    t0 = time.monotonic()
-    while when_exists is not None and not when_exists.exists() and proc.poll() is None:
-        assert time.monotonic() - t0 < timeout, f"{when_exists} never appeared"
-        time.sleep(0.05)
-    time.sleep(after)
-    running = proc.poll() is None
-    if running:
-        os.killpg(proc.pid, signal.SIGINT)
-    _, err = proc.communicate(timeout=timeout)
-    return proc.returncode, err, running
+    done = subprocess.run([sys.executable, "-c", script, *map(str, args)], cwd=cwd, capture_output=True, text=True,
+                          timeout=timeout, start_new_session=True,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    return done.returncode, done.stderr
 
 
-def assert_interrupted(code: int, err: str, running: bool) -> None:
-    assert running, "the command ended before the interrupt: the case tests nothing"
-    assert code == 130, err[-2000:]
+def assert_interrupted(code: int, err: str) -> None:
+    assert code == 130, f"exit {code} (0: the command ended before its interrupt)\n{err[-2000:]}"
     assert "Traceback" not in err, err[-2000:]
     assert "leaked" not in err, err[-2000:]
     lines = [ln for ln in err.splitlines() if ln.startswith("interrupted: ")]
@@ -59,34 +82,33 @@ def assert_nothing_or_marked(out: Path) -> None:
 
 
 def test_a_database_run_on_worker_processes(tmp_path):
-    """Interrupted once its first simulation is kept: the workers stop without a traceback or a
-    leaked semaphore, and the database says how far it got."""
+    """Interrupted once its first simulation is stored (the Ctrl-C reaches the worker process
+    too): the worker stops without a traceback or a leaked semaphore, and the database holds the
+    simulations finished by then and says it is not complete."""
     from toolkit.common.database import database_status
 
     args = ["static", "dataset", "--resolution", "coarse", "--plans", "8", "--workers", "1", "--out", "db.h5"]
-    result = interrupt(args, tmp_path, when_exists=tmp_path / "db.h5.shards", after=0.2)
-    assert_interrupted(*result)
+    assert_interrupted(*interrupted(args, tmp_path, AFTER_FIRST_JOB))
     status = database_status(tmp_path / "db.h5")
     assert status.records >= 1 and not status.complete and status.pending == 0
 
 
 def test_static_simulate(tmp_path):
-    """Paper resolution in 12 increments (about 8 s on AMD EPYC): still working after 2.5 s, seconds
-    before its files, which come after the last increment. With the default 3 increments the
-    command can reach its last writes by then, which ignore Ctrl-C so as to finish."""
-    result = interrupt(["static", "simulate", "--resolution", "paper", "--increments", "12", "--no-preview",
-                        "--out", "o"], tmp_path, after=2.5)
-    assert_interrupted(*result)
+    """Interrupted after the first of its increments: no output folder, since the files come after
+    the last increment (whose writes ignore Ctrl-C so as to finish)."""
+    code, err = interrupted(["static", "simulate", "--resolution", "coarse", "--no-preview", "--out", "o"], tmp_path,
+                            AFTER_FIRST_INCREMENT)
+    assert_interrupted(code, err)
     assert not (tmp_path / "o").exists()
 
 
 def test_impact_simulate_mid_run(tmp_path):
-    """Interrupted once its first frames are written: summary.json says "interrupted"."""
+    """Interrupted once its second frame is written: summary.json says "interrupted", with the two
+    frames."""
     args = ["impact", "simulate", *IMPACT, "--integrator", "explicit", "--no-preview", "--out", "o"]
-    result = interrupt(args, tmp_path, when_exists=tmp_path / "o" / "face.xdmf", after=0.5)
-    assert_interrupted(*result)
+    assert_interrupted(*interrupted(args, tmp_path, AFTER_SECOND_FRAME))
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
-    assert summary["status"] == "interrupted"
+    assert summary["status"] == "interrupted" and summary["frames_written"] == 2
 
 
 @pytest.mark.parametrize("command", [
@@ -96,13 +118,14 @@ def test_impact_simulate_mid_run(tmp_path):
     ["impact", "evaluate", "--model", "{R}/imodel", "--data", "{R}/impact.h5", "--out", "o"],
 ], ids=lambda c: " ".join(c[:2]))
 def test_predict_and_evaluate(command, models, tmp_path):
-    """Interrupted while loading the model and computing (1 s in: torch alone takes longer to import)."""
-    result = interrupt([a.replace("{R}", str(models)) for a in command], tmp_path, after=1.0)
-    assert_interrupted(*result)
+    """Interrupted as torch starts to be imported: the import ends,
+    then the command stops, leaving nothing or a result marked as interrupted."""
+    code, err = interrupted([a.replace("{R}", str(models)) for a in command], tmp_path, AT_TORCH_IMPORT)
+    assert_interrupted(code, err)
     assert_nothing_or_marked(tmp_path / "o")
 
 
-def test_a_finished_command_ignores_a_late_interrupt(models, tmp_path):
+def test_a_finished_command_ignores_a_late_interrupt(tmp_path):
     """A Ctrl-C after the command's work is written (while the interpreter shuts down) changes
     nothing: exit code 0, not death by the signal (-2)."""
     from toolkit.cli._main import main  # noqa: F401 - the module the program runs

@@ -220,6 +220,28 @@ def test_read_index_reads_any_table_of_the_file_with_str_strings(tmp_path):
         read_index(db.path, "records")
 
 
+def test_interrupt_after_sends_a_ctrl_c_after_the_given_stored_job(tmp_path):
+    """interrupt_after("job", 2): a SIGINT right after the second stored job (a failed one counts),
+    on any machine; the run keeps those two and stops; the trigger is then spent, and a rerun
+    finishes. A unit or count it does not know is refused."""
+    from toolkit.common.runtime import interrupt_after
+
+    db = _db(tmp_path)
+    interrupt_after("job", 2)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run_jobs(db, _jobs([1, 3, 4, 6]), square, workers=0, progress=False)
+    finally:
+        interrupt_after("job", None)
+    assert db.keys() == ["x1"] and list(db.failures()) == ["x3"]
+    report = run_jobs(db, _jobs([1, 3, 4, 6]), square, workers=0, progress=False)
+    assert sorted(report.done) == ["x4", "x6"]
+    with pytest.raises(ValueError, match=r"unit = 'epoch'; expected one of \['job', 'frame'\]"):
+        interrupt_after("epoch", 1)
+    with pytest.raises(ValueError, match="count = 0; expected an integer >= 1"):
+        interrupt_after("job", 0)
+
+
 def test_a_sigterm_stops_the_run_like_a_ctrl_c_and_keeps_the_finished_jobs(tmp_path):
     """A SIGTERM (a cluster's time limit) during the third job: KeyboardInterrupt, and the two
     finished records are merged into the .h5; the SIGTERM handler is restored afterwards."""

@@ -65,7 +65,7 @@ import numpy as np
 
 from toolkit.common.config_diff import jsonable, require_same
 from toolkit.common.errors import ToolkitError
-from toolkit.common.runtime import deferred_interrupt
+from toolkit.common.runtime import count_finished, deferred_interrupt
 
 __all__ = ["Job", "Record", "RunReport", "DatabaseError", "Database", "run_jobs", "read_index", "read_failures",
            "InProcessExecutor", "DatabaseStatus", "database_status", "IncompleteDatabaseWarning",
@@ -710,6 +710,7 @@ def _run_locked(db, jobs, keys, worker, executor, workers, retry_failed, progres
                     log.warning("job %s failed: %s", job.key, payload)
                 bar.update(1)
                 bar.set_postfix(failed=len(report.failed))
+                count_finished("job")
             if time.perf_counter() - last_merge > merge_every:
                 db.merge()
                 last_merge = time.perf_counter()

@@ -29,6 +29,7 @@ from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.kinematics import lumped_mass
 from toolkit.common.materials import lame
 from toolkit.common.mesh import Mesh
+from toolkit.common.runtime import count_finished
 from toolkit.common.topology import boundary_faces
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact, penalty_stiffness
 from toolkit.impact.elements import critical_time_step, tet_kinematics
@@ -489,6 +490,7 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
         for w, f in zip(writers, fields):
             w.append(frame.time, displacement=f["displacement"], von_mises=f["von_mises"])
         done.append(frame)
+        count_finished("frame")
 
     try:
         frames, stats = _run(scene, built, on_frame, progress, initial_guess)
