@@ -78,11 +78,12 @@ def test_amg_on_corners_solves_as_a_direct_solver_in_fewer_iterations(tet10_face
     exact = sp.linalg.spsolve(A.tocsc(), b)
     modes = T.T @ problem._modes
     counts = {}
-    for name, coarse in (("sa", None),
+    for name, coarse in (("sa", None), ("none made", lambda: None),
                          ("corners", reduced_coarse_space(corner_interpolation(mesh.cells, mesh.n_points), T,
                                                           mesh.points))):
         residuals = []
         x = amg_hierarchy(A, modes, coarse).solve(b, tol=1e-9, accel="cg", residuals=residuals, maxiter=500)
         np.testing.assert_allclose(x, exact, rtol=0, atol=1e-7 * np.abs(exact).max())
         counts[name] = len(residuals) - 1
+    assert counts["none made"] == counts["sa"]  # a maker that finds no coarse space: smoothed aggregation
     assert counts["corners"] <= 2 / 3 * counts["sa"], counts

@@ -179,7 +179,7 @@ def amg_hierarchy(A: sp.spmatrix, near_nullspace: np.ndarray | None = None, coar
     (the rigid-body modes; None: constants): a preconditioner for conjugate gradients.
 
     ``coarse_space``: a :class:`~toolkit.common.fem.coarse.CoarseSpace` (a quadratic mesh's corner
-    nodes), or a function of no argument that makes it: the first coarsening is its prolongation
+    nodes), or a function of no argument that makes it (or returns None: none): the first coarsening is its prolongation
     (Galerkin product), smoothed aggregation coarsens the corner-node system from there, and every
     level smooths by two forward Gauss-Seidel sweeps before the coarse correction and two backward
     after it (a symmetric cycle; on a 94k-node tet10 face 31 iterations and 10.9 s against 34 and
@@ -193,11 +193,11 @@ def amg_hierarchy(A: sp.spmatrix, near_nullspace: np.ndarray | None = None, coar
     A = sp.csr_matrix(A)
     settings = dict(symmetry="symmetric", max_coarse=500, strength=("symmetric", {"theta": 0.0}),
                     coarse_solver="splu")
+    if callable(coarse_space):
+        coarse_space = coarse_space()
     if coarse_space is None:
         B = near_nullspace if near_nullspace is not None else np.ones((A.shape[0], 1))
         return pyamg.smoothed_aggregation_solver(A, B=B, **settings)
-    if callable(coarse_space):
-        coarse_space = coarse_space()
     P = sp.csr_matrix(coarse_space.P)
     R = P.T.tocsr()
     inner = pyamg.smoothed_aggregation_solver((R @ A @ P).tocsr(), B=coarse_space.modes, improve_candidates=None,
