@@ -281,6 +281,23 @@ def _solvers(data):
         ("reuse_iterations", "its iterations"), ("peak_rss_mib", "peak memory (MiB)"), ("auto_choice", "auto picks")])
 
 
+def _mesh_convergence(data):
+    t = data["mesh_convergence"][0]
+    return table(t, [("size_mm", "size (mm)", "{:g}"), ("nodes", "nodes"), ("mesh_s", "meshing (s)", "{:.0f}"),
+                     ("simulate_s", "default plan (s)", "{:.0f}"), ("linear_solves", "linear solves"),
+                     ("peak_memory_gib", "peak memory (GiB)", "{:.1f}"),
+                     ("diff_mean_mm", "skin vs finest: mean (mm)", "{:.3f}"),
+                     ("diff_p95_mm", "p95 (mm)", "{:.3f}"), ("diff_max_mm", "max (mm)", "{:.2f}"),
+                     ("hex_diff_p95_mm", "p95 vs the hexahedral phantom (mm)", "{:.3f}")])
+
+
+def _profiles(data):
+    t = data["profiles"][0].copy()
+    t = t[t["rank"] <= 6]
+    return table(t, [("path", "path"), ("total_s", "run (s)", "{:.1f}"), ("rank", "rank"), ("function", "function"),
+                     ("own_s", "own time (s)", "{:.2f}"), ("share", "share", "{:.0%}"), ("calls", "calls")])
+
+
 def _ladder(data):
     df = data["static_ladder"][0]
     return table(df, [
@@ -830,7 +847,9 @@ SOURCES = {s.stem: s for s in (
     Source("bad_inputs_interrupts", "python benchmarks/bad_inputs.py --interrupts", 5),
     Source("mixed_elements", "python benchmarks/mixed_elements.py", 1),
     Source("static_solvers", "python benchmarks/static_solvers.py --meshes coarse paper paper-tet4 bulk-tet4 "
-           "--methods superlu pardiso amg auto", 1),
+           "meshed-5mm meshed-3mm --methods superlu pardiso amg amg-sa auto", 10),
+    Source("mesh_convergence", "python benchmarks/mesh_convergence.py", 25),
+    Source("profiles", "python benchmarks/profiles.py", 5),
     Source("static_ladder", "python benchmarks/static_ladder.py --resolutions coarse paper --increments 1 3 10", 5),
     Source("meshers", "python benchmarks/meshers.py", 25),
     Source("off_bone", "python benchmarks/off_bone.py --plans 5", 8),
@@ -987,6 +1006,16 @@ BLOCKS = {b.name: b for b in (
           "how many give a clear error, whether the error names the option as typed, whether the failed command "
           "left files behind, and the wall time to the error against the command's import time.",
           (SOURCES["bad_inputs"],), _bad_inputs),
+    Block("mesh_convergence", "Meshed-face size",
+          "The paper phantom's surfaces meshed by `toolkit mesh` (tet10) at each size and the default plan on each "
+          "(linear, mucosa and lip sliding, 3 increments, one thread, each size in its own process): nodes, times, "
+          "peak memory, and the skin displacement at the phantom's skin points against the finest size's and "
+          "against the hexahedral phantom's.", (SOURCES["mesh_convergence"],), _mesh_convergence),
+    Block("profiles", "Where the time goes",
+          "Each simulation path under cProfile (one thread): its six functions of largest own time and their share "
+          "of the run. `static-meshed`: the default plan on the paper phantom's surfaces meshed at 5 mm (tet10); "
+          "`static-phantom`: the same plan on the paper hexahedral phantom; `impact-quasistatic`: the default impact "
+          "scene at paper resolution, 30 mm/s.", (SOURCES["profiles"],), _profiles),
     Block("interrupts", "Ctrl-C in the long commands",
           "Each long command, tiny, run once to its end, then afresh and interrupted (SIGINT to its process "
           "group, as Ctrl-C) at several times, and rerun: the finished simulations or epochs on disk at the "

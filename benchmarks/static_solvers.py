@@ -4,8 +4,11 @@ fill-aware automatic choice, and the reuse of a factorization.
 Assembles the constrained system of the first increment (default plan, mucosa sliding
 normal constraints, fixed and moving nodes) on each phantom resolution, on the paper face
 split into tetrahedra (``paper-tet4``), and on a bulky tetrahedral block of ~8,800 nodes
-(``bulk-tet4``: 26k dofs like a real volumetric tet mesh, bottom fixed, top pushed), and
-solves it with every available method, each in a fresh process (peak resident memory is
+(``bulk-tet4``: 26k dofs like a real volumetric tet mesh, bottom fixed, top pushed), and on the
+paper phantom's surfaces meshed by ``toolkit mesh`` in quadratic tetrahedra (``meshed-5mm``,
+``meshed-3mm``: 24k and 94k nodes; the mesh is kept in ``benchmarks/work/static_solvers/``), and
+solves it with every available method (``amg``: with a quadratic mesh's corner-node coarse space
+first, as the toolkit solves; ``amg-sa``: smoothed aggregation alone), each in a fresh process (peak resident memory is
 per process). Each row also gives the factor size ``auto`` expects
 (:func:`~toolkit.common.fem.solvers.estimate_factor_entries`) and its choice, and the time of
 a second solve after tying 5 more pairs (the next lip-contact iteration) by CG preconditioned
@@ -24,6 +27,7 @@ import argparse
 import resource
 import time
 from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +35,37 @@ import pandas as pd
 import scipy.sparse as sp
 from _provenance import RESULTS, write_result
 
-MESHES = ("coarse", "paper", "fine", "paper-tet4", "bulk-tet4")
+MESHES = ("coarse", "paper", "fine", "paper-tet4", "bulk-tet4", "meshed-5mm", "meshed-3mm")
+METHODS = ("superlu", "pardiso", "amg", "amg-sa", "cholmod", "auto")
+
+
+def _meshed_face(name: str):
+    """The paper phantom's surfaces meshed by ``toolkit mesh`` at the size in ``name``
+    (``meshed-5mm``), tet10, and its bony segments; cached in the work folder."""
+    import pickle
+
+    from _provenance import WORK
+
+    from toolkit.static import load_case
+
+    path = WORK / "static_solvers" / f"{name}.pkl"
+    if path.exists():
+        mesh, bones = pickle.loads(path.read_bytes())
+    else:
+        from toolkit.common.phantom import face_hex
+        from toolkit.mesh import mesh_face
+        from toolkit.mesh.phantom import phantom_surfaces
+
+        surfaces = phantom_surfaces(face_hex("paper"))
+        face = mesh_face(surfaces.tissue, surfaces.bones, surfaces.commissures,
+                         size_mm=float(name.split("-")[1].removesuffix("mm")), order=2)
+        mesh, bones = face.mesh, {k: v for k, v in face.bones.items() if k != "skull"}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_bytes(pickle.dumps((mesh, bones)))
+        tmp.replace(path)
+    case = load_case(mesh, plan=load_case(resolution="paper").plan, bones=bones)
+    return mesh, case.segments, case.plan
 
 
 def _system(name: str):
@@ -50,12 +84,16 @@ def _system(name: str):
                         np.vstack([np.zeros((bottom.size, 3)), np.tile([1.0, 0.0, -2.0], (top.size, 1))]))
         free = np.setdiff1d(np.arange(mesh.n_points), np.concatenate([bottom, top]))
     else:
-        ph = face_hex(name.split("-")[0])
-        if name.endswith("tet4"):
-            ph = remeshed(ph, "tet4")
-        mesh = ph.mesh
-        plan = default_plan(ph).increments(3)[0]
-        bc = BoundaryConditions.from_mesh(mesh, ph.segments)
+        if name.startswith("meshed-"):
+            mesh, segments, full_plan = _meshed_face(name)
+            plan = full_plan.increments(3)[0]
+        else:
+            ph = face_hex(name.split("-")[0])
+            if name.endswith("tet4"):
+                ph = remeshed(ph, "tet4")
+            mesh, segments = ph.mesh, ph.segments
+            plan = default_plan(ph).increments(3)[0]
+        bc = BoundaryConditions.from_mesh(mesh, segments)
         X = mesh.points
         fixed, moving = bc.nodes(NodeType.FIXED), bc.nodes(NodeType.MOVING)
         target = X.copy()
@@ -67,15 +105,17 @@ def _system(name: str):
         normals = np.tile([0.0, 1.0, 0.0], (mucosa.size, 1))  # any valid sliding rows: the solver sees their shape
         c = Constraints(mesh.n_points, nodes, target[nodes] - X[nodes], mucosa, normals, np.zeros(mucosa.size))
         free = bc.nodes(NodeType.FREE)
-    problem = StaticProblem(mesh, material_assignment("linear", mesh))
+    problem = StaticProblem(mesh, material_assignment("linear", mesh), "amg")
     ties = free[:10]
     return problem, c, ties
 
 
 def _reduced(problem, c):
+    from toolkit.static.problem import reduced_matrix
+
     T, u0 = c.reduction()
     K = problem.stiffness
-    A = (T.T @ K @ T).tocsr()
+    A = reduced_matrix(K, T)
     d = A.diagonal()
     A = A + sp.diags(np.where(d == 0, d[d > 0].mean(), 0.0))  # tie slaves' idle columns, as StaticProblem
     return T, A, -(T.T @ (K @ u0))
@@ -84,6 +124,7 @@ def _reduced(problem, c):
 def run_one(name: str, method: str) -> dict:
     from dataclasses import replace
 
+    from toolkit.common.fem.coarse import reduced_coarse_space
     from toolkit.common.fem.solvers import LinearSolver, SolverError, choose_method, estimate_factor_entries
 
     t0 = time.perf_counter()
@@ -94,16 +135,22 @@ def run_one(name: str, method: str) -> dict:
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     row = {"mesh": name, "method": method, "dofs": A.shape[0], "nnz": A.nnz, "build_s": t_build,
            "expected_factor_entries": entries, "auto_choice": choose_method("auto", A.shape[0], entries)}
+    corners = problem._corners if method in ("amg", "auto") else None  # a tet10 mesh's corner nodes
+
+    def coarse(T):
+        return None if corners is None else reduced_coarse_space(corners, T, problem.mesh.points)
+
     try:
-        solver = LinearSolver(method, factor_entries=entries, timed_budget=False)
-        modes = T.T @ problem._modes if method in ("amg", "auto") else None
-        x, info = solver.solve(A, b, near_nullspace=modes)
+        solver = LinearSolver(method.removesuffix("-sa"), factor_entries=entries, timed_budget=False)
+        modes = T.T @ problem._modes if method in ("amg", "amg-sa", "auto") else None
+        x, info = solver.solve(A, b, near_nullspace=modes, coarse_space=partial(coarse, T))
         row.update(status="ok", solve_s=info.seconds, iterations=info.iterations, residual=info.residual,
                    used=info.method)
         # the next lip-contact iteration: 5 more pairs tied (same size: tie slaves keep their columns)
         c2 = replace(c, tie_slaves=ties[:5], tie_masters=ties[5:10], tie_offsets=np.zeros(5))
         T2, A2, b2 = _reduced(problem, c2)
-        x2, info2 = solver.solve(A2, b2, near_nullspace=T2.T @ problem._modes if modes is not None else None)
+        x2, info2 = solver.solve(A2, b2, near_nullspace=T2.T @ problem._modes if modes is not None else None,
+                                 coarse_space=partial(coarse, T2))
         row.update(reuse_s=info2.seconds, reuse_iterations=info2.iterations, reused=info2.reused)
     except SolverError as exc:
         row.update(status=f"unavailable: {str(exc)[:80]}")
@@ -115,7 +162,7 @@ def run_one(name: str, method: str) -> dict:
 def main(argv=None) -> pd.DataFrame:
     parser = argparse.ArgumentParser(description="static linear solver comparison")
     parser.add_argument("--meshes", nargs="+", default=list(MESHES), choices=MESHES)
-    parser.add_argument("--methods", nargs="+", default=["superlu", "pardiso", "amg", "cholmod", "auto"])
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--superlu-max-dofs", type=int, default=60_000)
     parser.add_argument("--out", type=Path, default=RESULTS / "static_solvers.csv")
     args = parser.parse_args(argv)
@@ -127,7 +174,8 @@ def main(argv=None) -> pd.DataFrame:
     rows = []
     with ProcessPoolExecutor(max_workers=1, max_tasks_per_child=1) as pool:
         for name in args.meshes:
-            n_dofs = 3 * face_hex(name.split("-")[0]).mesh.n_points if name != "bulk-tet4" else 3 * 21 * 21 * 20
+            n_dofs = (3 * 21 * 21 * 20 if name == "bulk-tet4" else np.inf if name.startswith("meshed-")
+                      else 3 * face_hex(name.split("-")[0]).mesh.n_points)
             for method in args.methods:
                 if method == "superlu" and n_dofs > args.superlu_max_dofs:
                     rows.append({"mesh": name, "method": method, "dofs": n_dofs,
