@@ -182,7 +182,7 @@ def amg_hierarchy(A: sp.spmatrix, near_nullspace: np.ndarray | None = None, coar
     nodes), or a function of no argument that makes it (or returns None: none): the first coarsening is its prolongation
     (Galerkin product), smoothed aggregation coarsens the corner-node system from there, and every
     level smooths by two forward Gauss-Seidel sweeps before the coarse correction and two backward
-    after it (a symmetric cycle; on a 94k-node tet10 face 31 iterations and 10.9 s against 34 and
+    after it (a symmetric cycle; on a 90k-node tet10 face 31 iterations and 10.9 s against 34 and
     13.3 s with one symmetric sweep each side). The coarsest level is solved by SuperLU (a
     dense pseudo-inverse of a 1,650-dof coarsest level cost 2.8 s per hierarchy on a 24k-node
     tet10 face)."""
