@@ -39,6 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_axes(parser, "the surface files and --commissures")
     parser.add_argument("--max-hole-edges", type=int, default=60,
                         help="holes of the tissue surface bounded by up to this many edges are closed")
+    parser.add_argument("--memory", type=positive_float, default=None, metavar="GIB",
+                        help="memory meshing and simulating a plan may take, GiB (default: what the system has "
+                             "available); a --size whose estimate exceeds it is refused before meshing")
     parser.add_argument("--no-image", action="store_true", help="skip labels.png")
     parser.add_argument("--out", required=True, type=Path,
                         help="output mesh (.vtu or .inp); labels.json and labels.png are written beside it")
@@ -60,11 +63,15 @@ def run(args: argparse.Namespace) -> int:
                                     f"{'(--rules: TOML)' if path == args.rules else ''}".rstrip())
     face = mesh_face(args.tissue, bones(args.bone), args.commissures, size_mm=args.size, order=args.order,
                      backend=args.backend, rules=args.rules, units=args.units, axes=args.axes,
-                     max_hole_edges=args.max_hole_edges, threads=1 if args.threads is None else args.threads)
+                     max_hole_edges=args.max_hole_edges, threads=1 if args.threads is None else args.threads,
+                     memory_gib=args.memory)
     written = face.write(args.out, image=not args.no_image)
     r = face.report
     print(face.summary())
     print("seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in r["seconds"].items()))
+    e = r["estimate"]
+    print(f"estimated before meshing: {e['nodes']:,} nodes, {e['elements']:,} elements; memory to mesh "
+          f"{e['mesher_gib']:.1f} GiB, to simulate a plan {e['simulation_gib']:.1f} GiB")
     repairs = {k: v for k, v in r["repair"].items() if v}
     print(f"tissue surface repairs: {repairs if repairs else 'none needed'}")
     print("wrote " + ", ".join(str(p) for p in written.values()))

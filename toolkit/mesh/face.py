@@ -18,8 +18,8 @@
 6. **quality**: minimum scaled Jacobian and the dihedral angles of the result.
 
 The result (:class:`MeshedFace`) writes itself as VTU (or Abaqus ``.inp``) with its sets,
-``labels.json`` (counts, what each segment carries, quality, repairs, rules, times) and
-``labels.png`` (the sets in colour, from the front and from inside).
+``labels.json`` (counts, what each segment carries, quality, repairs, rules, times, the estimate
+made before meshing) and ``labels.png`` (the sets in colour, from the front and from inside).
 """
 
 from __future__ import annotations
@@ -119,6 +119,24 @@ def _check_inputs(bones: Mapping, size_mm: float, order: int, commissures) -> No
         if c.shape != (2, 3) or not np.isfinite(c).all():
             raise FaceInputError(f"commissures = {np.asarray(commissures).tolist()}; expected two points "
                                  "[x, y, z] mm (command line: --commissures X,Y,Z X,Y,Z)")
+
+
+def _check_budget(surface: Mesh, size_mm: float, order: int, memory_gib: float | None, source: str):
+    """The :class:`~toolkit.mesh.budget.SizeEstimate` of meshing ``surface`` at ``size_mm``;
+    raises :class:`FaceInputError` when it needs more than ``memory_gib`` (default: available)."""
+    from toolkit.mesh.budget import available_memory_gib, estimate_size, finest_fitting_size
+
+    tri = surface.cells["tri3"]
+    estimate = estimate_size(surface.points, tri, size_mm, order)
+    limit = available_memory_gib() if memory_gib is None else float(memory_gib)
+    if limit is not None and estimate.peak_gib > limit:
+        fits = finest_fitting_size(surface.points, tri, limit, order)
+        raise FaceInputError(
+            f"{source} at --size {size_mm:g} mm: about {estimate.elements:,} elements and {estimate.nodes:,} nodes, "
+            f"which need about {estimate.peak_gib:.1f} GiB to mesh and simulate, more than the {limit:.1f} GiB "
+            f"{'available' if memory_gib is None else 'allowed (--memory)'}; --size {fits:g} or coarser fits "
+            "(--memory GIB sets the limit)")
+    return estimate
 
 
 def _read_bone(name: str, source, units: str) -> Mesh:
@@ -264,7 +282,8 @@ def _check_carried(segments: Mapping[str, dict], rules: LabelRules, names: Mappi
 
 def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFAULT_SIZE_MM,
               order: int = DEFAULT_ORDER, backend: str = DEFAULT, rules=None, units: str = "mm",
-              axes: str = "toolkit", max_hole_edges: int = 60, threads: int = 1) -> MeshedFace:
+              axes: str = "toolkit", max_hole_edges: int = 60, threads: int = 1,
+              memory_gib: float | None = None) -> MeshedFace:
     """Mesh and label a face from its segmented surfaces (see the module for the stages).
 
     Parameters
@@ -288,6 +307,11 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
     threads : threads the mesher may use (fTetWild). fTetWild's mesh differs from run to run even
         on one thread (the coarse phantom at 10 mm: 4,193-4,558 tet10 nodes in four runs); keep the
         written mesh, not the command, as the record of a patient's model
+    memory_gib : the memory meshing and then simulating a plan may take, GiB (default: what the
+        system has available now). Before meshing, the size's elements, nodes and memory are
+        estimated from the tissue's volume and area (:mod:`toolkit.mesh.budget`; in ``report``
+        under ``estimate``); a size whose estimate exceeds this is refused, naming the finest
+        size that fits
     """
     from toolkit.mesh.labels import label_nodes
     from toolkit.mesh.surface import closed_surface, read_tissue_surface
@@ -310,6 +334,7 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
     if commissures is not None:
         commissures = to_toolkit(commissures, axes)
     _check_contact(surface, bone_surfaces, rules, names)
+    estimate = _check_budget(surface, size_mm, order, memory_gib, tissue_name)
     check_anatomical_axes(surface.points, {k: v.points for k, v in bone_surfaces.items()}, axes=axes,
                           source=f"{tissue_name} with its bones ({', '.join(names.values())})")
     times["read_repair"] = time.perf_counter() - t0
@@ -381,6 +406,8 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
                            "max": float(offsets.max(initial=0.0))},
         "mouth": mouth, "repair": repair.as_dict(), "rules": rules.as_dict(),
         "seconds": {k: round(v, 3) for k, v in times.items()},
+        "estimate": {"elements": estimate.elements, "nodes": estimate.nodes,
+                     "mesher_gib": round(estimate.mesher_gib, 2), "simulation_gib": round(estimate.simulation_gib, 2)},
     }
     return MeshedFace(mesh, bone_surfaces, report)
 
