@@ -174,6 +174,7 @@ def _markdown_files() -> list[Path]:
 MARKDOWN = _markdown_files()
 
 
+@pytest.mark.long
 @pytest.mark.docs
 @pytest.mark.parametrize("path", MARKDOWN, ids=[p.name for p in MARKDOWN])
 def test_markdown_blocks_run(path, tmp_path):

@@ -21,6 +21,7 @@ def _execute_module():
     return module
 
 
+@pytest.mark.long
 @pytest.mark.notebook
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs(path, tmp_path):

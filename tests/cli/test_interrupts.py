@@ -111,6 +111,7 @@ def test_impact_simulate_mid_run(tmp_path):
     assert summary["status"] == "interrupted" and summary["frames_written"] == 2
 
 
+@pytest.mark.long
 @pytest.mark.parametrize("command", [
     ["static", "predict", "--model", "{R}/smodel", "--no-preview", "--out", "o"],
     ["static", "evaluate", "--model", "{R}/smodel", "--data", "{R}/static.h5", "--out", "o"],

@@ -97,6 +97,7 @@ def test_a_failing_simulation_is_recorded_and_the_others_kept(tmp_path, monkeypa
     assert sorted(again.skipped) == ["v20", "v50"] and not again.done
 
 
+@pytest.mark.long
 def test_local_processes_and_a_dask_local_cluster_fill_the_same_database(tmp_path):
     """One velocity in a spawned worker process (the default executor) and another on a Dask
     LocalCluster (one worker process) land in one database with identical fields to an

@@ -326,6 +326,7 @@ def test_the_work_ledger_balances_from_the_first_frame_with_a_deformable_ball():
     assert summary["max_energy_error"] < 0.02
 
 
+@pytest.mark.long
 def test_a_warm_start_from_the_answer_is_the_answer_and_a_bad_one_falls_back():
     """Coarse face, tet4, rigid ball, 30 mm/s, 12 frames. Started from its own answer, the
     quasi-static path accepts it at every frame (the same frames, bit for bit: each frame's start

@@ -178,7 +178,7 @@ def test_no_teeth_or_a_spacing_in_metres_is_refused_with_the_remedy(volume):
         ct_surfaces(Volume(volume.values, volume.spacing / 1000.0))
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_the_ct_face_meshes_and_both_moving_segments_carry_tissue(surfaces):
     """End to end: the CT's surfaces meshed by ``mesh_face`` at 8 mm (tet4) label non-empty
     ``maxilla`` and ``mandible`` sets, each carrying more than the 40 mm^2 the mesher asks."""

@@ -60,7 +60,7 @@ def test_the_winding_of_the_bones_decides_nothing(face, surfaces, clean):
             np.testing.assert_array_equal(got[name], clean[name], err_msg=name)
 
 
-@pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.parametrize("kind", DAMAGE)
 def test_damaged_bones_keep_every_set_within_ten_percent(face, clean, damaged_bones, kind):
     got = _labels(face, damaged_bones[kind])
@@ -72,7 +72,7 @@ def test_damaged_bones_keep_every_set_within_ten_percent(face, clean, damaged_bo
             assert abs(m - n) <= 2, f"{kind}: {name} has {m} nodes, clean {n}"
 
 
-def test_the_damage_is_what_it_says(surfaces, damaged_bones):
+def test_the_damage_is_what_it_says(surfaces):
     rng = np.random.default_rng(1)
     bone = surfaces.bones["distal"]
     flipped = flipped_in_patches(bone, 0.3, rng)
@@ -80,7 +80,12 @@ def test_the_damage_is_what_it_says(surfaces, damaged_bones):
     assert 0.3 <= share <= 0.5
     finer = remeshed(bone, 4.0)
     assert finer.cells["tri3"].shape[0] == 4 * bone.cells["tri3"].shape[0]
-    cut = damaged_bones["kerf"]  # a 1 mm kerf
+
+
+@pytest.mark.long
+def test_a_kerf_leaves_a_gap_between_the_bones(damaged_bones):
+    """The 1 mm osteotomy kerf leaves the Le Fort I and the distal bone at least 0.5 mm apart."""
+    cut = damaged_bones["kerf"]
     from toolkit.common.surface_distance import closest_points
 
     gap = closest_points(cut["lefort"].points, cut["distal"].points, cut["distal"].cells["tri3"]).distance.min()

@@ -35,12 +35,14 @@ def face(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def database(face):
+    """The meshed face's 4-plan database (~16 s on an Intel Xeon): the tests that use it are long."""
     out = face["folder"] / "db.h5"
     assert main(["static", "dataset", "--mesh", str(face["mesh"]), *face["bones"], face["condyles"], "--plans", "4",
                  "--workers", "0", "--out", str(out)]) == 0
     return out
 
 
+@pytest.mark.long
 def test_database_holds_the_meshed_face_and_its_plans(face, database):
     db = StaticDatabase.open(database)
     mesh = read(face["mesh"])
@@ -67,6 +69,7 @@ def test_database_holds_the_meshed_face_and_its_plans(face, database):
     assert (db.samples.min_scaled_jacobian > 0).all()
 
 
+@pytest.mark.long
 def test_sliding_mid_edge_nodes_stay_on_their_straight_edges(face, database):
     """On the meshed face (straight tet10 edges) a sliding mucosa mid-edge node between two sliding
     corners is placed between them after every increment, not projected onto the bone on its own
@@ -89,6 +92,7 @@ def test_sliding_mid_edge_nodes_stay_on_their_straight_edges(face, database):
         assert gap.max() < 1e-4, (key, gap.max())
 
 
+@pytest.mark.long
 def test_train_evaluate_and_predict_on_the_meshed_face(face, database, tmp_path, capsys):
     model = tmp_path / "model"
     assert main(["static", "train", "--data", str(database), "--out", str(model), "--network", "tiny",
@@ -167,6 +171,7 @@ def test_train_evaluate_and_predict_on_the_meshed_face(face, database, tmp_path,
     assert p95(base.displacement - fe) < 0.1 * p95(fe)
 
 
+@pytest.mark.long
 def test_a_changed_mesh_file_is_refused_on_resume(face, database, tmp_path):
     import shutil
 

@@ -35,7 +35,7 @@ def _ok(result, phantom):
     return s
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_hard_plans_at_paper_resolution_complete(paper):
     """At paper resolution, the packaged plan without sliding (the lip-sliding paper's method 1)
     and the sampled sagittal plan 3 of seed 0 (distal 12 degrees, which presses the posterior lower
@@ -45,7 +45,7 @@ def test_hard_plans_at_paper_resolution_complete(paper):
     _ok(simulate(paper, plan), paper)
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_a_plan_that_needs_a_wider_release_band_gets_one(paper):
     """Full-mode plan 10 of seed 0 lifts the Le Fort I segment ~9 mm at its lateral edge
     towards the fixed skull, 10 mm away across the default band: without sliding, the band
@@ -64,7 +64,7 @@ def test_a_plan_that_needs_a_wider_release_band_gets_one(paper):
     assert SimulationOptions(release_width=15.0).wider_release == (15.0, 20.0)  # only 20 mm will be tried
 
 
-@pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.filterwarnings("ignore::toolkit.static.plan.PlanRangeWarning")  # the forced plan's sub-steps
 def test_a_plan_blocked_at_the_held_cut_frees_it(paper):
     """Full-mode plan 10 of seed 0 at ``fine`` rotates the left proximal segment ~12 degrees
@@ -194,7 +194,7 @@ def test_regulation_moves_no_skin_node_and_keeps_mucosa_on_the_bone(paper, monke
     assert np.all(np.isin(bc.types[moved], (0, 3)))  # free or mucosa only
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_mucosa_past_the_edge_of_a_bone_is_not_gathered_on_the_edge(paper):
     """Full-mode plan 11 of seed 0 (distal 10 degrees, 9 mm forward) slides the tissue over the
     right ramus ~10 mm forward and down, past the lower edge of its bone surface (an open

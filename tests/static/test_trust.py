@@ -27,6 +27,9 @@ from toolkit.static.trust import (
     out_of_distribution,
 )
 
+#: every test here answers with a model trained to an accuracy (hard_model), or calibrates it
+pytestmark = pytest.mark.long
+
 COVERAGE = 0.8  # the coarse database's 7 test plans allow at most 1 - 1/8 = 87.5 %
 
 
