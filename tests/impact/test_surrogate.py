@@ -1,5 +1,5 @@
 """The impact surrogates on the tiny coarse database (tests/impact/conftest.py): they learn to
-stated bounds within a time budget, their metrics are numpy's and scipy's, training resumes,
+stated bounds in a fixed number of epochs, their metrics are numpy's and scipy's, training resumes,
 and a model refuses data and configurations it was not built for; the CLI trains, evaluates
 and predicts a case the FE can rerun."""
 
@@ -21,9 +21,9 @@ from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, split_items, trai
 
 from .conftest import tiny_scene  # noqa: E402
 
-#: the learning tests' budget: a fixed number of epochs (deterministic on one thread; ~15 s each
-#: here), capped at 60 s of training
-QUICK = dict(epochs=80, patience=None, max_seconds=60.0)
+#: the learning tests' budget: a fixed number of epochs and no time limit (deterministic on one
+#: thread, whatever the machine's speed; ~10 s each on an Intel Xeon)
+QUICK = dict(epochs=80, patience=None, max_seconds=None)
 
 
 @pytest.fixture(scope="module")
@@ -55,15 +55,16 @@ def test_splits_keep_whole_series_and_held_out_velocities_apart(tiny_db):
     assert not (tiny_db.held_out[np.concatenate([v["train"], v["val"]]) // n]).any()
 
 
-def test_strong_lstm_learns_the_tiny_database_within_a_minute(tiny_db, strong_random):
-    """The multi-output LSTM (200 epochs, at most 60 s) predicts the random split's test node series
-    with a displacement RMSE below 0.35 of the test displacement's standard deviation (the RMSE of
-    the best constant predictor; most nodes barely move, so this spread is small: ~0.4 mm against a
-    ~18 mm peak) and a von Mises RMSE below 0.2 of the stress's; Pearson correlations >= 0.95
-    (displacement; the impact paper reports 0.98) and >= 0.98 (von Mises; the impact paper: 0.94). Measured when
-    written: 0.26 and 0.14 of the spreads, Pearson 0.966 and 0.990."""
+@pytest.mark.long
+def test_strong_lstm_learns_the_tiny_database_in_200_epochs(tiny_db, strong_random):
+    """The multi-output LSTM (200 epochs, ~9 s on an Intel Xeon) predicts the random split's test
+    node series with a displacement RMSE below 0.35 of the test displacement's standard deviation
+    (the RMSE of the best constant predictor; most nodes barely move, so this spread is small: ~0.4
+    mm against a ~18 mm peak) and a von Mises RMSE below 0.2 of the stress's; Pearson correlations
+    >= 0.95 (displacement; the impact paper reports 0.98) and >= 0.98 (von Mises; the impact paper:
+    0.94). Measured when written: 0.26 and 0.14 of the spreads, Pearson 0.966 and 0.990."""
     model = strong_random
-    assert model.bundle.extra["epochs_run"] == 200  # the budget, not the 60 s cap, ended training
+    assert model.bundle.extra["epochs_run"] == 200
     ev = evaluate_surrogate(model, tiny_db)
     spread = _constant_rmse(ev.truth)
     m = ev.metrics
@@ -72,11 +73,12 @@ def test_strong_lstm_learns_the_tiny_database_within_a_minute(tiny_db, strong_ra
     assert m["displacement_pearson"] >= 0.95 and m["von_mises_pearson"] >= 0.98
 
 
+@pytest.mark.long
 def test_held_out_velocity_is_predicted_within_bounds(tiny_db):
-    """The non-recurrent baseline trained on the six seed velocities only (80 epochs, at most 60 s)
-    predicts the unseen 35 mm/s simulation with a displacement RMSE below 0.3 of its spread, a
-    von Mises RMSE below 0.2 of its spread and Pearson >= 0.96 and >= 0.98 (measured when written:
-    0.23 and 0.11 of the spreads, Pearson 0.975 and 0.994)."""
+    """The non-recurrent baseline trained on the six seed velocities only (80 epochs) predicts the
+    unseen 35 mm/s simulation with a displacement RMSE below 0.3 of its spread, a von Mises RMSE
+    below 0.2 of its spread and Pearson >= 0.96 and >= 0.98 (measured when written: 0.23 and 0.11
+    of the spreads, Pearson 0.975 and 0.994)."""
     model = train_surrogate(tiny_db, CONFIGS["baseline"].with_(**QUICK), "velocity", seed=0, progress=False)
     assert model.bundle.extra["epochs_run"] == 80
     ev = evaluate_surrogate(model, tiny_db)

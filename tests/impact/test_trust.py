@@ -20,6 +20,9 @@ from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, train_surrogate  
 
 from .conftest import TINY_HELD_OUT, TINY_VELOCITIES, tiny_scene  # noqa: E402
 
+#: every test here answers with a model trained to an accuracy, or calibrates it
+pytestmark = pytest.mark.long
+
 #: velocities of the calibration database: none trained on, 9 = the fewest a 90 % bound needs
 CALIBRATION_VELOCITIES = (21.0, 23.5, 28.0, 30.0, 34.0, 37.0, 41.0, 45.5, 48.0)
 
@@ -34,9 +37,10 @@ def calibration_db(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def model_dir(tiny_db_path, tmp_path_factory):
-    """A strong LSTM trained for 80 epochs (~7 s) on the tiny database's training velocities."""
+    """A strong LSTM trained for 80 epochs, no time limit (~7 s on an Intel Xeon), on the tiny
+    database's training velocities."""
     out = tmp_path_factory.mktemp("impact-trust") / "model"
-    train_surrogate(tiny_db_path, CONFIGS["strong"].with_(epochs=80, patience=None, max_seconds=60.0,
+    train_surrogate(tiny_db_path, CONFIGS["strong"].with_(epochs=80, patience=None, max_seconds=None,
                                                           lr_schedule="constant"),
                     "velocity", out=out, seed=0, progress=False)
     return out

@@ -10,9 +10,8 @@ import pytest
 
 from toolkit.common.config_diff import IncompatibleError
 from toolkit.static.dataset import DatasetConfig, StaticDatabase, generate, subject_phantom
-from toolkit.static.features import FeatureSpec
 from toolkit.static.plan import PlanRangeWarning, SurgicalPlan, default_plan, sample_plans
-from toolkit.static.surrogate import PLAN_PARAMETERS, SurrogateConfig, evaluate_surrogate, train_surrogate
+from toolkit.static.surrogate import PLAN_PARAMETERS, evaluate_surrogate
 
 
 def _database(tmp_path_factory, name, **kw):
@@ -21,16 +20,10 @@ def _database(tmp_path_factory, name, **kw):
     return path
 
 
-@pytest.fixture(scope="module")
-def db6(tmp_path_factory):
-    """6 sagittal plans on the coarse face (18 samples)."""
-    return _database(tmp_path_factory, "db6", plans=6)
-
-
-@pytest.fixture(scope="module")
-def model(db6, tmp_path_factory):
-    config = SurrogateConfig(FeatureSpec("hard"), network="tiny", coarse_radii=True, epochs=2)
-    return train_surrogate(db6, tmp_path_factory.mktemp("model") / "m", config, progress=False)
+@pytest.fixture
+def model(quick_model):
+    """The 2-epoch tiny model on ``db6`` (tests/static/conftest.py)."""
+    return quick_model
 
 
 def test_the_training_database_is_scored_on_its_test_split(db6, model):

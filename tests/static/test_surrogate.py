@@ -1,5 +1,6 @@
-"""The static surrogate: a small coarse database trains in under a minute to a stated error
-bound, hard boundary values are exact, and a model refuses data it was not built for."""
+"""The static surrogate: a small coarse database trains in a fixed number of epochs (under a
+minute) to a stated error bound, hard boundary values are exact, and a model refuses data it was
+not built for."""
 
 import json
 from dataclasses import replace
@@ -13,17 +14,17 @@ from toolkit.static.features import FeatureSpec
 from toolkit.static.surrogate import Surrogate, SurrogateConfig, evaluate_surrogate, train_surrogate
 
 
+@pytest.mark.long
 def test_training_reaches_the_error_bound(db100, hard_model):
-    """102 coarse samples, 45 s of training (tiny network, hard boundaries): on the test
-    simulations (20 %, never seen) the mean nodal error is below half the mean displacement
-    and below the error of the best constant field (the mean training displacement), which
-    knows the data's average but not the plan: the network has learnt how the face follows
-    the bones. (Measured: ~0.45 mm against 1.45 mm mean displacement and ~0.9 mm for the
-    constant field.)"""
+    """102 coarse samples, at most 200 epochs with early stopping (tiny network, hard boundaries;
+    it stops at epoch 68, ~40 s on an Intel Xeon): on the test simulations (20 %, never seen) the
+    mean nodal error is below half the mean displacement and below the error of the best constant
+    field (the mean training displacement), which knows the data's average but not the plan: the
+    network has learnt how the face follows the bones. (Measured: ~0.45 mm against 1.45 mm mean
+    displacement and ~0.9 mm for the constant field.)"""
     db = StaticDatabase.open(db100)
     result = evaluate_surrogate(hard_model, db)
     m = result["metrics"]
-    assert hard_model.bundle.extra["train_seconds"] < 60
     assert m["mean_error_mm"] < 0.5 * m["mean_displacement_mm"]
     train_keys = set(db.samples.key) - set(hard_model.bundle.extra["test_keys"])
     mean_field = np.mean([db.sample(i)["v"] for i in range(len(db)) if db.samples.key[i] in train_keys], axis=0)
@@ -32,10 +33,12 @@ def test_training_reaches_the_error_bound(db100, hard_model):
     assert m["inference_ms"] > 0 and m["fe_ms"] > 0
 
 
-def test_hard_boundary_values_are_exact(db100, hard_model):
+def test_hard_boundary_values_are_exact(db6, quick_model):
     """With hard boundaries the prediction is exactly 0 at fixed nodes and exactly the
-    prescribed displacement at moving nodes (bit for bit, after the mm scaling)."""
-    db = StaticDatabase.open(db100)
+    prescribed displacement at moving nodes (bit for bit, after the mm scaling), by construction:
+    after 2 epochs as after many."""
+    hard_model = quick_model
+    db = StaticDatabase.open(db6)
     s = db.sample(5)
     from toolkit.static.features import encode
 
@@ -47,21 +50,22 @@ def test_hard_boundary_values_are_exact(db100, hard_model):
     np.testing.assert_allclose(u[s["types"] == 1], s["s"][s["types"] == 1], rtol=1e-6, atol=1e-6 * scale)
 
 
+@pytest.mark.long
 def test_a_linear_prior_model_learns_what_the_influence_matrix_misses(db100, tmp_path):
     """With ``linear_prior`` the network learns the FE minus the influence-matrix solution:
-    after 30 s of training its test error is below the influence matrix's own error on the same
-    samples (so the residual adds to linear superposition) and below a quarter of the mean
-    displacement; with hard boundaries the prediction at fixed and moving nodes is the prior's,
-    exactly 0 and the prescribed value; predicting without the prior is refused. (Measured: 0.27
-    mm against 0.49 mm for the influence matrix, 0.43 mm for the same network without the prior
-    after 45 s, and 1.47 mm mean displacement.)"""
+    after 54 epochs (~30 s on an Intel Xeon) its test error is below the influence matrix's own
+    error on the same samples (so the residual adds to linear superposition) and below a quarter
+    of the mean displacement; with hard boundaries the prediction at fixed and moving nodes is the
+    prior's, exactly 0 and the prescribed value; predicting without the prior is refused.
+    (Measured: 0.23 mm against 0.49 mm for the influence matrix, 0.46 mm for the same network
+    without the prior (``hard_model``), and 1.47 mm mean displacement.)"""
     from toolkit.common.metrics import nodal_errors
     from toolkit.common.phantom import face_hex
     from toolkit.static.features import encode
     from toolkit.static.surrogate import linear_prior
 
-    config = SurrogateConfig(FeatureSpec("hard", linear_prior=True), network="tiny", coarse_radii=True, epochs=200,
-                             lr=3e-3, max_seconds=30.0)
+    config = SurrogateConfig(FeatureSpec("hard", linear_prior=True), network="tiny", coarse_radii=True, epochs=54,
+                             lr=3e-3)
     model = train_surrogate(db100, tmp_path / "prior", config, progress=False)
     db = StaticDatabase.open(db100)
     result = evaluate_surrogate(model, db)
@@ -83,10 +87,11 @@ def test_a_linear_prior_model_learns_what_the_influence_matrix_misses(db100, tmp
         model.predict(f[None], s["s"][None], mask[None], h)
 
 
-def test_a_model_refuses_what_it_was_not_built_for(db100, hard_model, tmp_path):
+def test_a_model_refuses_what_it_was_not_built_for(db6, quick_model, tmp_path):
     """A database of another resolution (the paper face) named as such, another model kind, and
     material channels on a database that does not vary the material are refused with errors
     that name the difference."""
+    hard_model = quick_model
     paper = tmp_path / "paper.h5"
     generate(paper, DatasetConfig(resolution="paper", plans=1), workers=0, progress=False)
     with pytest.raises(IncompatibleError, match="resolution: stored 'coarse', asked 'paper'.*--resolution coarse"):
@@ -100,7 +105,7 @@ def test_a_model_refuses_what_it_was_not_built_for(db100, hard_model, tmp_path):
     with pytest.raises(IncompatibleError, match="toolkit.impact"):
         _load_as(hard_model, tmp_path, "toolkit.impact.surrogate")
     with pytest.raises(ValueError, match="Poisson"):
-        train_surrogate(db100, tmp_path / "m", SurrogateConfig(FeatureSpec("explicit", material_channels=True)))
+        train_surrogate(db6, tmp_path / "m", SurrogateConfig(FeatureSpec("explicit", material_channels=True)))
     with pytest.raises(ValueError, match="lr_schedule = 'step'"):
         SurrogateConfig(lr_schedule="step")
     with pytest.raises(ValueError, match="split_seed = 1.5"):
@@ -158,16 +163,16 @@ def test_cli_dataset_train_evaluate_predict(tmp_path):
     assert loaded.bundle.extra["history"]["lr"] == pytest.approx([1e-3, 0.01e-3 + 0.99e-3 * 0.5])  # cosine, 2 epochs
 
 
-def test_training_resumes_with_a_larger_budget_and_refuses_other_settings(db100, tmp_path):
+def test_training_resumes_with_a_larger_budget_and_refuses_other_settings(db6, tmp_path):
     """A run stopped at its budget continues from its checkpoint when given more epochs (the
     budget is not part of what the model is), and refuses to resume with another learning rate."""
     config = SurrogateConfig(FeatureSpec("hard"), network="tiny", coarse_radii=True, epochs=1, lr=3e-3)
     out = tmp_path / "m"
-    first = train_surrogate(db100, out, config, progress=False)
+    first = train_surrogate(db6, out, config, progress=False)
     assert first.bundle.extra["history"]["epoch"] == [1]
-    longer = train_surrogate(db100, out, replace(config, epochs=2), resume=True,
+    longer = train_surrogate(db6, out, replace(config, epochs=2), resume=True,
                              progress=False)
     assert longer.bundle.extra["history"]["epoch"] == [1, 2]
     with pytest.raises(IncompatibleError, match="lr"):
-        train_surrogate(db100, out, replace(config, epochs=3, lr=1e-3), resume=True,
+        train_surrogate(db6, out, replace(config, epochs=3, lr=1e-3), resume=True,
                         progress=False)
