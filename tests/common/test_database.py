@@ -227,12 +227,16 @@ def test_interrupt_after_sends_a_ctrl_c_after_the_given_stored_job(tmp_path):
     from toolkit.common.runtime import interrupt_after
 
     db = _db(tmp_path)
+    # a shell without job control starts background commands with SIGINT ignored: handle it here as
+    # an interactive Python does, whatever started the suite
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
     interrupt_after("job", 2)
     try:
         with pytest.raises(KeyboardInterrupt):
             run_jobs(db, _jobs([1, 3, 4, 6]), square, workers=0, progress=False)
     finally:
         interrupt_after("job", None)
+        signal.signal(signal.SIGINT, before)
     assert db.keys() == ["x1"] and list(db.failures()) == ["x3"]
     report = run_jobs(db, _jobs([1, 3, 4, 6]), square, workers=0, progress=False)
     assert sorted(report.done) == ["x4", "x6"]
