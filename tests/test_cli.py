@@ -153,6 +153,7 @@ def test_static_simulate_from_a_mesh_file_and_plan(tmp_path):
     assert summary["nodes"] == ph.mesh.n_points and summary["min_scaled_jacobian"] > 0
 
 
+@pytest.mark.long  # a Dask cluster's start-up / a factorization of a 3D grid: ~8 s each
 def test_static_dataset_on_a_local_dask_cluster(tmp_path, capsys):
     """`--dask local` runs the simulations on a LocalCluster and fills the same database index
     as in-process generation."""

@@ -137,6 +137,7 @@ def _grid_laplacian_3d(n):
     return sp.kron(lap + 0.01 * sp.identity(n ** 3), block).tocsc()
 
 
+@pytest.mark.long  # a Dask cluster's start-up / a factorization of a 3D grid: ~8 s each
 def test_nested_dissection_keeps_nodes_together_and_fills_less_than_minimum_degree():
     """METIS nested dissection of the node graph: a permutation that keeps each node's three
     dofs consecutive, and a SuperLU factor of a 16^3-node grid (12k dofs) with fewer entries
