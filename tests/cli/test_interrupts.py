@@ -4,8 +4,8 @@ no traceback, and an output folder that holds nothing or a result marked as inte
 Each command runs as ``python -m toolkit`` does (``toolkit/__main__.py``), in its own process
 group, and gets a SIGINT (what a terminal sends on Ctrl-C) at a known point of its work, so that
 a slow machine gives the verdict a fast one gives: after its first stored simulation or written
-frame (:func:`toolkit.common.runtime.interrupt_after`), after its first increment (that
-increment's log record), or as torch starts to be imported. The tiny coarse fixtures keep each
+frame or its first increment (:func:`toolkit.common.runtime.interrupt_after`), or as torch
+starts to be imported. The tiny coarse fixtures keep each
 case to seconds. Interrupts at fractions of each command's run, then a rerun, are
 ``benchmarks/bad_inputs.py --interrupts``."""
 
@@ -24,20 +24,8 @@ IMPACT = ["--resolution", "coarse", "--order", "1", "--ball", "rigid"]
 AFTER_FIRST_JOB = "from toolkit.common.runtime import interrupt_after\ninterrupt_after('job', 1, group=True)\n"
 #: SIGINT once the second frame is written
 AFTER_SECOND_FRAME = "from toolkit.common.runtime import interrupt_after\ninterrupt_after('frame', 2)\n"
-#: SIGINT once the static simulation's first increment is logged (``increment 1/N: ...``)
-AFTER_FIRST_INCREMENT = """\
-import logging, re, signal
-
-class CtrlC(logging.Handler):
-    def emit(self, record):
-        if re.match(r"increment 1/\\d+:", record.getMessage()):
-            signal.raise_signal(signal.SIGINT)
-
-log = logging.getLogger("toolkit.static.simulate")
-log.addHandler(CtrlC())
-log.setLevel(logging.INFO)
-log.propagate = False
-"""
+#: SIGINT once the static simulation's first increment has reached equilibrium
+AFTER_FIRST_INCREMENT = "from toolkit.common.runtime import interrupt_after\ninterrupt_after('increment', 1)\n"
 #: SIGINT as ``import torch`` begins (the import then runs on)
 AT_TORCH_IMPORT = """\
 import signal, sys

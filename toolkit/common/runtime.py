@@ -21,7 +21,7 @@ __all__ = ["set_threads", "configure_headless_rendering", "default_threads", "de
 _threadpool_limiter = None
 
 #: units of work :func:`interrupt_after` counts
-WORK_UNITS = ("job", "frame")
+WORK_UNITS = ("job", "frame", "increment")
 #: triggers set by :func:`interrupt_after`: unit -> [units finished since, units that send the SIGINT, to the group]
 _interrupt_triggers: dict[str, list] = {}
 
@@ -157,7 +157,8 @@ def interrupt_after(unit: str, count: int | None, *, group: bool = False) -> Non
     ----------
     unit : ``"job"`` (a job :func:`~toolkit.common.database.run_jobs` has stored, its record or its
         failure: a simulation of ``static dataset`` or ``impact dataset``) or ``"frame"`` (a frame
-        :func:`toolkit.impact.simulate` has finished, and written when it has an output folder)
+        :func:`toolkit.impact.simulate` has finished, and written when it has an output folder) or
+        ``"increment"`` (an increment of a static simulation has reached equilibrium)
     count : units counted from this call, >= 1; ``None`` removes the trigger
     group : send the signal to this process's group, as a terminal's Ctrl-C reaches every process
         of a command (worker processes included), instead of to this process alone; only for a

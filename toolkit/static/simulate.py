@@ -81,6 +81,7 @@ from toolkit.common.fem.solvers import SolverError
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import FacePhantom
+from toolkit.common.runtime import count_finished
 from toolkit.common.surface_distance import ClosestPoints, barycentric, beyond_rim_onto_plane, closest_points
 from toolkit.common.topology import rim_edges
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
@@ -874,6 +875,7 @@ def _increments(model: _Model, plan: SurgicalPlan, n: int) -> tuple[np.ndarray, 
         displacements.append(state.u)
         log.info("increment %d/%d: %d sub-step(s), min SJ %.3f, max |u| %.2f mm", k, n, len(diags),
                  reports[-1].min_scaled_jacobian, np.linalg.norm(state.u, axis=1).max())
+        count_finished("increment")
     return np.stack(displacements), reports
 
 
