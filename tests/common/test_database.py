@@ -240,7 +240,7 @@ def test_interrupt_after_sends_a_ctrl_c_after_the_given_stored_job(tmp_path):
     assert db.keys() == ["x1"] and list(db.failures()) == ["x3"]
     report = run_jobs(db, _jobs([1, 3, 4, 6]), square, workers=0, progress=False)
     assert sorted(report.done) == ["x4", "x6"]
-    with pytest.raises(ValueError, match=r"unit = 'epoch'; expected one of \['job', 'frame'\]"):
+    with pytest.raises(ValueError, match=r"unit = 'epoch'; expected one of \['job', 'frame', 'increment'\]"):
         interrupt_after("epoch", 1)
     with pytest.raises(ValueError, match="count = 0; expected an integer >= 1"):
         interrupt_after("job", 0)
