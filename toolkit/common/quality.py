@@ -93,10 +93,13 @@ _TET10_SAMPLES = np.vstack(
 )
 
 
+#: (s, 3, 10) transposed shape gradients of tet10 at its samples: ``dN_a / dxi_k`` at ``[s, k, a]``
+_TET10_SAMPLE_GRADIENTS_T = np.ascontiguousarray(tet10_shape_gradients(_TET10_SAMPLES).transpose(0, 2, 1))
+
+
 def _tet10_sj(x: np.ndarray) -> np.ndarray:
-    g = tet10_shape_gradients(_TET10_SAMPLES)  # (s, 10, 3)
-    jac = np.einsum("nai,sak->nsik", x, g)  # dx_i/dxi_k
-    det = np.linalg.det(jac)
+    jac_t = np.matmul(_TET10_SAMPLE_GRADIENTS_T[None], x[:, None])  # (n, s, 3, 3): row k is dx/dxi_k
+    det = _det3(jac_t)
     det_lin = _det3(x[:, 1:4, :] - x[:, :1, :])
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = det.min(axis=1) / det_lin
