@@ -161,7 +161,7 @@ def test_models_refuse_what_they_were_not_built_for(tiny_db, tmp_path):
             train_surrogate(tiny_db, CONFIGS["paper"].with_(epochs=1), device="cuda", progress=False)
 
 
-def test_train_resume_evaluate_predict_commands(tiny_db_path, tmp_path, capsys):
+def test_train_resume_evaluate_predict_commands(tiny_db_path, tmp_path, capsys, monkeypatch):
     """`toolkit impact train` for 2 epochs then `--resume --epochs 4` continues from the checkpoint
     (4 epochs in the history); `evaluate` writes metrics.json (RMSE, Pearson, timings) and the two
     figures; `predict` writes face.xdmf (displacement, von_mises per frame), a summary with
@@ -190,6 +190,19 @@ def test_train_resume_evaluate_predict_commands(tiny_db_path, tmp_path, capsys):
     assert series.point_data["displacement"].shape == (db.times.size, db.n_nodes, 3)
     summary = json.loads((pred / "summary.json").read_text())
     assert summary["velocity_mm_s"] == 41.0 and summary["predicted_by"].endswith("(baseline)")
+    assert summary["checks"]["answer"]["passed"] and summary["checks"]["answer"]["min_scaled_jacobian"] > 0
+    # an answer that fails its checks is written with the flag and a line on stderr
+    import toolkit.impact.surrogate as surrogate_module
+
+    checked = surrogate_module.answer_checks
+    monkeypatch.setattr(surrogate_module, "answer_checks", lambda *a: {**checked(*a), "passed": False,
+                                                                       "problems": ["an element is inverted"]})
+    capsys.readouterr()
+    assert main(["impact", "predict", "--model", str(model), "--velocity", "41", "--no-preview", "--out",
+                 str(tmp_path / "flagged")]) == 0
+    assert "warning: the answer failed its checks (an element is inverted)" in capsys.readouterr().err
+    assert not json.loads((tmp_path / "flagged" / "summary.json").read_text())["checks"]["answer"]["passed"]
+    monkeypatch.undo()
     scene = Scene.read(pred / "scene.toml")
     assert scene == db.scene.with_ball(velocity=41.0)
     fe = tmp_path / "fe"

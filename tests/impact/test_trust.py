@@ -116,6 +116,29 @@ def test_a_velocity_beyond_the_training_falls_back_to_the_quasi_static_fe(calibr
     np.testing.assert_allclose(ans.displacement, fe.displacement, rtol=0, atol=1e-9)
 
 
+def test_a_surrogate_answer_with_an_inverted_element_falls_back_to_the_fe(calibrated, monkeypatch):
+    """Within a loose tolerance, a surrogate answer that folds one element in one frame fails its
+    checks: the quasi-static FE answers, and the reason names the inverted element."""
+    model, cal = calibrated
+    predict = trust._quiet_predict
+
+    def folding(model, velocity, inputs):
+        u, vm = predict(model, velocity, inputs)
+        face = model_face[0]
+        cell = face.volume_cells[0]
+        u = u.copy()
+        u[-1, cell[0]] = 2.0 * (face.points[cell[1:4]].mean(axis=0) - face.points[cell[0]])
+        return u, vm
+
+    from toolkit.impact.simulate import face_mesh
+
+    model_face = [face_mesh(tiny_scene())]
+    monkeypatch.setattr(trust, "_quiet_predict", folding)
+    ans = trust.answer(model, 33.0, 1000.0, calibration=cal)
+    assert ans.answered_by == "fe" and "failed its checks" in ans.reason and "inverted" in ans.reason
+    assert ans.summary()["checks"]["answer"]["passed"] and ans.seconds["checks"] > 0
+
+
 def test_another_aim_is_out_of_distribution(calibrated):
     """A ball aimed 20 mm lower than the training scene's aim: the scene differs in the ball's
     target, so the FE answers even though the velocity is a trained one."""

@@ -285,6 +285,11 @@ def predict(args: argparse.Namespace) -> int:
 
     print(f"velocity: {describe_extrapolation(s['extrapolation'])}")
     print(f"wrote {args.out}/ (face.xdmf, summary.json, scene.toml)")
+    checks = s["checks"]["answer"]
+    if not checks["passed"]:
+        print(f"warning: the answer failed its checks ({'; '.join(checks['problems'])}); summary.json flags it "
+              "(checks.answer.passed false). Rerun with --tolerance MM to have the FE answer instead, or run it "
+              f"with `toolkit impact simulate --scene {args.out}/scene.toml`", file=sys.stderr)
     return 0
 
 

@@ -20,17 +20,18 @@ from __future__ import annotations
 import json
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.errors import ToolkitError
+from toolkit.common.errors import AnswerError, ToolkitError
 from toolkit.common.fem.kinematics import lumped_mass
 from toolkit.common.materials import lame
 from toolkit.common.mesh import Mesh
 from toolkit.common.runtime import count_finished
 from toolkit.common.topology import boundary_faces
+from toolkit.impact.checks import answer_checks
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact, penalty_stiffness
 from toolkit.impact.elements import critical_time_step, tet_kinematics
 from toolkit.impact.explicit import Body, ContactResponse, ExplicitModel, moving_sphere_contact, run_explicit
@@ -366,6 +367,7 @@ class ImpactResult:
         yielded
     fidelity : the record of the :class:`~toolkit.common.fidelity.FidelityChoice` the scene took
         its options from (``summary()["fidelity"]``), or None
+    checks : the values of :func:`toolkit.impact.checks.answer_checks` (``summary()["checks"]["answer"]``)
     """
 
     scene: Scene
@@ -380,9 +382,11 @@ class ImpactResult:
     stats: dict
     plastic_volume_fraction: np.ndarray | None = None
     fidelity: dict | None = None
+    checks: dict | None = None
 
     def summary(self) -> dict:
-        """JSON-ready summary (mm, s, MPa, N); ``fidelity`` when the options were chosen by a tolerance."""
+        """JSON-ready summary (mm, s, MPa, N); ``fidelity`` when the options were chosen by a tolerance,
+        ``checks`` the answer's checks."""
         mag = np.linalg.norm(self.displacement, axis=2)
         fidelity = {} if self.fidelity is None else {"fidelity": self.fidelity}
         return {
@@ -409,6 +413,7 @@ class ImpactResult:
             "fixed_clearance_mm": (None if not np.isfinite(self.stats.get("fixed_clearance_mm", np.inf))
                                    else float(self.stats["fixed_clearance_mm"])),
             **fidelity,
+            **({} if self.checks is None else {"checks": {"answer": self.checks}}),
         }
 
 
@@ -513,6 +518,15 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
                           np.stack([f.contact_force for f in frames]), stats,
                           np.array([f.plastic_volume_fraction for f in frames]),
                           None if fidelity is None else fidelity.record())
+    result = replace(result, checks=answer_checks(built.face, result.displacement, result.von_mises,
+                                                  fixed_nodes(scene, built.face)))
+    if not result.checks["passed"]:
+        exc = AnswerError("the impact answer failed its checks: " + "; ".join(result.checks["problems"]),
+                          result.checks)
+        if out is not None:
+            _write_history(out / "history.h5", frames)
+            _write_summary(out / "summary.json", {"status": "failed", "error": str(exc), **result.summary()})
+        raise exc
     if out is not None:
         _write_history(out / "history.h5", frames)
         _write_summary(out / "summary.json", {"status": "finished", **result.summary()})

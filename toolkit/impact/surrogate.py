@@ -57,6 +57,7 @@ from toolkit.common.training import (
     torch_seeded,
     train,
 )
+from toolkit.impact.checks import answer_checks
 from toolkit.impact.dataset import ImpactDatabase, load_database
 
 __all__ = ["SurrogateConfig", "CONFIGS", "FEATURES", "INPUTS", "OUTPUTS", "MODEL_KIND", "SPLITS", "item_features",
@@ -414,7 +415,9 @@ class Prediction:
 
     Attributes: ``scene`` (the Scene predicted for), ``face`` (Mesh), ``times`` (F,) s,
     ``displacement`` (F, N, 3) mm, ``von_mises`` (F, N) MPa, ``wall_time_s``, ``extrapolation``
-    (:meth:`ImpactSurrogate.extrapolation` of the velocity; also in the summary).
+    (:meth:`ImpactSurrogate.extrapolation` of the velocity; also in the summary), ``checks`` (the
+    values of :func:`toolkit.impact.checks.answer_checks`, ``passed`` False for an answer that
+    must not be given as it is; also in the summary).
     """
 
     scene: object
@@ -425,6 +428,7 @@ class Prediction:
     wall_time_s: float
     config: str
     extrapolation: dict | None = None
+    checks: dict | None = None
 
     def summary(self) -> dict:
         """The keys of :meth:`toolkit.impact.simulate.ImpactResult.summary`; what only an FE run
@@ -439,7 +443,8 @@ class Prediction:
                 "plastic_volume_fraction": None, "energy_error": None, "max_energy_error": None,
                 "added_mass_fraction": None, "max_contact_force_n": None, "max_penetration_mm": None,
                 "fixed_clearance_mm": None, "predicted_by": f"{MODEL_KIND} ({self.config})",
-                "extrapolation": self.extrapolation}
+                "extrapolation": self.extrapolation,
+                **({} if self.checks is None else {"checks": {"answer": self.checks}})}
 
     def write(self, out: str | os.PathLike, preview: bool = True, point_data: dict | None = None) -> Path:
         """``face.xdmf`` (+ .h5; point data ``displacement`` mm, ``von_mises`` MPa per frame, and
@@ -474,7 +479,8 @@ class Prediction:
 
 def predict_scene(surrogate: ImpactSurrogate, velocity: float) -> Prediction:
     """Predict the training database's scene at ``velocity`` mm/s on its face (rebuilt from the
-    scene, and refused if it is not the face the model was trained on)."""
+    scene, and refused if it is not the face the model was trained on), with the answer's checks
+    (:func:`toolkit.impact.checks.answer_checks`; the prediction's ``checks``)."""
     from toolkit.impact.dataset import SceneInputs, mesh_checksum
     from toolkit.impact.scene import Scene
     from toolkit.impact.simulate import face_mesh
@@ -487,9 +493,11 @@ def predict_scene(surrogate: ImpactSurrogate, velocity: float) -> Prediction:
         raise ValueError(f"the scene's face ({face.n_points} nodes) is not the one the model was trained on "
                          f"({sig['n_nodes']} nodes, checksum {sig['mesh_checksum']})")
     times = np.asarray(sig["times_s"], dtype=float)
-    u, vm = surrogate.predict(float(velocity), SceneInputs.from_scene(scene, face, times))
+    inputs = SceneInputs.from_scene(scene, face, times)
+    u, vm = surrogate.predict(float(velocity), inputs)
+    checks = answer_checks(face, u, vm, np.flatnonzero(inputs.fixed))
     return Prediction(scene, face, times, u, vm, time.perf_counter() - t0, surrogate.config.name,
-                      surrogate.extrapolation(float(velocity)))
+                      surrogate.extrapolation(float(velocity)), checks)
 
 
 def _outside_toolkit() -> int:

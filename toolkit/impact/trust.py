@@ -50,6 +50,7 @@ from toolkit.common.training.conformal import (
     min_calibration_cases,
     save_calibration,
 )
+from toolkit.impact.checks import answer_checks
 
 __all__ = ["SCALES", "ImpactCalibration", "calibrate_impact", "estimate", "out_of_distribution", "answer",
            "answer_error", "TrustedImpactAnswer"]
@@ -275,7 +276,8 @@ class TrustedImpactAnswer:
     tolerance_mm : the tolerance asked
     estimate : :func:`estimate` of the surrogate's prediction (``node_mm`` left out of the summary)
     ood : :func:`out_of_distribution`
-    seconds : ``surrogate``, ``estimate``, ``fe`` (0 when not run), ``total``
+    seconds : ``surrogate``, ``estimate``, ``checks`` (the surrogate answer's), ``fe`` (0 when not
+        run), ``total``
     fe_integrator : the FE's integrator (``implicit``: quasi-static)
 
     Construction checks a post-condition: :class:`~toolkit.common.errors.AnswerError` when the result's von Mises stress
@@ -323,8 +325,10 @@ class TrustedImpactAnswer:
 def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, calibration=None,
            coverage: float | None = None, out=None, progress: bool = False, preview: bool = True
            ) -> TrustedImpactAnswer:
-    """The surrogate's answer when its calibrated estimate is within ``tolerance_mm`` and the
-    inputs are like its training data; otherwise the quasi-static FE of the same scene.
+    """The surrogate's answer when its calibrated estimate is within ``tolerance_mm``, the
+    inputs are like its training data and the answer passes its checks
+    (:func:`toolkit.impact.checks.answer_checks`: no inverted element, held nodes held, no
+    negative stress); otherwise the quasi-static FE of the same scene.
 
     Parameters
     ----------
@@ -363,22 +367,28 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
 
         check_output_dir(out)
     t0 = time.perf_counter()
-    seconds = {"surrogate": 0.0, "estimate": 0.0, "fe": 0.0}
+    seconds = {"surrogate": 0.0, "estimate": 0.0, "checks": 0.0, "fe": 0.0}
     ood = out_of_distribution(model, scene)
     face = face_mesh(scene)
     est, pred = {}, None
     if face.n_points == sig["n_nodes"] and mesh_checksum(face.points) == sig["mesh_checksum"]:
         times = np.asarray(sig["times_s"], dtype=float)
-        u, vm = _quiet_predict(model, velocity, SceneInputs.from_scene(scene, face, times))
+        inputs = SceneInputs.from_scene(scene, face, times)
+        u, vm = _quiet_predict(model, velocity, inputs)
         seconds["surrogate"] = time.perf_counter() - t0
         t1 = time.perf_counter()
         est = estimate(calibration, u, velocity)
         seconds["estimate"] = time.perf_counter() - t1
-        pred = Prediction(scene, face, times, u, vm, seconds["surrogate"], model.config.name, ood["velocity"])
+        checks = answer_checks(face, u, vm, np.flatnonzero(inputs.fixed))
+        seconds["checks"] = checks["seconds"]
+        pred = Prediction(scene, face, times, u, vm, seconds["surrogate"], model.config.name, ood["velocity"],
+                          checks)
     if ood["outside"]:
         reason = "out of distribution: " + "; ".join(ood["reasons"])
     elif not est:
         reason = "another face than the model's"
+    elif not pred.checks["passed"]:
+        reason = "the surrogate's answer failed its checks: " + "; ".join(pred.checks["problems"])
     elif est["bound_mm"] > tolerance_mm:
         reason = (f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) is above the tolerance "
                   f"{tolerance_mm:g} mm")
