@@ -60,6 +60,15 @@ def test_python_m_toolkit_is_the_toolkit_command(tmp_path):
     assert done.returncode == 2 and done.stderr.startswith("error: ")
 
 
+def test_building_the_parser_loads_no_numerical_library():
+    """Every command pays for its parser: building it imports neither torch, nor scipy's image or
+    sparse modules, nor the mesher (a fresh interpreter, so that other tests' imports do not count)."""
+    code = ("import sys\nfrom toolkit.cli import build_parser\nbuild_parser()\n"
+            "print(sorted(m for m in ('torch', 'scipy.ndimage', 'scipy.sparse', 'pyamg', 'meshio') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]", done.stdout
+
+
 def test_every_command_has_help():
     """Every command and subcommand answers ``--help`` (exit 0) with its usage line."""
     assert len(SUBCOMMANDS) == 1 + 6 + 6 + 6  # toolkit, its 6 commands, static's 6, impact's 6

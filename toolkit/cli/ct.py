@@ -20,7 +20,7 @@ def _length(text: str) -> float:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from toolkit.mesh.ct_anatomy import CTRules
+    from toolkit.mesh.ct_rules import CTRules
 
     d = CTRules()
     parser.add_argument("--volume", required=True, type=Path,
@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def rules_from(args: argparse.Namespace):
     """The :class:`~toolkit.mesh.ct_anatomy.CTRules` of the command line."""
-    from toolkit.mesh.ct_anatomy import CTRules
+    from toolkit.mesh.ct_rules import CTRules
 
     return CTRules(skin=args.skin, bone=args.bone, teeth=args.teeth, axes=args.axes, lefort_mm=args.lefort,
                    split_mm=args.split, tuberosity_mm=args.tuberosity, occlusal_pitch_deg=args.occlusal_pitch,
