@@ -55,7 +55,7 @@ def test_each_fault_is_named(face_and_fixed):
     assert min_scaled_jacobian_over_frames(face, u)[0] < 0
     checks = answer_checks(face, u, vm, fixed)
     assert not checks["passed"] and checks["min_scaled_jacobian_frame"] == 1
-    assert any("inverted in frame 1" in p for p in checks["problems"])
+    assert any("first inverts in frame 1" in p for p in checks["problems"])
 
     u2, vm2 = _fields(face)
     u2[:, fixed] = 0.0
@@ -85,17 +85,20 @@ def test_the_fe_lists_its_checks_in_the_summary(tmp_path):
 
 
 def test_an_fe_answer_that_fails_its_checks_is_an_error_and_marked_failed(tmp_path, monkeypatch):
-    """Were the FE to end with an inverted element (its integrators stop before one), the run
-    raises AnswerError and summary.json says failed with the checks, instead of finished."""
+    """An FE answer with an element inverted in a frame (its integrators test the integration points,
+    the checks the element's corners and edges too) raises AnswerError naming the ball's travel then
+    and the longest --duration whose frames passed, and summary.json says failed with the checks."""
     sim = sys.modules["toolkit.impact.simulate"]  # the module (the package exports its function)
 
     def failing(face, u, vm, fixed):
         checks = answer_checks(face, u, vm, fixed)
-        return {**checks, "passed": False, "problems": ["an element is inverted in frame 3 (stand-in)"]}
+        return {**checks, "passed": False, "inverted_from_frame": 3,
+                "problems": ["an element first inverts in frame 3 (stand-in)"]}
 
     monkeypatch.setattr(sim, "answer_checks", failing)
-    with pytest.raises(AnswerError, match="inverted in frame 3"):
+    with pytest.raises(AnswerError, match=r"first inverts in frame 3 .*At 0\.12 s the ball has travelled 6\.0 mm.*"
+                       r"--duration \(at most 0\.0[89]\d* s at 50 mm/s"):
         simulate(tiny_scene(), out=tmp_path / "o", preview=False)
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
-    assert summary["status"] == "failed" and "inverted in frame 3" in summary["error"]
+    assert summary["status"] == "failed" and "first inverts in frame 3" in summary["error"]
     assert summary["checks"]["answer"]["passed"] is False

@@ -521,8 +521,8 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
     result = replace(result, checks=answer_checks(built.face, result.displacement, result.von_mises,
                                                   fixed_nodes(scene, built.face)))
     if not result.checks["passed"]:
-        exc = AnswerError("the impact answer failed its checks: " + "; ".join(result.checks["problems"]),
-                          result.checks)
+        exc = AnswerError("the impact answer failed its checks: " + "; ".join(result.checks["problems"])
+                          + _crushed_remedy(scene, result.times, result.checks), result.checks)
         if out is not None:
             _write_history(out / "history.h5", frames)
             _write_summary(out / "summary.json", {"status": "failed", "error": str(exc), **result.summary()})
@@ -535,6 +535,19 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
             write_preview(out / "preview.png", built.face, result.displacement[-1], result.von_mises[-1],
                           result.times[-1], None if built.ball is not None else (centre, scene.ball.radius))
     return result
+
+
+def _crushed_remedy(scene: Scene, times: np.ndarray, checks: dict) -> str:
+    """What to change when an element inverts in a frame: the ball's travel then, and the longest
+    duration whose frames all passed (``--duration``)."""
+    k = checks.get("inverted_from_frame")
+    if k is None:
+        return ""
+    travel = scene.ball.velocity * float(times[k])
+    last = f"at most {float(times[k - 1]):.3g} s" if k > 0 else "a shorter one"
+    return (f". At {float(times[k]):.3g} s the ball has travelled {travel:.1f} mm and crushes the tissue under it "
+            f"beyond what its elements resolve; a shorter --duration ({last} at {scene.ball.velocity:g} mm/s, whose "
+            "frames all passed) or a lower --velocity keeps every frame valid")
 
 
 def _energies(frames: list):
