@@ -7,7 +7,10 @@ fresh process that reports wall time, peak resident memory and steps. Every run 
 with the highest-fidelity run of its resolution that finished (explicit, tet10, deformable
 ball, no mass scaling, safety 0.9 — or the next best) by the difference in maximum
 displacement and maximum von Mises stress, and by the RMSE and Pearson correlation of the
-skin displacement time series (on the corner nodes, which tet4 and tet10 faces share).
+skin displacement time series (on the corner nodes, which tet4 and tet10 faces share), and of the
+skin's von Mises stress series. ``--scene yielding`` runs the learning database's scene instead
+(:func:`toolkit.impact.yielding_scene`: the face held by the skull, 0.36 s, the tissue yielding
+from about 35 mm/s).
 
 The scene is mirror-symmetric about the midsagittal plane x = 0 (the phantom's skin nodes map
 onto each other exactly and the ball moves along it), and a deformable ball pressed into the
@@ -29,6 +32,9 @@ The skin fields of each run (``.npz``) and the error-vs-time plot go to
     python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators implicit \
         --velocities 20 30 50 --mass-scaling 1 --out benchmarks/results/impact_ladder_velocities.csv
     python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators implicit --tolerances 3e-3 1e-2
+    python benchmarks/impact_ladder.py --scene yielding --resolutions coarse --orders 2 --balls deformable \
+        --mass-scaling 1 --integrators explicit implicit --velocities 20 23 26 32 35 38 44 47 50 \
+        --out benchmarks/results/impact_ladder_yielding.csv
 """
 
 from __future__ import annotations
@@ -52,31 +58,38 @@ TOLERANCE = 3e-3  # the default Newton tolerance of the implicit runs (relative 
 
 
 def _key(r) -> str:
+    scene = "" if r.get("scene", "paper") == "paper" else f"{r['scene']}_"
     implicit = "_implicit" if r.get("integrator", "explicit") == "implicit" else ""
     v = float(r.get("velocity", PAPER_VELOCITY))
     speed = "" if v == PAPER_VELOCITY else f"_v{v:g}"
     tol = float(r.get("tolerance", TOLERANCE))
     if implicit and tol != TOLERANCE:
         implicit += f"_tol{tol:g}"
-    return f"{r['resolution']}_tet{4 if int(r['order']) == 1 else 10}_{r['ball']}_ms{float(r['mass_scaling']):g}" \
-           f"_s{float(r['safety']):g}_{float(r['duration']):g}s{speed}{implicit}"
+    return f"{scene}{r['resolution']}_tet{4 if int(r['order']) == 1 else 10}_{r['ball']}" \
+           f"_ms{float(r['mass_scaling']):g}_s{float(r['safety']):g}_{float(r['duration']):g}s{speed}{implicit}"
 
 
 def run_one(resolution, order, ball, mass_scaling, safety, duration, out, integrator="explicit",
-            velocity=PAPER_VELOCITY, tolerance=TOLERANCE) -> dict:
-    from toolkit.impact import InstabilityError, default_scene, simulate
+            velocity=PAPER_VELOCITY, tolerance=TOLERANCE, scene="paper") -> dict:
+    from toolkit.common.errors import AnswerError
+    from toolkit.impact import InstabilityError, default_scene, simulate, yielding_scene
     from toolkit.impact.implicit import ConvergenceError
 
-    scene = default_scene().with_face(resolution=resolution).with_ball(rigid=ball == "rigid", velocity=velocity)
+    name = scene
+    scene = (yielding_scene() if name == "yielding" else default_scene()).with_face(resolution=resolution)
+    scene = scene.with_ball(rigid=ball == "rigid", velocity=velocity)
     scene = replace(scene.with_fidelity(order=order, mass_scaling=mass_scaling, safety=safety, integrator=integrator,
                                         tolerance=tolerance), duration=duration, n_frames=18)
-    row = {"resolution": resolution, "order": order, "ball": ball, "mass_scaling": mass_scaling, "safety": safety,
-           "duration": duration, "integrator": integrator, "velocity": velocity, "tolerance": tolerance}
+    row = {"scene": name, "resolution": resolution, "order": order, "ball": ball, "mass_scaling": mass_scaling,
+           "safety": safety, "duration": duration, "integrator": integrator, "velocity": velocity,
+           "tolerance": tolerance}
     t0 = time.perf_counter()
     try:
         r = simulate(scene, preview=False)
-    except (InstabilityError, ConvergenceError) as exc:
-        row.update(status="unstable" if isinstance(exc, InstabilityError) else "not converged", error=str(exc)[:200])
+    except (InstabilityError, ConvergenceError, AnswerError) as exc:
+        status = ("unstable" if isinstance(exc, InstabilityError) else
+                  "not converged" if isinstance(exc, ConvergenceError) else "failed checks")
+        row.update(status=status, error=str(exc)[:200])
     else:
         s = r.summary()
         n_corner = int(r.face.volume_cells[:, :4].max()) + 1
@@ -136,7 +149,12 @@ def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
         df[c] = "" if c == "reference" else np.nan
     order = [(2, "deformable", 1.0), (2, "deformable", 10.0), (2, "rigid", 1.0), (1, "deformable", 1.0),
              (2, "rigid", 10.0), (2, "deformable", 100.0), (2, "rigid", 100.0)]
-    for (res, _, _), g in df.groupby(["resolution", "duration", "velocity"]):
+    if "scene" not in df.columns:
+        df["scene"] = "paper"
+    df["scene"] = df["scene"].fillna("paper")
+    for c in ("rmse_von_mises_mpa", "pearson_von_mises"):
+        df[c] = np.nan
+    for (_, res, _, _), g in df.groupby(["scene", "resolution", "duration", "velocity"]):
         ok = g[g.status == "ok"]
         explicit = ok[ok.integrator == "explicit"]
         ref = None
@@ -149,10 +167,12 @@ def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
         if ref is None:
             continue
         R = np.load(folder / f"{_key(ref)}.npz")
-        b = R["skin_displacement"]
+        b, b_vm = R["skin_displacement"], R["von_mises"]
         mirror = _mirror(res)
         for i, r in ok.iterrows():
-            a = np.load(folder / f"{_key(r)}.npz")["skin_displacement"]
+            A = np.load(folder / f"{_key(r)}.npz")
+            a = A["skin_displacement"]
+            df.loc[i, ["rmse_von_mises_mpa", "pearson_von_mises"]] = _agreement(A["von_mises"], b_vm)
             df.loc[i, "reference"] = _key(ref)
             df.loc[i, "d_max_displacement_mm"] = r.max_displacement_mm - ref.max_displacement_mm
             df.loc[i, "d_max_von_mises_mpa"] = r.max_von_mises_mpa - ref.max_von_mises_mpa
@@ -172,13 +192,20 @@ def main(argv=None) -> pd.DataFrame:
     p.add_argument("--safety", nargs="+", type=float, default=[0.9])
     p.add_argument("--integrators", nargs="+", default=["explicit"], choices=["explicit", "implicit"],
                    help="implicit: quasi-static Newton (mass scaling and safety do not apply; run once)")
-    p.add_argument("--duration", type=float, default=1.8, help="simulated time, s (the impact paper: 1.8)")
+    p.add_argument("--scene", default="paper", choices=["paper", "yielding"],
+                   help="the impact paper's scene (face held at its lower band), or the learning database's "
+                        "(held by the skull, 0.36 s)")
+    p.add_argument("--duration", type=float, help="simulated time, s (default: the scene's, 1.8 or 0.36)")
     p.add_argument("--velocities", nargs="+", type=float, default=[PAPER_VELOCITY],
                    help="ball speeds, mm/s (the impact paper: 30; its range 20-50); each speed has its own reference")
     p.add_argument("--tolerances", nargs="+", type=float, default=[TOLERANCE],
                    help="Newton tolerances of the implicit runs (relative residual; Fidelity.tolerance)")
     p.add_argument("--out", type=Path, default=RESULTS / "impact_ladder.csv")
     args = p.parse_args(argv)
+    if args.duration is None:
+        from toolkit.impact.scene import YIELDING_DURATION
+
+        args.duration = YIELDING_DURATION if args.scene == "yielding" else 1.8
     from toolkit.common.runtime import set_threads
 
     set_threads(1)  # one thread is fastest on the 2-core AMD EPYC; worker processes inherit it
@@ -187,8 +214,8 @@ def main(argv=None) -> pd.DataFrame:
     resumed = args.out.exists()
     rows = pd.read_csv(args.out).to_dict("records") if resumed else []
     have = {_key(r) for r in rows}
-    combos = [dict(resolution=r, order=o, ball=b, mass_scaling=m, safety=s, duration=args.duration, integrator=i,
-                   velocity=v, tolerance=tol)
+    combos = [dict(scene=args.scene, resolution=r, order=o, ball=b, mass_scaling=m, safety=s, duration=args.duration,
+                   integrator=i, velocity=v, tolerance=tol)
               for r, o, b, m, s, i, v, tol in itertools.product(args.resolutions, args.orders, args.balls,
                                                                 args.mass_scaling, args.safety, args.integrators,
                                                                 args.velocities, args.tolerances)
@@ -208,13 +235,13 @@ def main(argv=None) -> pd.DataFrame:
             write_result(args.out, pd.DataFrame(rows), sidecar=False)
     df = compare(pd.DataFrame(rows), folder)
     write_result(args.out, df, resumed=resumed)
-    cols = ["resolution", "velocity", "integrator", "tolerance", "order", "ball", "mass_scaling", "safety", "status",
-            "steps",
+    cols = ["scene", "resolution", "velocity", "integrator", "tolerance", "order", "ball", "mass_scaling", "safety",
+            "status", "steps",
             "wall_time_s",
             "peak_rss_mib", "newton_iterations", "step_cuts", "max_displacement_mm", "max_von_mises_mpa",
             "energy_error", "d_max_displacement_mm",
             "d_max_von_mises_mpa", "rmse_displacement_mm", "pearson_displacement", "rmse_mirrored_mm",
-            "pearson_mirrored", "reference_asymmetry_mm"]
+            "pearson_mirrored", "reference_asymmetry_mm", "rmse_von_mises_mpa", "pearson_von_mises"]
     cols = [c for c in cols if c in df.columns]
     with pd.option_context("display.width", 250, "display.max_rows", 200, "display.float_format", "{:.4g}".format):
         print(df[cols].to_string(index=False))

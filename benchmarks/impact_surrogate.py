@@ -63,6 +63,8 @@ def _scene(args):
 
     scene = yielding_scene().with_face(resolution=args.resolution).with_ball(rigid=args.ball == "rigid")
     scene = scene.with_fidelity(order=args.order, mass_scaling=args.mass_scaling)
+    if args.integrator is not None:
+        scene = scene.with_fidelity(integrator=args.integrator)
     return replace(scene, n_frames=args.frames) if args.frames else scene
 
 
@@ -212,6 +214,8 @@ def main(argv=None) -> int:
     parser.add_argument("--order", type=int, default=2, choices=[1, 2])
     parser.add_argument("--ball", default="deformable", choices=["deformable", "rigid"])
     parser.add_argument("--mass-scaling", type=float, default=1.0)
+    parser.add_argument("--integrator", choices=["explicit", "implicit"], default=None,
+                        help="the FE of the database (default: the scene's)")
     parser.add_argument("--frames", type=int, default=None, help="output frames (default: the scene's 36)")
     parser.add_argument("--workers", type=int, default=1,
                         help="simulation processes (default 1: the machine is shared)")

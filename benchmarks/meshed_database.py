@@ -1,7 +1,9 @@
 """The static learning database on a meshed face: how many sampled plans complete.
 
-The phantom's surfaces (:func:`toolkit.mesh.phantom.phantom_surfaces`) are meshed by ``toolkit
-mesh`` (:func:`toolkit.mesh.mesh_face`) at ``--size``, written with their bone surfaces, and
+The phantom's surfaces (:func:`toolkit.mesh.phantom.phantom_surfaces`), or with ``--ct`` the
+surfaces of the head CT in ``tests/data/headsq`` (:func:`toolkit.mesh.ct.ct_surfaces`, its condyles
+as the proximal segments' pivots), are meshed by ``toolkit mesh`` (:func:`toolkit.mesh.mesh_face`)
+at ``--size`` and ``--order``, written with their bone surfaces, and
 ``toolkit static dataset --mesh`` (:func:`toolkit.static.dataset.generate`) runs ``--plans``
 sampled plans of each ``--modes`` on it, as a user would. Per simulation: status, reason, time,
 the release band it used and the cut nodes it freed (the retries a plan may need, stored with its
@@ -12,6 +14,7 @@ Usage::
 
     python benchmarks/meshed_database.py                     # paper phantom, 7 mm, 10 plans per mode
     python benchmarks/meshed_database.py --size 5 --plans 20 --modes sagittal
+    python benchmarks/meshed_database.py --ct --size 3 --order 1 --out benchmarks/results/meshed_database_ct.csv
 """
 
 from __future__ import annotations
@@ -21,13 +24,17 @@ import json
 from pathlib import Path
 
 import pandas as pd
-from _provenance import RESULTS, work_folder, write_result
+from _provenance import RESULTS, ROOT, work_folder, write_result
+
+HEADSQ = ROOT / "tests" / "data" / "headsq" / "quarter.nhdr"
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--resolution", default="paper")
+    ap.add_argument("--ct", action="store_true", help="the head CT's surfaces instead of the phantom's")
     ap.add_argument("--size", type=float, default=7.0, help="tetrahedron edge length, mm")
+    ap.add_argument("--order", type=int, default=2, choices=[1, 2], help="tet4 (1) or tet10 (2)")
     ap.add_argument("--plans", type=int, default=10, help="plans per mode")
     ap.add_argument("--modes", nargs="+", default=["sagittal", "full"], choices=["sagittal", "full"])
     ap.add_argument("--seed", type=int, default=0)
@@ -44,26 +51,38 @@ def main(argv=None):
     from toolkit.static.dataset import DatasetConfig, generate
 
     set_threads(1)
-    work = work_folder(args.out) / f"{args.resolution}_{args.size:g}mm"
+    face = "ct" if args.ct else args.resolution
+    work = work_folder(args.out) / f"{face}_{args.size:g}mm_order{args.order}"
     work.mkdir(parents=True, exist_ok=True)
-    surfaces = phantom_surfaces(face_hex(args.resolution))
-    files = write_surfaces(work / "surfaces", surfaces)
+    condyles = None
+    if args.ct:
+        from toolkit.mesh.ct import ct_surfaces
+
+        surfaces = ct_surfaces(HEADSQ)
+        files = surfaces.write(work / "surfaces")
+        marks = surfaces.report["landmarks_mm"]
+        condyles = [marks["condyle_left"], marks["condyle_right"]]
+    else:
+        surfaces = phantom_surfaces(face_hex(args.resolution))
+        files = write_surfaces(work / "surfaces", surfaces)
     if (work / "face.vtu").exists():  # a rerun resumes on the same mesh (fTetWild's differs run to run)
         face_mesh = read(work / "face.vtu")
     else:
-        face_mesh = mesh_face(surfaces.tissue, surfaces.bones, surfaces.commissures, size_mm=args.size).mesh
+        face_mesh = mesh_face(surfaces.tissue, surfaces.bones, surfaces.commissures, size_mm=args.size,
+                              order=args.order).mesh
         write(work / "face.vtu", face_mesh)
     bones = {k: files[k] for k in surfaces.bones if k != "skull"}
     rows = []
     for mode in args.modes:
         path = work / f"{mode}.h5"
-        config = DatasetConfig.for_mesh(work / "face.vtu", bones, plans=args.plans, mode=mode, seed=args.seed)
+        config = DatasetConfig.for_mesh(work / "face.vtu", bones, condyles=condyles, plans=args.plans, mode=mode,
+                                        seed=args.seed)
         report = generate(path, config, workers=1)
         with h5py.File(path) as f:
             records = {k: json.loads(g.attrs["attrs"]) for k, g in f["records"].items()} if "records" in f else {}
         for key in sorted(set(records) | set(report.failed)):
             a = records.get(key, {})
-            rows.append({"resolution": args.resolution, "size_mm": args.size, "nodes": face_mesh.n_points,
+            rows.append({"face": face, "size_mm": args.size, "order": args.order, "nodes": face_mesh.n_points,
                          "mode": mode, "key": key, "status": "ok" if key in records else "failed",
                          "reason": report.failed.get(key, "")[:200], "seconds": a.get("seconds"),
                          "release_width_mm": a.get("release_width_mm"), "freed_cut_nodes": a.get("freed_cut_nodes"),
