@@ -15,6 +15,7 @@ Usage::
     python benchmarks/meshed_database.py                     # paper phantom, 7 mm, 10 plans per mode
     python benchmarks/meshed_database.py --size 5 --plans 20 --modes sagittal
     python benchmarks/meshed_database.py --ct --size 3 --order 1 --out benchmarks/results/meshed_database_ct.csv
+    python benchmarks/meshed_database.py --size 3 --plans 4 --report-only   # what a stopped run finished
 """
 
 from __future__ import annotations
@@ -38,11 +39,15 @@ def main(argv=None):
     ap.add_argument("--plans", type=int, default=10, help="plans per mode")
     ap.add_argument("--modes", nargs="+", default=["sagittal", "full"], choices=["sagittal", "full"])
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--report-only", action="store_true",
+                    help="tabulate what the databases in the work folder hold, running nothing (plans not yet run "
+                         "are listed as such)")
     ap.add_argument("--out", type=Path, default=RESULTS / "meshed_database.csv")
     args = ap.parse_args(argv)
 
     import h5py
 
+    from toolkit.common.database import read_failures
     from toolkit.common.io import read, write
     from toolkit.common.phantom import face_hex
     from toolkit.common.runtime import set_threads
@@ -77,14 +82,23 @@ def main(argv=None):
         path = work / f"{mode}.h5"
         config = DatasetConfig.for_mesh(work / "face.vtu", bones, condyles=condyles, plans=args.plans, mode=mode,
                                         seed=args.seed)
-        report = generate(path, config, workers=1)
-        with h5py.File(path) as f:
-            records = {k: json.loads(g.attrs["attrs"]) for k, g in f["records"].items()} if "records" in f else {}
-        for key in sorted(set(records) | set(report.failed)):
+        if args.report_only:
+            failed = dict(zip(*read_failures(path)[["key", "reason"]].to_numpy().T)) if path.exists() else {}
+        else:
+            failed = generate(path, config, workers=1).failed
+        records = {}
+        if path.exists():
+            with h5py.File(path) as f:
+                records = {k: json.loads(g.attrs["attrs"]) for k, g in f["records"].items()} if "records" in f else {}
+        keys = sorted(set(records) | set(failed))
+        if args.report_only:  # the plans the command asks for that neither finished nor failed
+            keys += [f"not run ({n})" for n in range(args.plans - len(keys))]
+        for key in keys:
             a = records.get(key, {})
+            status = "ok" if key in records else "failed" if key in failed else "not run"
             rows.append({"face": face, "size_mm": args.size, "order": args.order, "nodes": face_mesh.n_points,
-                         "mode": mode, "key": key, "status": "ok" if key in records else "failed",
-                         "reason": report.failed.get(key, "")[:200], "seconds": a.get("seconds"),
+                         "mode": mode, "key": key, "status": status,
+                         "reason": str(failed.get(key, ""))[:200], "seconds": a.get("seconds"),
                          "release_width_mm": a.get("release_width_mm"), "freed_cut_nodes": a.get("freed_cut_nodes"),
                          "min_scaled_jacobian": a.get("min_scaled_jacobian")})
     table = pd.DataFrame(rows)
