@@ -65,7 +65,7 @@ solves) beside NGSolve's ``Variation`` of the same energy density and its ``solv
 predictor counted as one) are given.
 
 Writes ``benchmarks/results/peers.csv`` with its provenance sidecar; a rerun skips the rows the
-table holds (``--fresh`` runs them all again, ``--retry-failed`` the ones not ``ok``).
+table holds (``--fresh`` runs the selected ones again, ``--retry-failed`` the ones not ``ok``).
 
 Usage::
 
@@ -548,13 +548,17 @@ def _sfepy(data: dict, method: str, problem: str, E: float, nu: float) -> tuple[
         domain = FEDomain("domain", mesh)
         omega = domain.create_region("Omega", "all")
         field = Field.from_args("displacement", np.float64, "vector", omega, approx_order=2)
-        # the prescribed vertices and edges: the edges whose mid-node the toolkit prescribes
+        # the prescribed vertices, and the edges whose mid-node the toolkit prescribes (an edge
+        # region keeps only the vertices of its edges: the vertices are a region of their own)
         cmesh = domain.cmesh
         cmesh.setup_connectivity(1, 0)
         edges = cmesh.get_conn(1, 0).indices.reshape(-1, 2)
-        bone = Region.from_vertices(np.flatnonzero(prescribed[corners]), domain, "bone", kind="edge")
-        bone.edges = np.flatnonzero(prescribed[_edge_midnodes(data, edges)])
-        bone.finalize()
+        vertices = np.flatnonzero(prescribed[corners])
+        bone = {"vertex": Region.from_vertices(vertices, domain, "bone_vertices", kind="vertex"),
+                "edge": Region.from_vertices(vertices, domain, "bone_edges", kind="edge")}
+        bone["edge"].edges = np.flatnonzero(prescribed[_edge_midnodes(data, edges)])
+        for region in bone.values():
+            region.finalize()
         u = FieldVariable("u", "unknown", field)
         v = FieldVariable("v", "test", field, primary_var_name="u")
         m = Material("m", D=stiffness_from_youngpoisson(3, E, nu))
@@ -564,9 +568,9 @@ def _sfepy(data: dict, method: str, problem: str, E: float, nu: float) -> tuple[
         def bone_motion(ts, coors, **kwargs):
             return data["values"][_nearest(given, coors)]
 
-        ebc = EssentialBC("bone", bone, {"u.all": Function("bone_motion", bone_motion)})
+        motion = Function("bone_motion", bone_motion)
         pb = Problem("face", equations=Equations([Equation("balance", term)]))
-        pb.set_bcs(ebcs=Conditions([ebc]))
+        pb.set_bcs(ebcs=Conditions([EssentialBC(f"bone_{k}", r, {"u.all": motion}) for k, r in bone.items()]))
         pb.time_update()
     # the linear solver's calls and, inside them, its factorization or hierarchy; the rest of
     # Problem.solve (matrix, residuals, boundary values) is its assembly
@@ -712,7 +716,8 @@ def main(argv=None) -> pd.DataFrame:
     ap.add_argument("--memory", type=float, default=15.0, help="GiB of resident memory per run")
     ap.add_argument("--superlu-max-dofs", type=int, default=200_000,
                     help="the SuperLU runs are skipped above this many free dofs")
-    ap.add_argument("--fresh", action="store_true", help="run again the rows the table holds")
+    ap.add_argument("--fresh", action="store_true",
+                    help="run the selected rows (--sizes, --codes, --problems) again if the table holds them")
     ap.add_argument("--retry-failed", action="store_true", help="run again the rows whose status is not ok")
     ap.add_argument("--out", type=Path, default=RESULTS / "peers.csv")
     ap.add_argument("--worker", nargs=6, help=argparse.SUPPRESS)
@@ -728,13 +733,16 @@ def main(argv=None) -> pd.DataFrame:
     tissue = LinearElastic()
     if tissue.nu != 0.47:
         tissue = LinearElastic(tissue.E, 0.47)
-    old = pd.read_csv(args.out, dtype={"size": str}) if args.out.exists() and not args.fresh else \
-        pd.DataFrame(columns=COLUMNS)
-    done = set() if old.empty else {tuple(r) for r in old.loc[
-        (old["status"] == "ok") if args.retry_failed else slice(None), KEY].astype(str).itertuples(index=False)}
-    rows = [r for r in old.to_dict("records") if (str(r["problem"]), str(r["size"]), r["code"], r["method"]) in done]
-    todo = [(p, s, c, m) for p in args.problems for s in args.sizes for c, m in RUNS[p] if c in args.codes
-            and (p, s, c, m) not in done and (p == "linear" or s in args.neo_hookean_sizes)]
+    old = pd.read_csv(args.out, dtype={"size": str}).to_dict("records") if args.out.exists() else []
+
+    def key(row: dict) -> tuple:
+        return tuple(str(row[k]) for k in KEY)
+
+    done = {key(r) for r in old if not args.retry_failed or r["status"] == "ok"}
+    selected = [(p, s, c, m) for p in args.problems for s in args.sizes for c, m in RUNS[p] if c in args.codes
+                and (p == "linear" or s in args.neo_hookean_sizes)]
+    todo = [k for k in selected if args.fresh or k not in done]
+    rows = [r for r in old if key(r) not in set(todo)]  # the table's other rows stay
     for problem, size, code, method in todo:
         problem_arrays(size)  # mesh once, here, not in a timed run
         row = {"problem": problem, "size": size, "code": code, "method": method}
@@ -755,7 +763,7 @@ def main(argv=None) -> pd.DataFrame:
     order = {k: i for i, k in enumerate((p, s, c, m) for p in PROBLEMS for s in SIZES for c, m in RUNS[p])}
     rows.sort(key=lambda r: order.get((r["problem"], str(r["size"]), r["code"], r["method"]), len(order)))
     table = pd.DataFrame(rows).reindex(columns=COLUMNS)
-    resumed = bool(read_sidecar(args.out)) and not args.fresh and len(done) > 0
+    resumed = bool(read_sidecar(args.out)) and len(rows) > len(todo)
     write_result(args.out, table, argv=argv, resumed=resumed,
                  extra={"E_mpa": tissue.E, "nu": tissue.nu, "rtol": RTOL, "timeout_min": args.timeout,
                         "memory_gib": args.memory, "superlu_max_dofs": args.superlu_max_dofs})
