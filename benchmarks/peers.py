@@ -2,7 +2,8 @@
 
 One problem for every code: a face meshed by ``toolkit mesh`` (:func:`toolkit.mesh.mesh_face`) in
 quadratic tetrahedra (tet10, straight edges), one homogeneous isotropic material (the toolkit's
-tissue, :class:`~toolkit.common.materials.LinearElastic`: E 0.003 MPa, nu 0.47), the face's FIXED
+tissue, :class:`~toolkit.common.materials.LinearElastic`: E 0.003 MPa, nu 0.47, in every element:
+``material_assignment("linear", mesh)`` would make the lip muscle transversely isotropic), the face's FIXED
 nodes held and its MOVING (bone) nodes carried by the first of 3 increments of a plan's rigid
 motions, every other node free: a pure Dirichlet problem, no sliding constraints, no ties. Sizes:
 
