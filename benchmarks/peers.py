@@ -154,22 +154,17 @@ def problem_arrays(size: str) -> dict:
     mm, their displacements."""
     path = CACHE / f"{size}.npz"
     if not path.exists():
-        from toolkit.static.boundary import BoundaryConditions, NodeType
+        from static_solvers import dirichlet
+
+        from toolkit.static.boundary import BoundaryConditions
 
         mesh, segments, plan = _ct_face() if size == "ct" else _phantom_face(float(size))
         if set(mesh.cells) != {"tet10"}:
             raise ValueError(f"expected a tet10 mesh, got blocks {sorted(mesh.cells)}")
-        bc = BoundaryConditions.from_mesh(mesh, segments)
-        X = mesh.points
-        fixed, moving = bc.nodes(NodeType.FIXED), bc.nodes(NodeType.MOVING)
-        target = X.copy()
-        for s, seg in enumerate(bc.segment_names):
-            ids = moving[bc.segment[moving] == s]
-            target[ids] = plan.motion(seg).apply(X[ids])
-        nodes = np.concatenate([fixed, moving])
+        nodes, values = dirichlet(mesh, BoundaryConditions.from_mesh(mesh, segments), plan)
         CACHE.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.stem}.{os.getpid()}.npz")
-        np.savez(tmp, points=X, cells=mesh.cells["tet10"], prescribed=nodes, values=target[nodes] - X[nodes])
+        np.savez(tmp, points=mesh.points, cells=mesh.cells["tet10"], prescribed=nodes, values=values)
         tmp.replace(path)
     with np.load(path) as data:
         return {k: data[k] for k in data.files}

@@ -68,6 +68,22 @@ def _meshed_face(name: str):
     return mesh, case.segments, case.plan
 
 
+def dirichlet(mesh, bc, plan) -> tuple[np.ndarray, np.ndarray]:
+    """The prescribed nodes of ``mesh`` under boundary conditions ``bc`` (FIXED, then MOVING) and
+    their displacements ``(p, 3)`` mm: zero, and each moving node carried by its segment's motion
+    in ``plan``."""
+    from toolkit.static.boundary import NodeType
+
+    X = mesh.points
+    fixed, moving = bc.nodes(NodeType.FIXED), bc.nodes(NodeType.MOVING)
+    target = X.copy()
+    for s, seg in enumerate(bc.segment_names):
+        ids = moving[bc.segment[moving] == s]
+        target[ids] = plan.motion(seg).apply(X[ids])
+    nodes = np.concatenate([fixed, moving])
+    return nodes, target[nodes] - X[nodes]
+
+
 def _system(name: str):
     """Problem, reduction, reduced matrix and right-hand side, and 20 tie pairs for ``name``."""
     from toolkit.common import face_hex
@@ -94,16 +110,10 @@ def _system(name: str):
             mesh, segments = ph.mesh, ph.segments
             plan = default_plan(ph).increments(3)[0]
         bc = BoundaryConditions.from_mesh(mesh, segments)
-        X = mesh.points
-        fixed, moving = bc.nodes(NodeType.FIXED), bc.nodes(NodeType.MOVING)
-        target = X.copy()
-        for s, seg in enumerate(bc.segment_names):
-            ids = moving[bc.segment[moving] == s]
-            target[ids] = plan.motion(seg).apply(X[ids])
-        nodes = np.concatenate([fixed, moving])
+        nodes, values = dirichlet(mesh, bc, plan)
         mucosa = bc.nodes(NodeType.MUCOSA_SLIDING)
         normals = np.tile([0.0, 1.0, 0.0], (mucosa.size, 1))  # any valid sliding rows: the solver sees their shape
-        c = Constraints(mesh.n_points, nodes, target[nodes] - X[nodes], mucosa, normals, np.zeros(mucosa.size))
+        c = Constraints(mesh.n_points, nodes, values, mucosa, normals, np.zeros(mucosa.size))
         free = bc.nodes(NodeType.FREE)
     problem = StaticProblem(mesh, material_assignment("linear", mesh), "amg")
     ties = free[:10]
