@@ -276,8 +276,8 @@ class TrustedImpactAnswer:
     tolerance_mm : the tolerance asked
     estimate : :func:`estimate` of the surrogate's prediction (``node_mm`` left out of the summary)
     ood : :func:`out_of_distribution`
-    seconds : ``surrogate``, ``estimate``, ``checks`` (the surrogate answer's), ``fe`` (0 when not
-        run), ``total``
+    seconds : ``surrogate``, ``estimate``, ``checks`` (the surrogate answer's, made only when it is
+        within the tolerance and in distribution), ``fe`` (0 when not run), ``total``
     fe_integrator : the FE's integrator (``implicit``: quasi-static)
 
     Construction checks a post-condition: :class:`~toolkit.common.errors.AnswerError` when the result's von Mises stress
@@ -379,19 +379,16 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
         t1 = time.perf_counter()
         est = estimate(calibration, u, velocity)
         seconds["estimate"] = time.perf_counter() - t1
-        checks = answer_checks(face, u, vm, np.flatnonzero(inputs.fixed))
-        seconds["checks"] = checks["seconds"]
-        pred = Prediction(scene, face, times, u, vm, seconds["surrogate"], model.config.name, ood["velocity"],
-                          checks)
+        pred = Prediction(scene, face, times, u, vm, seconds["surrogate"], model.config.name, ood["velocity"])
     if ood["outside"]:
         reason = "out of distribution: " + "; ".join(ood["reasons"])
     elif not est:
         reason = "another face than the model's"
-    elif not pred.checks["passed"]:
-        reason = "the surrogate's answer failed its checks: " + "; ".join(pred.checks["problems"])
     elif est["bound_mm"] > tolerance_mm:
         reason = (f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) is above the tolerance "
                   f"{tolerance_mm:g} mm")
+    elif not (pred := _checked(pred, inputs, seconds)).checks["passed"]:  # checked only when it would answer
+        reason = "the surrogate's answer failed its checks: " + "; ".join(pred.checks["problems"])
     else:
         seconds["total"] = time.perf_counter() - t0
         ans = TrustedImpactAnswer(pred, "surrogate", f"estimated error {est['bound_mm']:.2f} mm (at "
@@ -410,6 +407,14 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
     if out is not None:
         ans.write_summary(out)
     return ans
+
+
+def _checked(pred, inputs, seconds: dict):
+    """``pred`` with its answer checks (:func:`~toolkit.impact.checks.answer_checks`), their time in
+    ``seconds["checks"]``."""
+    checks = answer_checks(pred.face, pred.displacement, pred.von_mises, np.flatnonzero(inputs.fixed))
+    seconds["checks"] = checks["seconds"]
+    return replace(pred, checks=checks)
 
 
 def _quiet_predict(model, velocity, inputs):
