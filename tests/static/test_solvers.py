@@ -4,6 +4,7 @@ the solves of an increment."""
 import numpy as np
 import pytest
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from toolkit.common.fem.factory import FactorMaker
 from toolkit.common.fem.solvers import (
@@ -13,7 +14,7 @@ from toolkit.common.fem.solvers import (
     choose_method,
     estimate_factor_entries,
 )
-from toolkit.common.materials import LinearElastic
+from toolkit.common.materials import LinearElastic, NeoHookean
 from toolkit.common.phantom import block, face_hex
 from toolkit.static.constraints import Constraints
 from toolkit.static.problem import StaticProblem
@@ -79,6 +80,31 @@ def test_reuse_across_solves_equals_fresh_solves(method):
         ref = fresh.solve(c).displacement
         tol = 1e-10 if method == "superlu" else 1e-7
         assert np.abs(s.displacement - ref).max() <= tol * np.abs(ref).max()
+
+
+def test_without_hierarchy_reuse_amg_builds_one_per_new_matrix_and_reuses_it_for_the_same():
+    """``reuse_hierarchy=False``: a changed matrix gets a new AMG hierarchy (no CG on the old
+    one), the same matrix again is solved on the stored one; the answers are those of a direct
+    solve. A linear static problem solves this way (its systems differ by their reduction), a
+    Neo-Hookean one reuses hierarchies across Newton's tangents."""
+    mesh = block([np.linspace(0, 20, 9), np.linspace(0, 10, 5), np.linspace(0, 10, 5)])
+    A = StaticProblem(mesh, MaterialAssignment(LinearElastic(0.003, 0.47))).stiffness.tocsr()
+    free = np.arange(3 * 5 * 5, A.shape[0])  # the x = 0 face held
+    A = A[free][:, free].tocsr()
+    B = (A + sp.diags(np.linspace(0, 1e-3, A.shape[0]))).tocsr()
+    b = np.random.default_rng(0).standard_normal(A.shape[0])
+    solver = LinearSolver("amg", reuse_hierarchy=False)
+    for M in (A, B, B):
+        x, _ = solver.solve(M, b)
+        ref = spla.spsolve(M.tocsc(), b)
+        assert np.abs(x - ref).max() <= 1e-6 * np.abs(ref).max()
+    assert solver.factorizations == 2 and solver.reuses == 1
+    reusing = LinearSolver("amg", timed_budget=False)
+    for M in (A, B):
+        reusing.solve(M, b)
+    assert reusing.factorizations == 1 and reusing.reuses == 1
+    assert not StaticProblem(mesh, MaterialAssignment(LinearElastic()), "amg").linear_solver.options.reuse_hierarchy
+    assert StaticProblem(mesh, MaterialAssignment(NeoHookean()), "amg").linear_solver.options.reuse_hierarchy
 
 
 def test_reuse_gives_up_when_the_matrix_changed_too_much():

@@ -93,7 +93,9 @@ class StaticProblem:
         self._K = None
         self._modes = rigid_body_modes(mesh.points)
         entries = estimate_factor_entries(self.pattern.node_graph()) if solver == "auto" else None
-        self.linear_solver = LinearSolver(solver, factor_entries=entries)
+        # a linear material's systems differ only by their reduction (lip pairs tied, the mucosa
+        # constrained), for which a stored AMG hierarchy preconditions worse than a new one
+        self.linear_solver = LinearSolver(solver, factor_entries=entries, reuse_hierarchy=not self.linear)
         # a quadratic mesh's corner nodes: the first coarsening of AMG (p-multigrid)
         self._corners = corner_interpolation(mesh.cells, mesh.n_points) if solver in ("amg", "auto") else None
         # force of a unit strain on a typical element face, N: the yardstick for round-off

@@ -442,13 +442,16 @@ class _Model:
 
 @dataclass(frozen=True, eq=False)
 class _State:
-    """Where the simulation stands: plan fraction, total displacement ``u (n, 3)`` mm and the
-    lip pairs tied at the end of the last step (None before the first)."""
+    """Where the simulation stands: plan fraction, total displacement ``u (n, 3)`` mm, the
+    lip pairs tied at the end of the last step (None before the first) and, for a linear
+    material, the last step's displacement per unit of plan fraction ``rate (n, 3)`` mm (None
+    before the first), which predicts the next step's."""
 
     fraction: float
     plan: SurgicalPlan | None  # the plan at ``fraction`` (None before the first step)
     u: np.ndarray
     active: np.ndarray | None = None
+    rate: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -663,16 +666,18 @@ def _quality(model: _Model, u_total: np.ndarray) -> tuple[np.ndarray, int]:
     return sj, int(np.argmin(sj))
 
 
-def _step(model: _Model, state: _State, plan: SurgicalPlan,
-          guess: np.ndarray | None = None) -> tuple[_State, _StepDiagnostics]:
+def _step(model: _Model, state: _State, plan: SurgicalPlan, guess: np.ndarray | None = None,
+          predicted: np.ndarray | None = None) -> tuple[_State, _StepDiagnostics]:
     """Advance from ``state`` to the bone positions of ``plan``: targets, sliding solve,
     projection, re-solve, quality check. A Newton solve starts from ``guess`` (the total
     displacement ``(n, 3)`` mm expected at the end of the step) when given, and from the previous
-    equilibrium if it does not converge from there. Raises :class:`_StepFailure`."""
+    equilibrium if it does not converge from there; a linear material's first iterative solve
+    starts from ``predicted`` (the step's displacement ``(n, 3)`` mm, expected), which changes
+    only its iteration count. Raises :class:`_StepFailure`."""
     X = model.mesh.points
     x = X + state.u
     base = X if model.total_lagrangian else x  # configuration the step's displacement is measured from
-    starts = ((state.u,) if guess is None else (guess, state.u)) if model.total_lagrangian else (None,)
+    starts = ((state.u,) if guess is None else (guess, state.u)) if model.total_lagrangian else (predicted,)
     problem = model.problem(x)
     nodes, values = _targets(model, plan, base)
     t0 = time.perf_counter()
@@ -727,9 +732,13 @@ def _advance(model: _Model, plan: SurgicalPlan, state: _State, fraction: float, 
     Returns the new state, the diagnostics of every successful sub-step and the number of
     failed attempts. Raises :class:`_StepFailure` when ``max_cuts`` halvings do not help.
     """
+    share = fraction - state.fraction
+    # a linear step's iterative solve starts from the step before it, scaled to this one's share
+    predicted = None if state.rate is None or model.total_lagrangian else state.rate * share
     try:
-        new, diag = _step(model, state, plan.interpolated(fraction), model.guess_at(fraction))
-        return replace(new, fraction=fraction), [diag], 0
+        new, diag = _step(model, state, plan.interpolated(fraction), model.guess_at(fraction), predicted)
+        rate = None if model.total_lagrangian else (new.u - state.u) / share
+        return replace(new, fraction=fraction, rate=rate), [diag], 0
     except _StepFailure as exc:
         if depth >= model.options.max_cuts:
             raise

@@ -75,6 +75,12 @@ class SolverOptions:
     rtol : relative residual of AMG-CG solves, and of the Krylov solves on a reused AMG hierarchy,
         on a float32 factor just made or on a factor of the symmetric part; default 1e-9
     reuse : precondition later systems of the same size with the stored factorization
+    reuse_hierarchy : with ``reuse``, also precondition them with a stored AMG hierarchy; False
+        builds a hierarchy for every new matrix. A hierarchy costs a few CG iterations to build,
+        and one made for another reduction of the same stiffness (a lip pair tied or released, the
+        mucosa constrained) preconditions worse than a new one: on the phantom's surfaces meshed
+        at 3 mm (tet10, 255k dofs) a reused hierarchy took 17-28 CG iterations or gave up after
+        40 where a new one took 7-13 (``benchmarks/static_meshed_speed.py``)
     max_reuse_iterations : Krylov (CG or GMRES) iterations after which a reuse is abandoned for a
         new factorization; default 60
     reuse_rtol : relative residual of the Krylov solves on a reused direct factorization; default
@@ -118,6 +124,7 @@ class SolverOptions:
     factor_entries: int | None = None
     rtol: float = 1e-9
     reuse: bool = True
+    reuse_hierarchy: bool = True
     max_reuse_iterations: int = 60
     reuse_rtol: float = 1e-13
     timed_budget: bool = True
@@ -148,7 +155,7 @@ class SolverOptions:
                              "the largest change of the local term)")
         for name, kind in (("max_reuse_iterations", int), ("direct_max_entries", int), ("factorize_ahead", int),
                            ("factorize_ahead_above", int), ("single_precision", bool), ("symmetric_factor", bool),
-                           ("correction_threshold", float)):
+                           ("reuse_hierarchy", bool), ("correction_threshold", float)):
             object.__setattr__(self, name, kind(getattr(self, name)))
 
 
@@ -249,7 +256,8 @@ class LinearSolver:
             self._take_pending()
         x, iterations, reused = None, 0, False
         stored = self._stored
-        if o.reuse and stored is not None and stored.A.shape == A.shape:
+        if o.reuse and stored is not None and stored.A.shape == A.shape \
+                and (o.reuse_hierarchy or stored.kind != "amg" or stored.holds(A)):
             if o.factorize_ahead and ahead.pending is None and policy.stale() \
                     and stored.kind in ("superlu", "pardiso", "cholmod"):
                 # started before this solve's Krylov iterations, so that the worker has them too
