@@ -283,6 +283,23 @@ def _solvers(data):
         ("reuse_iterations", "its iterations"), ("peak_rss_mib", "peak memory (MiB)"), ("auto_choice", "auto picks")])
 
 
+def _meshed_speed(data):
+    t = data["static_meshed_speed"][0].copy()
+    t["face"] = t["face"].map(lambda f: "head CT" if f == "ct" else "phantom's surfaces")
+    runs = table(t, [
+        ("face", "face"), ("size_mm", "size (mm)", "{:g}"), ("nodes", "nodes"), ("code", "code"),
+        ("repeat", "run"), ("seconds", "time (s)", "{:.1f}"), ("solves", "linear solves"),
+        ("cg_iterations", "CG iterations"), ("solve_s", "in solves (s)", "{:.1f}"),
+        ("peak_memory_mib", "peak memory (MiB)", "{:,.0f}"), ("max_difference_mm", "max difference (mm)", "{:.1e}")])
+    ok = t[t.status == "ok"]
+    mean = ok.groupby(["face", "size_mm", "code"], sort=False)["seconds"].mean().reset_index()
+    first = mean.groupby(["face", "size_mm"], sort=False)["seconds"].transform("first")
+    mean["ratio"] = mean["seconds"] / first
+    ratios = table(mean, [("face", "face"), ("size_mm", "size (mm)", "{:g}"), ("code", "code"),
+                          ("seconds", "mean time (s)", "{:.1f}"), ("ratio", "ratio to the first code", "{:.2f}")])
+    return runs + "\n\n" + ratios
+
+
 _PEER_SIZES = {"7": "phantom 7 mm", "3.5": "phantom 3.5 mm", "ct": "head CT 3 mm"}
 
 
@@ -908,6 +925,7 @@ SOURCES = {s.stem: s for s in (
     Source("bad_inputs", "python benchmarks/bad_inputs.py", 4),
     Source("bad_inputs_interrupts", "python benchmarks/bad_inputs.py --interrupts", 5),
     Source("mixed_elements", "python benchmarks/mixed_elements.py", 1),
+    Source("static_meshed_speed", "python benchmarks/static_meshed_speed.py --code /tmp/before . --repeats 2", 12),
     Source("static_solvers", "python benchmarks/static_solvers.py --meshes coarse paper paper-tet4 bulk-tet4 "
            "meshed-5mm meshed-3mm --methods superlu pardiso amg amg-sa auto", 10),
     Source("mesh_convergence", "python benchmarks/mesh_convergence.py", 25),
@@ -963,6 +981,15 @@ BLOCKS = {b.name: b for b in (
           "Time and peak memory of one solve of the first increment's constrained system with each solver, the "
           "automatic choice, and the next lip-contact solve that reuses the factorization.",
           (SOURCES["static_solvers"],), _solvers),
+    Block("static_meshed_speed", "Time per plan on a meshed face",
+          "The default plan (linear, mucosa and lip sliding, 3 increments) on the paper phantom's surfaces meshed "
+          "by `toolkit mesh` at its default 3 mm (tet10), run by two checkouts of the toolkit in turn, each run a "
+          "fresh single-threaded process, so that each pair shares the machine's load of the same minutes: commit "
+          "92b24f7, whose linear steps precondition every system of a step with a stored AMG hierarchy and start "
+          "each increment from zero, and the current code, which builds a hierarchy for each reduction and starts "
+          "each increment's first solve from the step before it. The difference is the largest nodal difference "
+          "to the first code's answer of the same run.",
+          (SOURCES["static_meshed_speed"],), _meshed_speed),
     Block("peers", "Peer FE codes",
           "The same linear-elastic Dirichlet problem solved by the toolkit and by scikit-fem, NGSolve and SfePy: "
           "the same face mesh from `toolkit mesh` (tet10, straight edges; the paper phantom's surfaces at 7 and "
