@@ -98,6 +98,11 @@ def main(argv=None):
                 ref_same = simulate(same, case.plan, 3, "linear", "mucosa+lip")
                 diff = skin_difference(face.mesh, res.displacement, phantom.mesh, ref_same.displacement)
                 row.update(same_bones_diff_mean_mm=diff["diff_mean_mm"], same_bones_diff_p95_mm=diff["diff_p95_mm"])
+                # what the damaged bones alone change in the phantom's own run (its mesh and labels kept)
+                skin = phantom.mesh.node_sets["skin"]
+                own = np.linalg.norm(ref_same.displacement[skin] - reference.displacement[skin], axis=1)
+                row.update(bones_alone_diff_mean_mm=float(own.mean()),
+                           bones_alone_diff_p95_mm=float(np.percentile(own, 95)))
             except Exception as exc:  # noqa: BLE001 - recorded
                 row.update(status=f"{type(exc).__name__}: {str(exc)[:200]}", simulate_s=time.perf_counter() - t1)
         rows.append(row)
