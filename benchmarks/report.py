@@ -284,13 +284,15 @@ def _solvers(data):
 
 
 def _meshed_speed(data):
-    t = data["static_meshed_speed"][0].copy()
+    t = pd.concat([data[k][0] for k in ("static_meshed_speed", "static_meshed_speed_ct") if k in data],
+                  ignore_index=True)
     t["face"] = t["face"].map(lambda f: "head CT" if f == "ct" else "phantom's surfaces")
     runs = table(t, [
         ("face", "face"), ("size_mm", "size (mm)", "{:g}"), ("nodes", "nodes"), ("code", "code"),
         ("repeat", "run"), ("seconds", "time (s)", "{:.1f}"), ("solves", "linear solves"),
         ("cg_iterations", "CG iterations"), ("solve_s", "in solves (s)", "{:.1f}"),
-        ("peak_memory_mib", "peak memory (MiB)", "{:,.0f}"), ("max_difference_mm", "max difference (mm)", "{:.1e}")])
+        ("peak_memory_mib", "peak memory (MiB)", "{:,.0f}"), ("max_difference_mm", "max difference (mm)", "{:.1e}"),
+        ("max_skin_difference_mm", "on the skin (mm)", "{:.1e}")])
     ok = t[t.status == "ok"]
     mean = ok.groupby(["face", "size_mm", "code"], sort=False)["seconds"].mean().reset_index()
     first = mean.groupby(["face", "size_mm"], sort=False)["seconds"].transform("first")
@@ -298,6 +300,17 @@ def _meshed_speed(data):
     ratios = table(mean, [("face", "face"), ("size_mm", "size (mm)", "{:g}"), ("code", "code"),
                           ("seconds", "mean time (s)", "{:.1f}"), ("ratio", "ratio to the first code", "{:.2f}")])
     return runs + "\n\n" + ratios
+
+
+def _slow_modes(data):
+    t = data["slow_modes"][0].copy()
+    t["face"] = t["face"].map(lambda f: "head CT" if f == "ct" else "phantom's surfaces")
+    return table(t, [
+        ("face", "face"), ("dofs", "dofs"), ("cg_iterations", "CG iterations"), ("mode", "mode"),
+        ("relative", "eigenvalue / mean diagonal", "{:.1e}"), ("nodes_95", "nodes holding 95 %"),
+        ("centre_mm", "centre (mm)"), ("extent_mm", "extent (mm)"), ("sliding_nodes", "sliding on a bone"),
+        ("skin_nodes", "on the skin"), ("elements_inside", "elements inside"),
+        ("elements_joining", "elements joining the rest"), ("coherence", "coherence", "{:.2f}")])
 
 
 _PEER_SIZES = {"7": "phantom 7 mm", "3.5": "phantom 3.5 mm", "ct": "head CT 3 mm"}
@@ -928,6 +941,9 @@ SOURCES = {s.stem: s for s in (
     Source("bad_inputs", "python benchmarks/bad_inputs.py", 4),
     Source("bad_inputs_interrupts", "python benchmarks/bad_inputs.py --interrupts", 5),
     Source("mixed_elements", "python benchmarks/mixed_elements.py", 1),
+    Source("static_meshed_speed_ct", "python benchmarks/static_meshed_speed.py --face ct --code /tmp/before . "
+           "--repeats 1 --out benchmarks/results/static_meshed_speed_ct.csv", 50),
+    Source("slow_modes", "python benchmarks/slow_modes.py", 10),
     Source("static_meshed_speed", "python benchmarks/static_meshed_speed.py --code /tmp/before . --repeats 2", 12),
     Source("static_solvers", "python benchmarks/static_solvers.py --meshes coarse paper paper-tet4 bulk-tet4 "
            "meshed-5mm meshed-3mm --methods superlu pardiso amg amg-sa auto", 10),
@@ -985,14 +1001,22 @@ BLOCKS = {b.name: b for b in (
           "automatic choice, and the next lip-contact solve that reuses the factorization.",
           (SOURCES["static_solvers"],), _solvers),
     Block("static_meshed_speed", "Time per plan on a meshed face",
-          "The default plan (linear, mucosa and lip sliding, 3 increments) on the paper phantom's surfaces meshed "
-          "by `toolkit mesh` at its default 3 mm (tet10), run by two checkouts of the toolkit in turn, each run a "
+          "The default plan (linear, mucosa and lip sliding, 3 increments) on the paper phantom's surfaces, and the "
+          "5 mm mandibular advance on the head CT's, meshed by `toolkit mesh` at its default 3 mm (tet10), run by "
+          "two checkouts of the toolkit in turn, each run a "
           "fresh single-threaded process, so that each pair shares the machine's load of the same minutes: commit "
           "92b24f7, whose linear steps precondition every system of a step with a stored AMG hierarchy and start "
           "each increment from zero, and the current code, which builds a hierarchy for each reduction and starts "
           "each increment's first solve from the step before it. The difference is the largest nodal difference "
           "to the first code's answer of the same run.",
-          (SOURCES["static_meshed_speed"],), _meshed_speed),
+          (SOURCES["static_meshed_speed"], SOURCES["static_meshed_speed_ct"]), _meshed_speed),
+    Block("slow_modes", "The slowest modes of a face's static system",
+          "The first reduced system of the default plan (on the head CT, the 5 mm advance) on faces meshed at "
+          "3 mm (tet10): the CG iterations of the solver's AMG hierarchy to 1e-9, and the smallest eigenpairs "
+          "(LOBPCG): each mode's eigenvalue over the mean diagonal, the nodes holding 95 % of its energy, where "
+          "they are, how many slide on a bone or lie on the skin, the elements among them and joining them to "
+          "the rest, and the coherence of their motion (1: a rigid translation).",
+          (SOURCES["slow_modes"],), _slow_modes),
     Block("peers", "Peer FE codes",
           "The same linear-elastic Dirichlet problem solved by the toolkit and by scikit-fem, NGSolve and SfePy: "
           "the same face mesh from `toolkit mesh` (tet10, straight edges; the paper phantom's surfaces at 7 and "
@@ -1142,7 +1166,7 @@ BLOCKS = {b.name: b for b in (
 )}
 #: blocks whose table needs every source (the others render what is present, the rest as one line)
 _PARTIAL = {"headline", "static_surrogate", "impact_surrogate", "static_convergence", "own_face",
-            "surrogate_trust_impact", "meshed_database"}
+            "surrogate_trust_impact", "meshed_database", "static_meshed_speed"}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1172,7 +1196,7 @@ def render(name: str, data: dict) -> str:
         return not_measured(block.sources[-1])
     body = block.render(present)
     if name in ("static_surrogate", "impact_surrogate", "static_convergence", "own_face", "surrogate_trust_impact",
-                "meshed_database"):
+                "meshed_database", "static_meshed_speed"):
         body += "\n\n" + _sources_footer(present, block.sources)
     return body
 

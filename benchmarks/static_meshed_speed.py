@@ -10,7 +10,8 @@ run solves the same one.
 each other: each repeat runs every checkout once, in turn, in a fresh single-threaded process, so
 that each pair of runs shares the machine's load of the same minutes. Each row is one run: its
 wall time, the linear solves and their CG iterations, the solver's seconds, the peak memory and
-the largest nodal difference to the first checkout's answer of the same repeat (mm).
+the largest nodal difference to the first checkout's answer of the same repeat, over every node
+and over the skin (mm).
 
 Writes ``benchmarks/results/static_meshed_speed.csv`` with provenance.
 
@@ -130,12 +131,15 @@ def main(argv=None):
     if args.worker:
         return worker(*args.worker)
     folder = prepare(args.face, args.size, args.order)
+    from toolkit.common.io import read
+
+    skin = read(folder / "face.vtu").node_sets["skin"]
     rows = []
     for repeat in range(args.repeats):
         first = None
         for code in args.code:
             code = code.resolve()
-            out = WORK / f"run_{code.name}_{repeat}.json"
+            out = WORK / f"run_{args.face}_{code.name}_{repeat}.json"
             env = {**os.environ, "PYTHONPATH": str(code)}
             t0 = time.perf_counter()
             run = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", str(folder), str(out)],
@@ -148,7 +152,9 @@ def main(argv=None):
                 row.update(status="ok", **json.loads(out.read_text()))
                 u = np.load(out.with_suffix(".npy"))
                 first = u if first is None else first
-                row["max_difference_mm"] = float(np.linalg.norm(u - first, axis=1).max())
+                difference = np.linalg.norm(u - first, axis=1)
+                row["max_difference_mm"] = float(difference.max())
+                row["max_skin_difference_mm"] = float(difference[skin].max())
             rows.append(row)
             print(row, flush=True)
     table = pd.DataFrame(rows)
