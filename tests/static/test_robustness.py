@@ -115,12 +115,12 @@ def test_failing_steps_are_cut_and_increments_stay_where_they_were(coarse, monke
     plan = default_plan(coarse)
     real_step = simulate_module._step
 
-    def step(model, state, target, guess=None):
+    def step(model, state, target, guess=None, predicted=None):
         frac = max(abs(target.motion(n).angle_deg - (state.plan.motion(n).angle_deg if state.plan else 0.0))
                    / max(plan.motion(n).angle_deg, 1e-12) for n in ("lefort", "distal"))
         if frac > 0.2 + 1e-9:
             raise simulate_module._StepFailure("step too wide (test)")
-        return real_step(model, state, target, guess)
+        return real_step(model, state, target, guess, predicted)
 
     monkeypatch.setattr(simulate_module, "_step", step)
     cut = simulate(coarse, plan, 3)
