@@ -82,10 +82,10 @@ def main(argv=None):
         path = work / f"{mode}.h5"
         config = DatasetConfig.for_mesh(work / "face.vtu", bones, condyles=condyles, plans=args.plans, mode=mode,
                                         seed=args.seed)
-        if args.report_only:
-            failed = dict(zip(*read_failures(path)[["key", "reason"]].to_numpy().T)) if path.exists() else {}
-        else:
-            failed = generate(path, config, workers=1).failed
+        if not args.report_only:
+            generate(path, config, workers=1)
+        # every failure the database holds, those of earlier runs (skipped on resume) included
+        failed = dict(zip(*read_failures(path)[["key", "reason"]].to_numpy().T)) if path.exists() else {}
         records = {}
         if path.exists():
             with h5py.File(path) as f:
