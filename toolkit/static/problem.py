@@ -70,7 +70,7 @@ class StaticProblem:
     mesh : Mesh with one or several volume blocks (hex8 and wedge6 with mean dilatation;
         tet4, tet10); element sets of ``materials`` may span blocks
     materials : MaterialAssignment (all linear, or all Neo-Hookean)
-    solver : ``auto``, ``superlu``, ``amg`` or ``cholmod`` (see :mod:`toolkit.common.fem.solvers`)
+    solver : ``auto``, ``superlu``, ``pardiso``, ``amg`` or ``cholmod`` (see :mod:`toolkit.common.fem.solvers`)
     pattern : a SparsePattern of the same topology to reuse
     rtol : Newton stops when the free-dof residual falls below ``rtol`` times the
         largest nodal force (reactions included)

@@ -129,7 +129,8 @@ class SimulationOptions:
 
     Attributes
     ----------
-    solver : linear solver (``auto``, ``superlu``, ``amg``, ``cholmod``)
+    solver : linear solver (``auto``, ``superlu``, ``pardiso``, ``amg``, ``cholmod``; see
+        :mod:`toolkit.common.fem.solvers`)
     lip_threshold : mm, the lip-sliding paper's collision-detection distance for lip pairs
     min_scaled_jacobian : a step whose deformed mesh has an element at or below this
         (minimum corner scaled Jacobian) is cut, and the run fails if cutting cannot help
