@@ -110,3 +110,29 @@ def test_tet10_regulation_gives_a_folded_edge_its_shape_back(tet10_cube, curvatu
     np.testing.assert_allclose(reg.points[inner_mid], points[inner_mid], atol=1e-9)
     assert reg.min_quality_after == pytest.approx(q0)
     assert np.all(reg.points[~interior] == x[~interior])
+
+
+def test_tet10_regulation_unfolds_around_a_mid_edge_node_it_may_not_move(tet10_cube):
+    """A mid-edge node held where a boundary condition put it (on a moving bone, say), 4 mm off
+    its straight 10 mm edge, folds its elements while every corner tetrahedron is as it was.
+    Putting mid-edge nodes back on their edges cannot help (this one may not move), so
+    regulation moves the nodes around it for the quadratic map's own Jacobian: every element
+    is valid again and the held node has not moved."""
+    from toolkit.common.fem.reference import TET_EDGES
+
+    mesh, interior = tet10_cube
+    conn = mesh.cells["tet10"]
+    mid, a, b = conn[:, 4:].ravel(), conn[:, TET_EDGES[:, 0]].ravel(), conn[:, TET_EDGES[:, 1]].ravel()
+    inner = np.flatnonzero(interior[mid] & interior[a] & interior[b])[0]
+    held = mid[inner]
+    edge = mesh.points[b[inner]] - mesh.points[a[inner]]
+    off = np.cross(edge, [1.0, 0.0, 0.0] if abs(edge[0]) < 0.9 * np.linalg.norm(edge) else [0.0, 1.0, 0.0])
+    x = mesh.points.copy()
+    x[held] += 4.0 * off / np.linalg.norm(off)
+    assert element_quality(mesh, x).min() < 0
+    movable = interior.copy()
+    movable[held] = False
+    reg = regulate(mesh, x, movable, target=0.2)
+    assert reg.min_quality_before < 0 and reg.min_quality_after > 0.05
+    np.testing.assert_array_equal(reg.points[held], x[held])
+    assert np.all(reg.points[~movable] == x[~movable])

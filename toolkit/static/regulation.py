@@ -14,7 +14,10 @@ the mesh boundary (the bone side, a free slit face) move in their tangent plane 
 the boundary shape is kept. Cells ``hex8``, ``wedge6``, ``tet4`` and ``tet10``: a ``tet10``
 is regulated by its corner tetrahedron, and then its movable mid-edge nodes take back the
 pre-operative shape of their edge (straight for a mesh with straight edges): deformation
-curves the edges, and a curved edge folds a quadratic element whose corners are fine.
+curves the edges, and a curved edge folds a quadratic element whose corners are fine. Where an
+element is still folded with good corners (a mid-edge node that may not move, on a moving bone
+beside released tissue, curves its edge), the same descent runs again on the quadratic map's
+Jacobian determinants at the points where its quality is sampled, mid-edge nodes included.
 """
 
 from __future__ import annotations
@@ -91,6 +94,17 @@ def _corner_tables(mesh: Mesh, elements: np.ndarray) -> tuple[np.ndarray, np.nda
     return np.concatenate(out), np.concatenate(owner)
 
 
+def _corner_quality(mesh: Mesh, x: np.ndarray, elements: np.ndarray) -> np.ndarray:
+    """Scaled Jacobian of the corner tetrahedron of each of the given ``tet10`` elements."""
+    from toolkit.common.quality import scaled_jacobian
+
+    out = np.full(elements.size, np.inf)
+    for ctype, conn, sel, offset in _by_block(mesh, elements):
+        if ctype == "tet10":
+            out[np.searchsorted(elements, sel + offset)] = scaled_jacobian("tet4", x[conn[sel][:, :4]])
+    return out
+
+
 def _element_adjacency(mesh: Mesh) -> sp.csr_matrix:
     """Node-element incidence ``(n, E)`` of the volume blocks."""
     rows, cols, offset = [], [], 0
@@ -118,22 +132,79 @@ def _boundary_normals(mesh: Mesh, points: np.ndarray) -> np.ndarray:
     return np.divide(out, length, out=np.zeros_like(out), where=length > 0)
 
 
-def _objective(x: np.ndarray, corners: np.ndarray, tau: np.ndarray, gradient: bool = True):
-    """``sum max(0, tau - D)^2`` over the corners and its gradient ``(n, 3)``."""
-    x0 = x[corners[:, 0]]
-    e1, e2, e3 = (x[corners[:, k]] - x0 for k in (1, 2, 3))
-    D = np.einsum("ij,ij->i", np.cross(e1, e2), e3)
-    short = np.maximum(0.0, tau - D)
-    value = float(np.sum(short**2))
-    if not gradient:
-        return value, None
-    coef = (-2.0 * short)[:, None]  # d value / d D
-    g1, g2, g3 = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)  # dD/de1, dD/de2, dD/de3
-    grad = np.zeros_like(x)
-    for k, gk in ((1, g1), (2, g2), (3, g3)):
-        np.add.at(grad, corners[:, k], coef * gk)
-    np.add.at(grad, corners[:, 0], -coef * (g1 + g2 + g3))
+#: a corner tetrahedron's frame as weights on (corner, three edge ends): rows ``x_k - x_0``
+_EDGE_WEIGHTS = np.array([[-1.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 1.0]])
+
+
+def _objective(x: np.ndarray, frames: list, gradient: bool = True):
+    """``sum max(0, tau - D)^2`` over the frames and its gradient ``(n, 3)``.
+
+    ``frames`` holds groups ``(nodes (k, p), weights (3, p), tau (k,))``: each of the ``k``
+    frames has rows ``sum_a weights[j, a] * x[nodes[:, a]]`` and determinant ``D``."""
+    value, grad = 0.0, np.zeros_like(x) if gradient else None
+    for nodes, weights, tau in frames:
+        rows = np.einsum("jp,kpd->kjd", weights, x[nodes])
+        r0, r1, r2 = rows[:, 0], rows[:, 1], rows[:, 2]
+        D = np.einsum("ij,ij->i", np.cross(r0, r1), r2)
+        short = np.maximum(0.0, tau - D)
+        value += float(np.sum(short**2))
+        if gradient:
+            dD = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=1)  # d D / d row_j
+            np.add.at(grad, nodes, (-2.0 * short)[:, None, None] * np.einsum("jp,kjd->kpd", weights, dD))
     return value, grad
+
+
+def _tet10_frames(mesh: Mesh, elements: np.ndarray, x: np.ndarray, target: np.ndarray) -> list:
+    """The quadratic map's Jacobian of the given ``tet10`` elements at the samples where their
+    quality is measured (:data:`~toolkit.common.quality.TET10_SAMPLES`), as frames of
+    :func:`_objective`; each aims at ``target`` times the product of its corner tetrahedron's
+    edge lengths at node 0 (the scale of stage one's corner frames)."""
+    from toolkit.common.quality import TET10_SAMPLES, tet10_shape_gradients
+
+    gradients = tet10_shape_gradients(TET10_SAMPLES).transpose(0, 2, 1)  # (s, 3, 10): row k is d/dxi_k
+    frames = []
+    for ctype, conn, sel, offset in _by_block(mesh, elements):
+        if ctype != "tet10":
+            continue
+        nodes = conn[sel]
+        scale = np.prod(np.linalg.norm(x[nodes[:, 1:4]] - x[nodes[:, :1]], axis=2), axis=1)
+        tau = target[sel + offset] * np.maximum(scale, 1e-27)
+        frames += [(nodes, weights, tau) for weights in gradients]
+    return frames
+
+
+def _descend(x: np.ndarray, frames: list, active: np.ndarray, normals: np.ndarray, length: float,
+             iterations: int) -> np.ndarray:
+    """Gradient descent of :func:`_objective` over the ``active`` nodes of ``x (n, 3)``, those
+    with a boundary normal moving in their tangent plane, each step capped at a tenth of the
+    local edge ``length`` mm, with a backtracking line search."""
+    on_boundary = active & (np.linalg.norm(normals, axis=1) > 0)
+    tau_max = max(float(max(np.abs(t).max() for _, _, t in frames)), 1e-30)
+    value, grad = _objective(x, frames)
+    step = length**2 / tau_max
+    for _ in range(iterations):
+        if value == 0.0:
+            break
+        d = -grad
+        d[~active] = 0.0
+        d[on_boundary] -= np.einsum("ij,ij->i", d[on_boundary], normals[on_boundary])[:, None] * normals[on_boundary]
+        # cap the move at a tenth of the local edge length so a step cannot fold neighbours
+        dmax = float(np.abs(d).max())
+        if dmax == 0.0:
+            break
+        alpha = min(step, 0.1 * length / dmax)
+        for _ in range(30):
+            trial = x + alpha * d
+            v_trial, _ = _objective(trial, frames, gradient=False)
+            if v_trial < value:
+                break
+            alpha *= 0.5
+        else:
+            break
+        x = trial
+        value, grad = _objective(x, frames)
+        step = 2.0 * alpha
+    return x
 
 
 def _place_mid_edge_nodes(mesh: Mesh, x: np.ndarray, elements: np.ndarray, movable: np.ndarray) -> np.ndarray:
@@ -193,34 +264,20 @@ def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float 
     lengths = np.stack([np.linalg.norm(x0[corners[:, k]] - x0[corners[:, 0]], axis=1) for k in (1, 2, 3)], axis=1)
     tau = target[owner] * np.prod(np.maximum(lengths, 1e-9), axis=1)
     normals = _boundary_normals(mesh, x0)
-    on_boundary = active & (np.linalg.norm(normals, axis=1) > 0)
-    x = x0.copy()
-    value, grad = _objective(x, corners, tau)
-    step = 1.0 / max(float(np.abs(tau).max()), 1e-30) * float(np.median(lengths)) ** 2
-    for _ in range(iterations):
-        if value == 0.0:
-            break
-        d = -grad
-        d[~active] = 0.0
-        d[on_boundary] -= np.einsum("ij,ij->i", d[on_boundary], normals[on_boundary])[:, None] * normals[on_boundary]
-        # cap the move at a tenth of the local edge length so a step cannot fold neighbours
-        dmax = float(np.abs(d).max())
-        if dmax == 0.0:
-            break
-        alpha = min(step, 0.1 * float(np.median(lengths)) / dmax)
-        for _ in range(30):
-            trial = x + alpha * d
-            v_trial, _ = _objective(trial, corners, tau, gradient=False)
-            if v_trial < value:
-                break
-            alpha *= 0.5
-        else:
-            break
-        x = trial
-        value, grad = _objective(x, corners, tau)
-        step = 2.0 * alpha
+    length = float(np.median(lengths))
+    x = _descend(x0.copy(), [(corners, _EDGE_WEIGHTS, tau)], active, normals, length, iterations)
     if "tet10" in mesh.cells:
         x = _place_mid_edge_nodes(mesh, x, elems, active)
+        # an element whose corners are good may still fold along an edge whose mid-edge node
+        # cannot move (on a bone, on the skin) or was put back on a neighbour's straight edge:
+        # then the quadratic map's own Jacobian is what the nodes are moved for
+        q = element_quality(mesh, x)
+        folded = elems[q[elems] < target[elems]]
+        if folded.size:
+            corner_q = _corner_quality(mesh, x, folded)
+            folded = folded[q[folded] < np.minimum(target[folded], corner_q) - 1e-9]
+        if folded.size:
+            x = _descend(x, _tet10_frames(mesh, elems, x, target), active, normals, length, iterations)
     after = element_quality(mesh, x)
     if after.min() <= before:  # no better than the start: leave the mesh as it was
         return Regulation(x0, 0, 0.0, before, before)
