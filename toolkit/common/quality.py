@@ -28,7 +28,7 @@ import numpy as np
 from toolkit.common.fem.reference import REFERENCE_ELEMENTS
 from toolkit.common.mesh import DegenerateElementError, InvertedElementError, MeshError
 
-__all__ = ["scaled_jacobian", "check_elements", "check_blocks", "tet10_shape_gradients", "TET10_SAMPLES"]
+__all__ = ["scaled_jacobian", "check_elements", "check_blocks", "tet10_shape_gradients", "TET10_SAMPLE_GRADIENTS"]
 
 _HEX_CORNER_EDGES = REFERENCE_ELEMENTS["hex8"].corner_frames
 _WEDGE_CORNER_EDGES = REFERENCE_ELEMENTS["wedge6"].corner_frames
@@ -84,9 +84,7 @@ def tet10_shape_gradients(xi: np.ndarray) -> np.ndarray:
     return REFERENCE_ELEMENTS["tet10"].gradient(xi)
 
 
-#: (14, 3) reference points where a ``tet10``'s quality samples its Jacobian: the 10 nodes and
-#: the 4 Gauss points
-TET10_SAMPLES = np.vstack(
+_TET10_SAMPLES = np.vstack(
     [
         [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
         [[0.5, 0, 0], [0.5, 0.5, 0], [0, 0.5, 0], [0, 0, 0.5], [0.5, 0, 0.5], [0, 0.5, 0.5]],
@@ -95,12 +93,13 @@ TET10_SAMPLES = np.vstack(
 )
 
 
-#: (s, 3, 10) transposed shape gradients of tet10 at its samples: ``dN_a / dxi_k`` at ``[s, k, a]``
-_TET10_SAMPLE_GRADIENTS_T = np.ascontiguousarray(tet10_shape_gradients(TET10_SAMPLES).transpose(0, 2, 1))
+#: (14, 3, 10) transposed shape gradients of tet10 at the points where its quality samples the
+#: Jacobian (the 10 nodes and the 4 Gauss points): ``dN_a / dxi_k`` at ``[s, k, a]``
+TET10_SAMPLE_GRADIENTS = np.ascontiguousarray(tet10_shape_gradients(_TET10_SAMPLES).transpose(0, 2, 1))
 
 
 def _tet10_sj(x: np.ndarray) -> np.ndarray:
-    jac_t = np.matmul(_TET10_SAMPLE_GRADIENTS_T[None], x[:, None])  # (n, s, 3, 3): row k is dx/dxi_k
+    jac_t = np.matmul(TET10_SAMPLE_GRADIENTS[None], x[:, None])  # (n, s, 3, 3): row k is dx/dxi_k
     det = _det3(jac_t)
     det_lin = _det3(x[:, 1:4, :] - x[:, :1, :])
     with np.errstate(invalid="ignore", divide="ignore"):

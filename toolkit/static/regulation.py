@@ -156,12 +156,11 @@ def _objective(x: np.ndarray, frames: list, gradient: bool = True):
 
 def _tet10_frames(mesh: Mesh, elements: np.ndarray, x: np.ndarray, target: np.ndarray) -> list:
     """The quadratic map's Jacobian of the given ``tet10`` elements at the samples where their
-    quality is measured (:data:`~toolkit.common.quality.TET10_SAMPLES`), as frames of
+    quality is measured (:data:`~toolkit.common.quality.TET10_SAMPLE_GRADIENTS`), as frames of
     :func:`_objective`; each aims at ``target`` times the product of its corner tetrahedron's
     edge lengths at node 0 (the scale of stage one's corner frames)."""
-    from toolkit.common.quality import TET10_SAMPLES, tet10_shape_gradients
+    from toolkit.common.quality import TET10_SAMPLE_GRADIENTS
 
-    gradients = tet10_shape_gradients(TET10_SAMPLES).transpose(0, 2, 1)  # (s, 3, 10): row k is d/dxi_k
     frames = []
     for ctype, conn, sel, offset in _by_block(mesh, elements):
         if ctype != "tet10":
@@ -169,7 +168,7 @@ def _tet10_frames(mesh: Mesh, elements: np.ndarray, x: np.ndarray, target: np.nd
         nodes = conn[sel]
         scale = np.prod(np.linalg.norm(x[nodes[:, 1:4]] - x[nodes[:, :1]], axis=2), axis=1)
         tau = target[sel + offset] * np.maximum(scale, 1e-27)
-        frames += [(nodes, weights, tau) for weights in gradients]
+        frames += [(nodes, weights, tau) for weights in TET10_SAMPLE_GRADIENTS]
     return frames
 
 
@@ -268,17 +267,17 @@ def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float 
     x = _descend(x0.copy(), [(corners, _EDGE_WEIGHTS, tau)], active, normals, length, iterations)
     if "tet10" in mesh.cells:
         x = _place_mid_edge_nodes(mesh, x, elems, active)
+    after = element_quality(mesh, x)
+    if "tet10" in mesh.cells:
         # an element whose corners are good may still fold along an edge whose mid-edge node
         # cannot move (on a bone, on the skin) or was put back on a neighbour's straight edge:
         # then the quadratic map's own Jacobian is what the nodes are moved for
-        q = element_quality(mesh, x)
-        folded = elems[q[elems] < target[elems]]
+        folded = elems[after[elems] < target[elems]]
         if folded.size:
-            corner_q = _corner_quality(mesh, x, folded)
-            folded = folded[q[folded] < np.minimum(target[folded], corner_q) - 1e-9]
+            folded = folded[after[folded] < np.minimum(target[folded], _corner_quality(mesh, x, folded)) - 1e-9]
         if folded.size:
             x = _descend(x, _tet10_frames(mesh, elems, x, target), active, normals, length, iterations)
-    after = element_quality(mesh, x)
+            after = element_quality(mesh, x)
     if after.min() <= before:  # no better than the start: leave the mesh as it was
         return Regulation(x0, 0, 0.0, before, before)
     shift = np.linalg.norm(x - x0, axis=1)
