@@ -15,9 +15,11 @@ the boundary shape is kept. Cells ``hex8``, ``wedge6``, ``tet4`` and ``tet10``: 
 is regulated by its corner tetrahedron, and then its movable mid-edge nodes take back the
 pre-operative shape of their edge (straight for a mesh with straight edges): deformation
 curves the edges, and a curved edge folds a quadratic element whose corners are fine. Where an
-element is still folded with good corners (a mid-edge node that may not move, on a moving bone
-beside released tissue, curves its edge), the same descent runs again on the quadratic map's
-Jacobian determinants at the points where its quality is sampled, mid-edge nodes included.
+element is still folded (a mid-edge node that may not move, on a moving bone beside released
+tissue, curves its edge), the same descent runs again on the quadratic map's Jacobian
+determinants at the points where its quality is sampled, mid-edge nodes included: only the nodes
+of the folded elements and of their neighbours move, and every element they belong to is held
+above the target.
 """
 
 from __future__ import annotations
@@ -92,17 +94,6 @@ def _corner_tables(mesh: Mesh, elements: np.ndarray) -> tuple[np.ndarray, np.nda
     if not out:
         return np.zeros((0, 4), dtype=np.int64), np.zeros(0, dtype=np.int64)
     return np.concatenate(out), np.concatenate(owner)
-
-
-def _corner_quality(mesh: Mesh, x: np.ndarray, elements: np.ndarray) -> np.ndarray:
-    """Scaled Jacobian of the corner tetrahedron of each of the given ``tet10`` elements."""
-    from toolkit.common.quality import scaled_jacobian
-
-    out = np.full(elements.size, np.inf)
-    for ctype, conn, sel, offset in _by_block(mesh, elements):
-        if ctype == "tet10":
-            out[np.searchsorted(elements, sel + offset)] = scaled_jacobian("tet4", x[conn[sel][:, :4]])
-    return out
 
 
 def _element_adjacency(mesh: Mesh) -> sp.csr_matrix:
@@ -272,11 +263,15 @@ def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float 
         # an element whose corners are good may still fold along an edge whose mid-edge node
         # cannot move (on a bone, on the skin) or was put back on a neighbour's straight edge:
         # then the quadratic map's own Jacobian is what the nodes are moved for
-        folded = elems[after[elems] < target[elems]]
+        folded = elems[after[elems] <= 0.0]
         if folded.size:
-            folded = folded[after[folded] < np.minimum(target[folded], _corner_quality(mesh, x, folded)) - 1e-9]
-        if folded.size:
-            x = _descend(x, _tet10_frames(mesh, elems, x, target), active, normals, length, iterations)
+            # only the nodes of the folded elements and of their neighbours move, guarded by
+            # every element they belong to: the rest of the regulated region keeps stage one's answer
+            near = np.asarray(inc[:, folded].sum(axis=1)).ravel() > 0
+            near = np.asarray(inc[:, np.asarray(inc[near].sum(axis=0)).ravel() > 0].sum(axis=1)).ravel() > 0
+            near &= active
+            guard = np.flatnonzero(np.asarray(inc[near].sum(axis=0)).ravel() > 0)
+            x = _descend(x, _tet10_frames(mesh, guard, x, target), near, normals, length, iterations)
             after = element_quality(mesh, x)
     if after.min() <= before:  # no better than the start: leave the mesh as it was
         return Regulation(x0, 0, 0.0, before, before)
