@@ -283,9 +283,8 @@ def _solvers(data):
         ("reuse_iterations", "its iterations"), ("peak_rss_mib", "peak memory (MiB)"), ("auto_choice", "auto picks")])
 
 
-def _meshed_speed(data):
-    t = pd.concat([data[k][0] for k in ("static_meshed_speed", "static_meshed_speed_ct") if k in data],
-                  ignore_index=True)
+def _meshed_speed(data, stems=("static_meshed_speed", "static_meshed_speed_ct")):
+    t = pd.concat([data[k][0] for k in stems if k in data], ignore_index=True)
     t["face"] = t["face"].map(lambda f: "head CT" if f == "ct" else "phantom's surfaces")
     runs = table(t, [
         ("face", "face"), ("size_mm", "size (mm)", "{:g}"), ("nodes", "nodes"), ("code", "code"),
@@ -943,6 +942,10 @@ SOURCES = {s.stem: s for s in (
     Source("mixed_elements", "python benchmarks/mixed_elements.py", 1),
     Source("static_meshed_speed_ct", "python benchmarks/static_meshed_speed.py --face ct --code /tmp/before . "
            "--repeats 1 --out benchmarks/results/static_meshed_speed_ct.csv", 50),
+    Source("regulation_speed", "python benchmarks/static_meshed_speed.py --code /tmp/before . --repeats 1 "
+           "--out benchmarks/results/regulation_speed.csv", 6),
+    Source("regulation_speed_ct", "python benchmarks/static_meshed_speed.py --face ct --code /tmp/before . "
+           "--repeats 1 --out benchmarks/results/regulation_speed_ct.csv", 15),
     Source("slow_modes", "python benchmarks/slow_modes.py", 10),
     Source("static_meshed_speed", "python benchmarks/static_meshed_speed.py --code /tmp/before . --repeats 2", 12),
     Source("static_solvers", "python benchmarks/static_solvers.py --meshes coarse paper paper-tet4 bulk-tet4 "
@@ -1010,6 +1013,15 @@ BLOCKS = {b.name: b for b in (
           "each increment's first solve from the step before it. The difference is the largest nodal difference "
           "to the first code's answer of the same run.",
           (SOURCES["static_meshed_speed"], SOURCES["static_meshed_speed_ct"]), _meshed_speed),
+    Block("regulation_speed", "Time per plan with the quadratic untangling",
+          "The default plan (linear, mucosa and lip sliding, 3 increments) on the paper phantom's surfaces, and the "
+          "5 mm mandibular advance on the head CT's, meshed by `toolkit mesh` at its default 3 mm (tet10), run by "
+          "two checkouts of the toolkit in turn, each run a fresh single-threaded process: commit 201dd26, whose "
+          "mesh regulation untangles a tet10 by its corner tetrahedron only, and the current code, which then "
+          "untangles a still folded tet10 on its quadratic Jacobian. The difference is the largest nodal "
+          "difference to the first code's answer of the same run.",
+          (SOURCES["regulation_speed"], SOURCES["regulation_speed_ct"]),
+          lambda data: _meshed_speed(data, ("regulation_speed", "regulation_speed_ct"))),
     Block("slow_modes", "The slowest modes of a face's static system",
           "The first reduced system of the default plan (on the head CT, the 5 mm advance) on faces meshed at "
           "3 mm (tet10): the CG iterations of the solver's AMG hierarchy to 1e-9, and the smallest eigenpairs "
@@ -1166,7 +1178,7 @@ BLOCKS = {b.name: b for b in (
 )}
 #: blocks whose table needs every source (the others render what is present, the rest as one line)
 _PARTIAL = {"headline", "static_surrogate", "impact_surrogate", "static_convergence", "own_face",
-            "surrogate_trust_impact", "meshed_database", "static_meshed_speed"}
+            "surrogate_trust_impact", "meshed_database", "static_meshed_speed", "regulation_speed"}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1196,7 +1208,7 @@ def render(name: str, data: dict) -> str:
         return not_measured(block.sources[-1])
     body = block.render(present)
     if name in ("static_surrogate", "impact_surrogate", "static_convergence", "own_face", "surrogate_trust_impact",
-                "meshed_database", "static_meshed_speed"):
+                "meshed_database", "static_meshed_speed", "regulation_speed"):
         body += "\n\n" + _sources_footer(present, block.sources)
     return body
 
