@@ -159,7 +159,11 @@ def test_train_evaluate_and_predict_on_the_meshed_face(face, database, tmp_path,
     out = tmp_path / "answer-baseline"
     assert main(["static", "predict", "--model", str(model), "--mesh", str(face["mesh"]), "--plan", str(plan),
                  "--tolerance", "1000", "--out", str(out), "--no-preview"]) == 0
-    assert json.loads((out / "summary.json").read_text())["answer"]["answered_by"] == "baseline"
+    # (on some of fTetWild's meshings of this 10 mm face the baseline inverts an element on this plan:
+    # that answer is never given, the FE answers and says why)
+    answer = json.loads((out / "summary.json").read_text())["answer"]
+    assert answer["answered_by"] == "baseline" or (
+        answer["answered_by"] == "fe" and answer["reason"].startswith("the answer failed its checks")), answer
     subject = database_subject(db.config, 0)
     test_key = json.loads((model / "config.json").read_text())["extra"]["test_keys"][0]
     m = Surrogate.load(model)
