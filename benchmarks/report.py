@@ -301,6 +301,20 @@ def _meshed_speed(data, stems=("static_meshed_speed", "static_meshed_speed_ct"))
     return runs + "\n\n" + ratios
 
 
+def _predict_speed(data):
+    t = data["predict_speed"][0]
+    med = t.groupby(["resolution", "run"], sort=False).agg(
+        nodes=("nodes", "max"), runs=("wall_s", "size"), wall_s=("wall_s", "median"),
+        in_process_s=("in_process_s", "median")).reset_index()
+    fe = med[med.run == "simulate"].set_index("resolution")["wall_s"]
+    med["ratio"] = [w / fe[r] if run in ("simulate", "predict") else float("nan")
+                    for r, run, w in zip(med.resolution, med.run, med.wall_s)]
+    return table(med, [("resolution", "resolution"), ("nodes", "nodes", "{:,.0f}"), ("run", "run"),
+                       ("runs", "runs"), ("wall_s", "median wall time (s)", "{:.2f}"),
+                       ("in_process_s", "in the process's work (s)", "{:.3f}"),
+                       ("ratio", "wall time / the FE's", "{:.2f}")])
+
+
 def _slow_modes(data):
     t = data["slow_modes"][0].copy()
     t["face"] = t["face"].map(lambda f: "head CT" if f == "ct" else "phantom's surfaces")
@@ -947,6 +961,7 @@ SOURCES = {s.stem: s for s in (
     Source("regulation_speed_ct", "python benchmarks/static_meshed_speed.py --face ct --code /tmp/before . "
            "--repeats 1 --out benchmarks/results/regulation_speed_ct.csv", 15),
     Source("slow_modes", "python benchmarks/slow_modes.py", 10),
+    Source("predict_speed", "python benchmarks/predict_speed.py", 5),
     Source("static_meshed_speed", "python benchmarks/static_meshed_speed.py --code /tmp/before . --repeats 2", 12),
     Source("static_solvers", "python benchmarks/static_solvers.py --meshes coarse paper paper-tet4 bulk-tet4 "
            "meshed-5mm meshed-3mm --methods superlu pardiso amg amg-sa auto", 10),
@@ -1022,6 +1037,12 @@ BLOCKS = {b.name: b for b in (
           "difference to the first code's answer of the same run.",
           (SOURCES["regulation_speed"], SOURCES["regulation_speed_ct"]),
           lambda data: _meshed_speed(data, ("regulation_speed", "regulation_speed_ct"))),
+    Block("predict_speed", "`static predict` beside `static simulate`, end to end",
+          "The default plan on a phantom, each command a fresh process of one thread from start to exit, the "
+          "two commands and the two imports in turn; the surrogate is the default network (its inference time "
+          "does not depend on its training). `in the process's work` is the time the summary reports: the "
+          "increments for the FE, the prediction with its influence matrix for the surrogate.",
+          (SOURCES["predict_speed"],), _predict_speed),
     Block("slow_modes", "The slowest modes of a face's static system",
           "The first reduced system of the default plan (on the head CT, the 5 mm advance) on faces meshed at "
           "3 mm (tet10): the CG iterations of the solver's AMG hierarchy to 1e-9, and the smallest eigenpairs "
