@@ -271,8 +271,10 @@ def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float 
             near = np.asarray(inc[:, np.asarray(inc[near].sum(axis=0)).ravel() > 0].sum(axis=1)).ravel() > 0
             near &= active
             guard = np.flatnonzero(np.asarray(inc[near].sum(axis=0)).ravel() > 0)
-            x = _descend(x, _tet10_frames(mesh, guard, x, target), near, normals, length, iterations)
-            after = element_quality(mesh, x)
+            frames = _tet10_frames(mesh, guard, x, target)
+            if frames and near.any():  # (a folded element of another cell type has no quadratic map)
+                x = _descend(x, frames, near, normals, length, iterations)
+                after = element_quality(mesh, x)
     if after.min() <= before:  # no better than the start: leave the mesh as it was
         return Regulation(x0, 0, 0.0, before, before)
     shift = np.linalg.norm(x - x0, axis=1)
