@@ -1228,8 +1228,7 @@ def render(name: str, data: dict) -> str:
     if not present and name != "headline":
         return not_measured(block.sources[-1])
     body = block.render(present)
-    if name in ("static_surrogate", "impact_surrogate", "static_convergence", "own_face", "surrogate_trust_impact",
-                "meshed_database", "static_meshed_speed", "regulation_speed"):
+    if name != "headline":
         body += "\n\n" + _sources_footer(present, block.sources)
     return body
 
