@@ -1,5 +1,6 @@
-"""The suite runs on one thread, as the command line does by default: importing ``toolkit``
-limits no threads, so the harness sets it once. Subprocesses (CLI tests,
+"""Each test process (one per core under pytest-xdist, see ``addopts`` in pyproject.toml) runs
+on one thread, as the command line does by default: importing ``toolkit`` limits no threads,
+so the harness sets it once per process. Subprocesses (CLI tests,
 notebook kernels, database workers) inherit it through the environment.
 
 Tests marked ``long`` (notebooks, the documentation's code blocks, training to an accuracy,
