@@ -630,7 +630,8 @@ def _segmentation_damage(data):
 
 
 def _meshed_database(data):
-    t = pd.concat([data[k][0] for k in ("meshed_database", "meshed_database_ct") if k in data], ignore_index=True)
+    t = pd.concat([data[k][0] for k in ("meshed_database", "meshed_database_ct", "meshed_database_ct_tet10")
+                   if k in data], ignore_index=True)
     if "resolution" in t.columns:  # tables written before the CT face was measured name the phantom only
         t["face"] = t["face"].fillna(t.pop("resolution")) if "face" in t.columns else t.pop("resolution")
     t["face"] = t["face"].map(lambda f: "head CT" if f == "ct" else f"{f} phantom's surfaces")
@@ -984,6 +985,8 @@ SOURCES = {s.stem: s for s in (
     Source("meshed_database", "python benchmarks/meshed_database.py --size 3 --plans 4", 30),
     Source("meshed_database_ct", "python benchmarks/meshed_database.py --ct --size 3 --order 1 --plans 10 "
            "--out benchmarks/results/meshed_database_ct.csv", 40),
+    Source("meshed_database_ct_tet10", "python benchmarks/meshed_database.py --ct --size 3 --order 2 --plans 2 "
+           "--out benchmarks/results/meshed_database_ct_tet10.csv", 40),
     Source("silent_cases", "python benchmarks/silent_cases.py", 2),
     Source("own_face_impact", "python benchmarks/own_face_impact.py", 20),
     Source("surrogate_trust_static", "python benchmarks/surrogate_trust.py --cases 40", 15),
@@ -1168,7 +1171,8 @@ BLOCKS = {b.name: b for b in (
           "`toolkit static dataset --mesh` on faces meshed by `toolkit mesh` (the paper phantom's surfaces, and "
           "the head CT's from `toolkit ct`): sampled plans of each mode, with the simulation's retries (wider "
           "release band, freed cut nodes) stored per plan.",
-          (SOURCES["meshed_database"], SOURCES["meshed_database_ct"]), _meshed_database),
+          (SOURCES["meshed_database"], SOURCES["meshed_database_ct"], SOURCES["meshed_database_ct_tet10"]),
+          _meshed_database),
     Block("silent_cases", "Inputs that once gave a wrong answer",
           "Each run as a user would on the paper phantom's surfaces meshed at 7 mm: labelling rules under which the "
           "distal mandible carries almost nothing, a mesh whose mandible set holds one node under a 5 mm advance, "
