@@ -136,3 +136,24 @@ def test_tet10_regulation_unfolds_around_a_mid_edge_node_it_may_not_move(tet10_c
     assert reg.min_quality_before < 0 and reg.min_quality_after > 0.05
     np.testing.assert_array_equal(reg.points[held], x[held])
     assert np.all(reg.points[~movable] == x[~movable])
+
+
+def test_a_folded_hexahedron_beside_tet10_blocks_is_regulated_without_a_quadratic_map():
+    """A mesh of tet10 and hex8 blocks: a hexahedron folded by a node that may not move (pushed
+    25 mm through its 10 mm cell) has no quadratic map to descend on, so regulation keeps stage
+    one's answer instead of failing; the held node stays where it was put."""
+    from toolkit.common.mesh import Mesh
+
+    tets = block([np.linspace(0, 20, 3)] * 3, "tet10")
+    hexes = block([np.linspace(0, 30, 4)] * 3, "hex8")
+    mesh = Mesh(np.vstack([tets.points, hexes.points + [100.0, 0.0, 0.0]]),
+                {"tet10": tets.cells["tet10"], "hex8": hexes.cells["hex8"] + tets.n_points})
+    inside = np.flatnonzero(np.all((hexes.points > 0) & (hexes.points < 30), axis=1)) + tets.n_points
+    movable = np.zeros(mesh.n_points, dtype=bool)
+    movable[inside[1:]] = True
+    x = mesh.points.copy()
+    x[inside[0]] += [25.0, 25.0, 25.0]
+    assert element_quality(mesh, x).min() < 0
+    reg = regulate(mesh, x, movable, target=0.2)
+    assert reg.min_quality_after >= reg.min_quality_before
+    np.testing.assert_array_equal(reg.points[~movable], x[~movable])

@@ -272,7 +272,7 @@ def regulate(mesh: Mesh, points: np.ndarray, movable: np.ndarray, target: float 
             near &= active
             guard = np.flatnonzero(np.asarray(inc[near].sum(axis=0)).ravel() > 0)
             frames = _tet10_frames(mesh, guard, x, target)
-            if frames and near.any():  # (a folded element of another cell type has no quadratic map)
+            if frames:  # (a folded element of another cell type has no quadratic map)
                 x = _descend(x, frames, near, normals, length, iterations)
                 after = element_quality(mesh, x)
     if after.min() <= before:  # no better than the start: leave the mesh as it was
