@@ -3,10 +3,10 @@
 - :class:`InfluenceMatrix`: linear superposition. On the pre-operative mesh, the
   stiffness is condensed on the nodes a bone drives (attached and mucosa, all moving
   with their bone: the lip-sliding paper's method without sliding) and the fixed nodes:
-  ``u_free = H u_bone`` with ``H = -K_ff^-1 K_fb`` computed once (one factorization, one
-  solve per driven dof). Exact for a linear material without sliding or lip contact on
-  the mesh it was built for, in one increment; it ignores sliding, lip contact and the
-  geometry update between increments.
+  ``u_free = H u_bone`` with ``H = -K_ff^-1 K_fb``, kept factored (one factorization, then
+  one solve per prediction; the dense ``H`` is formed only when asked for). Exact for a
+  linear material without sliding or lip contact on the mesh it was built for, in one
+  increment; it ignores sliding, lip contact and the geometry update between increments.
 - :class:`PODRegression`: the displacements of the training samples are compressed by
   principal components (POD), and the component weights are regressed on the plan's
   parameters (ridge regression on quadratic features). It never sees a mesh, only plans.
@@ -21,9 +21,11 @@ Both predict the displacement of one increment ``(n, 3)`` mm, like the FE and th
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from toolkit.common.mesh import Mesh
 
@@ -39,15 +41,24 @@ class InfluenceMatrix:
     driven : (m,) int64 — nodes whose displacement is an input (attached and mucosa nodes)
     fixed : (f,) int64 — nodes held at zero
     free : (k,) int64 — the others
-    H : (3k, 3m) float — ``u_free.ravel() = H @ u_driven.ravel()``
-    seconds : time to build, s
+    coupling : (3k, 3m) sparse — ``K_fb``, the free rows and driven columns of the stiffness, N/mm
+    solve : the factor of ``K_ff`` (3k, 3k): ``b (3k,) or (3k, s) -> K_ff^-1 b``
+    seconds : time to build (assembly and factorization), s
     """
 
     driven: np.ndarray
     fixed: np.ndarray
     free: np.ndarray
-    H: np.ndarray
+    coupling: sp.csr_matrix
+    solve: Callable[[np.ndarray], np.ndarray]
     seconds: float
+
+    @property
+    def H(self) -> np.ndarray:
+        """The dense influence matrix ``(3k, 3m)``: ``u_free.ravel() = H @ u_driven.ravel()``,
+        one solve per driven dof, formed on each call (``8 * 3k * 3m`` bytes: 0.1 GB on the
+        paper phantom, beyond memory on a meshed face; :meth:`predict` never forms it)."""
+        return -self.solve(self.coupling.toarray())
 
     @classmethod
     def build(cls, mesh: Mesh, driven: np.ndarray, fixed: np.ndarray, materials="linear") -> InfluenceMatrix:
@@ -75,10 +86,9 @@ class InfluenceMatrix:
         free = np.setdiff1d(np.arange(mesh.n_points), np.concatenate([driven, fixed]))
         dof = lambda nodes: (3 * nodes[:, None] + np.arange(3)).ravel()  # noqa: E731
         f, b = dof(free), dof(driven)
-        Kff = K[f][:, f].tocsc()
-        Kfb = K[f][:, b].toarray()
-        H = -superlu(Kff)(Kfb)
-        return cls(driven, fixed, free, H, time.perf_counter() - t0)
+        Kf = K[f]
+        solve = superlu(Kf[:, f].tocsc())
+        return cls(driven, fixed, free, Kf[:, b].tocsr(), solve, time.perf_counter() - t0)
 
     def predict(self, driven_displacement: np.ndarray) -> np.ndarray:
         """Displacement ``(n, 3)`` mm from the driven nodes' displacement ``(m, 3)`` mm (or
@@ -91,7 +101,7 @@ class InfluenceMatrix:
             raise ValueError(f"driven displacement has shape {d.shape}; expected ({self.driven.size}, 3) or ({n}, 3)")
         u = np.zeros((n, 3))
         u[self.driven] = d
-        u[self.free] = (self.H @ d.ravel()).reshape(-1, 3)
+        u[self.free] = -self.solve(self.coupling @ d.ravel()).reshape(-1, 3)
         return u
 
 
