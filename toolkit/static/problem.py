@@ -74,10 +74,12 @@ class StaticProblem:
     pattern : a SparsePattern of the same topology to reuse
     rtol : Newton stops when the free-dof residual falls below ``rtol`` times the
         largest nodal force (reactions included)
+    orderings : system size -> fill-reducing ordering, shared with the problems of the other
+        steps on the same mesh (:class:`~toolkit.common.fem.solvers.LinearSolver`)
     """
 
     def __init__(self, mesh: Mesh, materials: MaterialAssignment, solver: str = "auto",
-                 pattern: SparsePattern | None = None, rtol: float = 1e-8):
+                 pattern: SparsePattern | None = None, rtol: float = 1e-8, orderings: dict | None = None):
         self.rtol = rtol
         self.mesh = mesh
         self.materials = materials
@@ -95,7 +97,8 @@ class StaticProblem:
         entries = estimate_factor_entries(self.pattern.node_graph()) if solver == "auto" else None
         # a linear material's systems differ only by their reduction (lip pairs tied, the mucosa
         # constrained), for which a stored AMG hierarchy preconditions worse than a new one
-        self.linear_solver = LinearSolver(solver, factor_entries=entries, reuse_hierarchy=not self.linear)
+        self.linear_solver = LinearSolver(solver, factor_entries=entries, orderings=orderings,
+                                          reuse_hierarchy=not self.linear)
         # a quadratic mesh's corner nodes: the first coarsening of AMG (p-multigrid)
         self._corners = corner_interpolation(mesh.cells, mesh.n_points) if solver in ("amg", "auto") else None
         # force of a unit strain on a typical element face, N: the yardstick for round-off

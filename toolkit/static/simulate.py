@@ -361,6 +361,7 @@ class _Model:
     options: SimulationOptions
     total_lagrangian: bool
     pattern: SparsePattern | None = None
+    orderings: dict = field(default_factory=dict)  # system size -> fill-reducing ordering, for every step
     reference_problem: StaticProblem | None = None
     guess: np.ndarray | None = None  # (increments + 1, n, 3) mm, a predicted displacement after each increment
     moving: np.ndarray = field(init=False)
@@ -431,10 +432,12 @@ class _Model:
         the pre-operative face (Neo-Hookean, total Lagrangian)."""
         if self.total_lagrangian:
             if self.reference_problem is None:
-                self.reference_problem = StaticProblem(self.mesh, self.materials, self.options.solver)
+                self.reference_problem = StaticProblem(self.mesh, self.materials, self.options.solver,
+                                                       orderings=self.orderings)
             return self.reference_problem
         try:
-            problem = StaticProblem(self.mesh.with_points(x), self.materials, self.options.solver, self.pattern)
+            problem = StaticProblem(self.mesh.with_points(x), self.materials, self.options.solver, self.pattern,
+                                    orderings=self.orderings)
         except ConvergenceError as exc:
             raise _StepFailure(str(exc)) from exc
         self.pattern = problem.pattern

@@ -179,8 +179,11 @@ def _statistic(name: str) -> property:
 class LinearSolver:
     """A sparse solver that reuses its last factorization or AMG hierarchy.
 
-    ``LinearSolver(method, factor_entries, **settings)``: the fields of :class:`SolverOptions`
-    as keywords; :meth:`from_options` takes a :class:`SolverOptions`. :attr:`stats` counts
+    ``LinearSolver(method, factor_entries, orderings, **settings)``: the fields of
+    :class:`SolverOptions` as keywords; :meth:`from_options` takes a :class:`SolverOptions`.
+    ``orderings`` (a dict, system size -> nested-dissection permutation) is filled by the
+    direct factorizations and read before ordering a system of a size it holds: pass one dict
+    to the solvers of systems that share a pattern (the increments of one simulation). :attr:`stats` counts
     factorizations, reuses, Krylov iterations and the wait for the worker thread (also read as
     attributes: ``solver.factorizations``).
     """
@@ -193,11 +196,12 @@ class LinearSolver:
     correction_columns = _statistic("correction_columns")
     refactorizations = _statistic("refactorizations")
 
-    def __init__(self, method: str = "auto", factor_entries: int | None = None, **settings):
+    def __init__(self, method: str = "auto", factor_entries: int | None = None, orderings: dict | None = None,
+                 **settings):
         options = SolverOptions(method, factor_entries, **settings)
         self.options = options
         self.stats = SolverStatistics()
-        self._maker = FactorMaker(options, self.stats)
+        self._maker = FactorMaker(options, self.stats, orderings)
         self._ahead = FactorizeAhead(self._maker, self.stats)
         self._policy = ReusePolicy(options.max_reuse_iterations, options.timed_budget, options.factorize_ahead,
                                    options.factorize_ahead_above)
