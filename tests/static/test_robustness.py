@@ -222,3 +222,19 @@ def test_mucosa_past_the_edge_of_a_bone_is_not_gathered_on_the_edge(paper):
         assert np.all(cp.distance[beyond] > 1e-3)  # those beyond are off the edge line
         beyond_any += int(beyond.sum())
     assert beyond_any > 0
+
+
+def test_a_solver_that_cannot_run_is_refused_with_the_options():
+    """An unknown solver, or one whose package is missing, is refused when the options are made,
+    before any computation (not after the retries of a failed first solve)."""
+    with pytest.raises(ValueError, match="unknown solver 'foo'"):
+        SimulationOptions(solver="foo")
+    if importlib.util.find_spec("sksparse") is None:
+        with pytest.raises(ValueError, match=r"'cholmod' needs scikit-sparse .* use solver 'auto'"):
+            SimulationOptions(solver="cholmod")
+    from toolkit.common.fem import pardiso
+
+    if not pardiso.available():
+        with pytest.raises(ValueError, match="'pardiso' needs MKL"):
+            SimulationOptions(solver="pardiso")
+    assert SimulationOptions(solver="amg").solver == "amg"

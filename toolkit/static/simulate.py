@@ -77,7 +77,7 @@ import numpy as np
 
 from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.assembly import SparsePattern
-from toolkit.common.fem.solvers import SolverError
+from toolkit.common.fem.solvers import SolverError, require_method
 from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import FacePhantom
@@ -170,6 +170,7 @@ class SimulationOptions:
     progress: bool = False
 
     def __post_init__(self):
+        require_method(self.solver)
         if int(self.max_cuts) != self.max_cuts or self.max_cuts < 0:
             raise ValueError(f"max_cuts = {self.max_cuts!r}; expected an integer >= 0")
         if not np.isfinite(self.release_width) or self.release_width < 0:

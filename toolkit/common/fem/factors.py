@@ -231,6 +231,25 @@ def factorize(A: sp.spmatrix, method: str, single: bool = False, ordering: str |
     raise ValueError(f"unknown direct method {method!r}; expected 'superlu', 'pardiso' or 'cholmod'")
 
 
+def require_method(method: str) -> None:
+    """Raise ``ValueError`` when ``method`` is not a solver (:data:`METHODS`) or needs a package
+    that is not installed (``cholmod``: scikit-sparse; ``pardiso``: the ``mkl`` wheel), so that an
+    option is refused before any computation instead of failing at the first solve."""
+    if method not in METHODS:
+        raise ValueError(f"unknown solver {method!r}; expected one of {METHODS}")
+    if method == "cholmod":
+        try:
+            import sksparse.cholmod  # noqa: F401
+        except ImportError:
+            raise ValueError("solver 'cholmod' needs scikit-sparse (pip install 'scikit-sparse<0.5' after apt-get "
+                             "install libsuitesparse-dev); use solver 'auto', 'amg' or 'superlu'") from None
+    if method == "pardiso":
+        from toolkit.common.fem import pardiso
+
+        if not pardiso.available():
+            raise ValueError("solver 'pardiso' needs MKL (pip install mkl); use solver 'auto', 'amg' or 'superlu'")
+
+
 def choose_method(method: str, n_dofs: int, factor_entries: int | None,
                   direct_max_entries: int = AUTO_DIRECT_MAX_ENTRIES, direct: str = "superlu") -> str:
     """The concrete solver for ``method`` (``auto`` decides by ``factor_entries`` against

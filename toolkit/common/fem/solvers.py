@@ -40,6 +40,7 @@ from toolkit.common.fem.factors import (
     REUSED_DIRECT_MAX_ENTRIES,
     SolverError,
     choose_method,
+    require_method,
     superlu,
 )
 from toolkit.common.fem.factory import Factorization, FactorMaker
@@ -47,7 +48,8 @@ from toolkit.common.fem.ordering import ORDERINGS, estimate_factor_entries, fill
 from toolkit.common.fem.reuse import ReusePolicy, StoredFactor
 
 __all__ = ["solve", "SolveInfo", "SolverError", "LinearSolver", "SolverOptions", "SolverStatistics",
-           "rigid_body_modes", "estimate_factor_entries", "choose_method", "superlu", "fill_reducing_order",
+           "rigid_body_modes", "estimate_factor_entries", "choose_method", "require_method", "superlu",
+           "fill_reducing_order",
            "ORDERINGS", "AUTO_DIRECT_MAX_ENTRIES", "REUSED_DIRECT_MAX_ENTRIES", "METHODS", "DIRECT"]
 
 
