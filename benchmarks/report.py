@@ -612,7 +612,8 @@ def _off_bone(data):
 
 
 def _segmentation_damage(data):
-    t = data["segmentation_damage"][0].copy()
+    t = pd.concat([data[k][0] for k in ("segmentation_damage", "segmentation_damage_3mm") if k in data],
+                  ignore_index=True)
     counts = [c for c in t.columns if c.startswith("n_") and c.endswith("_ratio")]
     t["worst_count"] = (t[counts] - 1).abs().max(axis=1)
     areas = [c for c in t.columns if c.startswith(("facing_", "carried_")) and c.endswith("_ratio")]
@@ -620,7 +621,8 @@ def _segmentation_damage(data):
     if "run" not in t.columns:
         t["run"] = 1
     return table(t, [
-        ("run", "run"), ("damage", "damage"), ("nodes", "nodes"), ("worst_count", "largest set count change", "{:.0%}"),
+        ("size_mm", "size (mm)", "{:g}"), ("run", "run"), ("damage", "damage"), ("nodes", "nodes"),
+        ("worst_count", "largest set count change", "{:.0%}"),
         ("worst_area", "largest area change", "{:.0%}"), ("carried_lefort_mm2_ratio", "Le Fort I carried", "{:.2f}"),
         ("carried_distal_mm2_ratio", "distal carried", "{:.2f}"), ("diff_mean_mm", "skin difference mean (mm)",
                                                                      "{:.2f}"),
@@ -982,6 +984,8 @@ SOURCES = {s.stem: s for s in (
     Source("own_face_robustness", "python benchmarks/own_face.py --sizes 7 --plans 25 --no-simulate", 55),
     Source("surrogate_remeshed", "python benchmarks/surrogate_remeshed.py", 40),
     Source("segmentation_damage", "python benchmarks/segmentation_damage.py --size 5 --repeats 2", 9),
+    Source("segmentation_damage_3mm", "python benchmarks/segmentation_damage.py --size 3 --kinds off_bone all "
+           "--repeats 2 --out benchmarks/results/segmentation_damage_3mm.csv", 25),
     Source("meshed_database", "python benchmarks/meshed_database.py --size 3 --plans 4", 30),
     Source("meshed_database_ct", "python benchmarks/meshed_database.py --ct --size 3 --order 1 --plans 10 "
            "--out benchmarks/results/meshed_database_ct.csv", 40),
@@ -1166,7 +1170,7 @@ BLOCKS = {b.name: b for b in (
           "displacement against the phantom's own hexahedral run, against that run on the same damaged bones, "
           "and what the damaged bones alone change in the phantom's run (bones standing off the tissue, or with "
           "holes, change the anatomy the sliding follows).",
-          (SOURCES["segmentation_damage"],), _segmentation_damage),
+          (SOURCES["segmentation_damage"], SOURCES["segmentation_damage_3mm"]), _segmentation_damage),
     Block("meshed_database", "Learning databases on a meshed face",
           "`toolkit static dataset --mesh` on faces meshed by `toolkit mesh` (the paper phantom's surfaces, and "
           "the head CT's from `toolkit ct`): sampled plans of each mode, with the simulation's retries (wider "
@@ -1203,7 +1207,8 @@ BLOCKS = {b.name: b for b in (
 )}
 #: blocks whose table needs every source (the others render what is present, the rest as one line)
 _PARTIAL = {"headline", "static_surrogate", "impact_surrogate", "static_convergence", "own_face",
-            "surrogate_trust_impact", "meshed_database", "static_meshed_speed", "regulation_speed"}
+            "surrogate_trust_impact", "meshed_database", "static_meshed_speed", "regulation_speed",
+            "segmentation_damage"}
 
 
 # ----------------------------------------------------------------------------------------------
