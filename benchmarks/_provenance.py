@@ -87,6 +87,10 @@ def _git() -> dict:
             "dirty_files": [line[3:] for line in dirty.splitlines()][:20]}
 
 
+#: the code the benchmark runs is the code at its start: a commit made while it runs is not it
+_GIT_AT_START = _git()
+
+
 def provenance(argv: list[str] | None = None) -> dict:
     """Machine, versions, git commit, command and date of the running benchmark.
 
@@ -102,7 +106,8 @@ def provenance(argv: list[str] | None = None) -> dict:
         ``machine`` (CPU model name, family and model from ``/proc/cpuinfo``, logical cores,
         threads in force),
         ``versions`` (python and :data:`PACKAGES` that are installed), ``git`` (``commit``,
-        ``dirty``: whether :data:`CODE_PATHS` have uncommitted changes), ``command``, ``date``
+        ``dirty``: whether :data:`CODE_PATHS` have uncommitted changes, both read when the
+        benchmark imported this module, i.e. of the code it runs), ``command``, ``date``
         (UTC, ISO 8601), ``elapsed_s`` (wall time of the command so far, s).
     """
     argv = list(sys.argv if argv is None else argv)
@@ -121,7 +126,7 @@ def provenance(argv: list[str] | None = None) -> dict:
     return {
         "machine": {**_cpu(), "cores": os.cpu_count(), "threads": _threads(), "system": platform.system()},
         "versions": versions,
-        "git": _git(),
+        "git": _GIT_AT_START,
         "command": "python " + shlex.join(argv),
         "date": datetime.datetime.now(datetime.UTC).replace(microsecond=0).isoformat(),
         "elapsed_s": round(time.perf_counter() - _START, 1),
