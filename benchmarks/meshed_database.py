@@ -90,7 +90,8 @@ def main(argv=None):
         if path.exists():
             with h5py.File(path) as f:
                 records = {k: json.loads(g.attrs["attrs"]) for k, g in f["records"].items()} if "records" in f else {}
-        keys = sorted(set(records) | set(failed))
+        # the first --plans plans of the mode (a database may hold more, from a run that asked for more)
+        keys = sorted(k for k in set(records) | set(failed) if int(k.rsplit("-p", 1)[1]) < args.plans)
         if args.report_only:  # the plans the command asks for that neither finished nor failed
             keys += [f"not run ({n})" for n in range(args.plans - len(keys))]
         for key in keys:
