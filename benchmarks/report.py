@@ -618,8 +618,7 @@ def _segmentation_damage(data):
     t["worst_count"] = (t[counts] - 1).abs().max(axis=1)
     areas = [c for c in t.columns if c.startswith(("facing_", "carried_")) and c.endswith("_ratio")]
     t["worst_area"] = (t[areas] - 1).abs().max(axis=1)
-    if "run" not in t.columns:
-        t["run"] = 1
+    t["run"] = t["run"].fillna(1).astype(int) if "run" in t.columns else 1
     return table(t, [
         ("size_mm", "size (mm)", "{:g}"), ("run", "run"), ("damage", "damage"), ("nodes", "nodes"),
         ("worst_count", "largest set count change", "{:.0%}"),
