@@ -154,6 +154,11 @@ def superlu(A: sp.spmatrix, ordering: str | np.ndarray = "nd") -> SuperLUFactor:
     return SuperLUFactor(A, ordering)
 
 
+#: why ``cholmod`` cannot run, and the remedy
+CHOLMOD_MISSING = ("solver 'cholmod' needs scikit-sparse (pip install 'scikit-sparse<0.5' after apt-get install "
+                   "libsuitesparse-dev); use solver 'auto', 'amg' or 'superlu'")
+
+
 class CholmodFactor:
     """scikit-sparse's CHOLMOD Cholesky factor of an SPD ``A`` (m, m)."""
 
@@ -163,8 +168,7 @@ class CholmodFactor:
         try:
             from sksparse.cholmod import cholesky
         except ImportError as exc:
-            raise SolverError("solver 'cholmod' needs scikit-sparse (pip install 'scikit-sparse<0.5' after "
-                              "apt-get install libsuitesparse-dev); use 'amg' or 'superlu'") from exc
+            raise SolverError(CHOLMOD_MISSING) from exc
         self.shape = A.shape
         self._factor = cholesky(sp.csc_matrix(A))
 
@@ -241,8 +245,7 @@ def require_method(method: str) -> None:
         try:
             import sksparse.cholmod  # noqa: F401
         except ImportError:
-            raise ValueError("solver 'cholmod' needs scikit-sparse (pip install 'scikit-sparse<0.5' after apt-get "
-                             "install libsuitesparse-dev); use solver 'auto', 'amg' or 'superlu'") from None
+            raise ValueError(CHOLMOD_MISSING) from None
     if method == "pardiso":
         from toolkit.common.fem import pardiso
 
