@@ -269,6 +269,45 @@ def test_folding_the_batch_norms_keeps_the_output():
     model(x, h).sum().backward()  # the original keeps its batch norms and trains
 
 
+@pytest.mark.parametrize("batch_norm", [True, False])
+def test_the_numpy_network_gives_the_torch_output(batch_norm):
+    """:class:`PointNet2Inference` reads a trained network's state dict as numpy arrays and
+    runs the same forward pass (batch norms folded, float32): after a few training steps (non-
+    trivial running statistics), with hard boundaries, its output equals the torch network's in
+    eval mode to float32 round-off, and the boundary values are exact."""
+    from toolkit.static.pointnet2_inference import HierarchyArrays, PointNet2Inference
+
+    points = _face_like_cloud(600, seed=7)
+    config = PointNet2Config.coarse(in_channels=9, hard_boundary=True, batch_norm=batch_norm, dropout=0.2)
+    torch.manual_seed(3)
+    model = PointNet2(config)
+    h = PointHierarchy.build(points, config)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    mask, values = torch.rand(4, 600) < 0.2, torch.randn(4, 600, 3)
+    for _ in range(5):
+        loss = model(torch.rand(4, 600, 9), h, BoundaryTargets(mask, values)).square().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    x = torch.rand(3, 600, 9)
+    with torch.no_grad():
+        ref = model(x, h, BoundaryTargets(mask[:3], values[:3])).numpy()
+    net = PointNet2Inference(config, {k: v.numpy() for k, v in model.state_dict().items()})
+    for arrays in (HierarchyArrays.from_hierarchy(h),
+                   HierarchyArrays.from_state({k: v.numpy() for k, v in h.state_dict().items()})):
+        out = net(x.numpy(), arrays, mask[:3].numpy(), values[:3].numpy())
+        assert out.dtype == np.float32 and out.shape == ref.shape
+        np.testing.assert_allclose(out, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
+        np.testing.assert_array_equal(out[mask[:3].numpy()], values[:3].numpy()[mask[:3].numpy()])
+    with pytest.raises(ValueError, match="hard_boundary=True needs mask and values"):
+        net(x.numpy(), arrays)
+    with pytest.raises(ValueError, match=r"features must be \(B, n=600, in_channels=9\)"):
+        net(x.numpy()[:, :500], arrays, mask[:3].numpy(), values[:3].numpy())
+    with pytest.raises(ValueError, match="the weights have no 'head.0.weight'"):
+        PointNet2Inference(config, {k: v.numpy() for k, v in model.state_dict().items() if not k.startswith("head")})
+
+
 def test_hard_boundary_values_are_exact(phantom):
     """With ``hard_boundary`` the output is exactly 0 at fixed nodes and exactly s at
     moving nodes (bitwise), per node type or per component; free nodes are the network's."""

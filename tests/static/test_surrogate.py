@@ -87,6 +87,37 @@ def test_a_linear_prior_model_learns_what_the_influence_matrix_misses(db100, tmp
         model.predict(f[None], s["s"][None], mask[None], h)
 
 
+def test_on_the_cpu_a_model_predicts_in_numpy_without_torch(db6, quick_model):
+    """A model directory holds its weights as numpy arrays: loaded for the CPU, the network
+    runs in numpy and predicts what the torch network predicts (loaded with ``device="auto"``
+    on a machine without a GPU) to float32 round-off; a fresh process that loads it and predicts
+    a plan on the training face never imports torch (about 2 s of every command's start)."""
+    import subprocess
+    import sys
+
+    from toolkit.static.features import encode
+
+    assert (quick_model.directory / "weights.npz").is_file()
+    arrays, torched = Surrogate.load(quick_model.directory), Surrogate.load(quick_model.directory, device="auto")
+    assert arrays.device == "cpu" and torched.device.type in ("cpu", "cuda")
+    db = StaticDatabase.open(db6)
+    s = db.sample(4)
+    f = encode(arrays.config.features, s["x"], s["types"], s["s"], s["bone"], s["side"], 0.47)
+    mask = np.isin(s["types"], (1, 2))[None]
+    u, ref = (m.predict(f[None], s["s"][None], mask, m.hierarchy(db.points[0], 0)) for m in (arrays, torched))
+    np.testing.assert_allclose(u, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
+
+    code = ("import sys; from toolkit.common import face_hex; from toolkit.static import default_plan; "
+            "from toolkit.static.surrogate import Surrogate; "
+            f"m = Surrogate.load({str(quick_model.directory)!r}); "
+            "f = face_hex('coarse'); r = m.predict_plan(f, default_plan(f)); "
+            "assert r.displacements.shape[0] == 4, r.displacements.shape; "
+            "print(sorted(k for k in sys.modules if k == 'torch' or k.startswith('torch.')))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "[]"
+
+
 def test_a_model_refuses_what_it_was_not_built_for(db6, quick_model, tmp_path):
     """A database of another resolution (the paper face) named as such, another model kind, and
     material channels on a database that does not vary the material are refused with errors

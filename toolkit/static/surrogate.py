@@ -148,8 +148,8 @@ class SurrogateConfig:
 
 
 def network_config(config: SurrogateConfig):
-    """The :class:`~toolkit.static.pointnet2.PointNet2Config` of a surrogate."""
-    from toolkit.static.pointnet2 import PointNet2Config
+    """The :class:`~toolkit.static.pointnet2_config.PointNet2Config` of a surrogate."""
+    from toolkit.static.pointnet2_config import PointNet2Config
 
     preset = dict(NETWORK_PRESETS[config.network])
     preset.update(in_channels=config.features.n_channels, hard_boundary=config.features.variant == "hard")
@@ -293,6 +293,21 @@ def _face_module():
     return FaceSurrogate
 
 
+@dataclass(frozen=True, eq=False)
+class _ArrayFace:
+    """The inference half of ``FaceSurrogate`` in numpy: the network
+    (:class:`~toolkit.static.pointnet2_inference.PointNet2Inference`) and the training subjects'
+    hierarchies (:class:`~toolkit.static.pointnet2_inference.HierarchyArrays`)."""
+
+    net: object
+    hierarchies: dict
+
+
+def _numpy_engine(device) -> bool:
+    """Whether a model asked for on ``device`` runs in numpy: the CPU (``"cpu"``)."""
+    return isinstance(device, str) and device.strip().lower() == "cpu"
+
+
 @dataclass(eq=False)
 class Surrogate:
     """A trained static surrogate (load one with :meth:`load`).
@@ -301,8 +316,9 @@ class Surrogate:
     ----------
     config : SurrogateConfig
     bundle : the ModelBundle (weights, scalers, data signature, training facts)
-    module : the torch module (eval mode)
-    device : torch device
+    module : the torch module (eval mode), or on the CPU its numpy counterpart (the network of
+        :mod:`~toolkit.static.pointnet2_inference` and the subjects' hierarchies)
+    device : torch device, or ``"cpu"`` for the numpy network
     directory : the model directory it was loaded from
     """
 
@@ -322,7 +338,17 @@ class Surrogate:
 
     @classmethod
     def load(cls, directory, device: str = "cpu") -> Surrogate:
-        """Load a model directory written by :func:`train_surrogate`."""
+        """Load a model directory written by :func:`train_surrogate`. On ``device="cpu"`` the
+        network runs in numpy from ``weights.npz`` (no torch import; a directory without that
+        file is read with torch); on ``"cuda"`` or ``"auto"``, in torch."""
+        if _numpy_engine(device) and ModelBundle.has_arrays(directory):
+            from toolkit.static.pointnet2_inference import HierarchyArrays, PointNet2Inference
+
+            bundle = ModelBundle.load(directory, kind=MODEL_KIND, arrays=True)
+            config = SurrogateConfig(**bundle.config["surrogate"])
+            hierarchies = {int(k): HierarchyArrays.from_state(v) for k, v in bundle.state_dict["hierarchies"].items()}
+            module = _ArrayFace(PointNet2Inference(network_config(config), bundle.state_dict["net"]), hierarchies)
+            return cls(config, bundle, module, "cpu", Path(directory))
         from toolkit.static.pointnet2 import PointHierarchy
 
         bundle = ModelBundle.load(directory, kind=MODEL_KIND)
@@ -346,9 +372,8 @@ class Surrogate:
         self.bundle.check_data({**self.bundle.data, "mesh": _mesh_signature(points, cells)}, "this mesh", hint=hint)
 
     def hierarchy(self, points: np.ndarray, subject: int | None = None):
-        """The point hierarchy of a training subject, or one built for ``points`` (cached)."""
-        from toolkit.static.pointnet2 import PointHierarchy
-
+        """The point hierarchy of a training subject, or one built for ``points`` (cached; with
+        torch, also for the numpy network)."""
         if subject is not None and subject in self.module.hierarchies:
             return self.module.hierarchies[subject]
         key = _points_key(points)
@@ -356,7 +381,15 @@ class Surrogate:
         if key in known and int(known[key]) in self.module.hierarchies:  # a training subject's own mesh
             return self.module.hierarchies[int(known[key])]
         if key not in self._hierarchy_cache:
-            self._hierarchy_cache[key] = PointHierarchy.build(points, network_config(self.config), device=self.device)
+            from toolkit.static.pointnet2 import PointHierarchy
+
+            if isinstance(self.module, _ArrayFace):
+                from toolkit.static.pointnet2_inference import HierarchyArrays
+
+                built = HierarchyArrays.from_hierarchy(PointHierarchy.build(points, network_config(self.config)))
+            else:
+                built = PointHierarchy.build(points, network_config(self.config), device=self.device)
+            self._hierarchy_cache[key] = built
         return self._hierarchy_cache[key]
 
     def prior(self, mesh, types: np.ndarray):
@@ -388,14 +421,21 @@ class Surrogate:
         displacement ``(B, n, 3)`` mm and the prescribed mask ``(B, n)``, on one mesh; a
         ``linear_prior`` model also needs the prior ``(B, n, 3)`` mm (the features' last three
         channels), which it adds to the network's residual."""
-        import torch
-
         if self.config.features.linear_prior:
             if prior is None:
                 raise ValueError("this model learns a residual over the linear prior: pass prior=(B, n, 3) mm "
                                  "(Surrogate.prior(mesh, types).predict(s))")
             prescribed = np.asarray(prescribed) - np.asarray(prior)
         scaler = self.bundle.scalers["inputs"]
+        if isinstance(self.module, _ArrayFace):
+            net = self.module.net
+            hard = net.config.hard_boundary
+            out = net(scaler.transform(np.asarray(features, dtype=np.float64)), hierarchy,
+                      np.asarray(mask, dtype=bool) if hard else None,
+                      np.asarray(prescribed) / self.out_scale if hard else None).astype(np.float64) * self.out_scale
+            return out + np.asarray(prior) if self.config.features.linear_prior else out
+        import torch
+
         f = torch.as_tensor(scaler.transform(np.asarray(features, dtype=np.float64)), dtype=torch.float32,
                             device=self.device)
         p = torch.as_tensor(np.asarray(prescribed) / self.out_scale, dtype=torch.float32, device=self.device)

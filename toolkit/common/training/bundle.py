@@ -1,5 +1,6 @@
-"""A trained model on disk: ``model.pt`` (``torch.save`` of the state dict) and
-``config.json`` (what it is, how it was built, the data it was built for, its scalers).
+"""A trained model on disk: ``model.pt`` (``torch.save`` of the state dict), ``weights.npz``
+(the same state as numpy arrays, read without importing torch) and ``config.json`` (what it
+is, how it was built, the data it was built for, its scalers).
 
 :class:`ModelBundle` is model-agnostic: the workflow that owns a model (the impact
 LSTM, the static PointNet++) rebuilds the network from ``config`` and loads the
@@ -21,6 +22,8 @@ from toolkit.common.training.scaling import MinMaxScaler
 __all__ = ["ModelBundle", "BUNDLE_FORMAT", "IncompatibleError"]
 
 BUNDLE_FORMAT = ("toolkit-model", 1)
+#: the state dict as numpy arrays, keys of nested dicts joined by "/"
+WEIGHT_ARRAYS = "weights.npz"
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,16 +48,21 @@ class ModelBundle:
     extra: dict = field(default_factory=dict)
 
     def save(self, directory: str | os.PathLike) -> Path:
-        """Write ``model.pt`` then ``config.json`` (each atomically; the JSON last, so a directory
-        with a ``config.json`` always has the weights it describes)."""
+        """Write ``model.pt``, ``weights.npz`` then ``config.json`` (each atomically; the JSON
+        last, so a directory with a ``config.json`` always has the weights it describes)."""
+        import numpy as np
         import torch
 
         from toolkit.common.io import atomic_path
 
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
+        flat = {key: torch.as_tensor(value).detach().cpu() for key, value in _flatten(self.state_dict).items()}
         with atomic_path(directory / "model.pt") as tmp:
-            torch.save(self.state_dict, tmp)
+            torch.save(_nest(flat), tmp)
+        arrays = {key: value.numpy() for key, value in flat.items()}
+        with atomic_path(directory / WEIGHT_ARRAYS) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
         doc = {"format": BUNDLE_FORMAT[0], "format_version": BUNDLE_FORMAT[1], "kind": self.kind,
                "config": jsonable(self.config), "data": jsonable(self.data),
                "scalers": {k: s.to_dict() for k, s in self.scalers.items()}, "extra": jsonable(self.extra)}
@@ -63,16 +71,17 @@ class ModelBundle:
         return directory
 
     @classmethod
-    def load(cls, directory: str | os.PathLike, kind: str | None = None, map_location="cpu") -> ModelBundle:
-        """Read a model directory; ``kind`` (if given) must match the stored one."""
-        import torch
-
+    def load(cls, directory: str | os.PathLike, kind: str | None = None, map_location="cpu",
+             arrays: bool = False) -> ModelBundle:
+        """Read a model directory; ``kind`` (if given) must match the stored one. With
+        ``arrays``, the state is read from ``weights.npz`` as numpy arrays (nested as the state
+        dict) without importing torch; :meth:`has_arrays` says whether a directory has it."""
         directory = Path(directory)
-        cfg, weights = directory / "config.json", directory / "model.pt"
+        cfg, weights = directory / "config.json", directory / (WEIGHT_ARRAYS if arrays else "model.pt")
         for p in (cfg, weights):
             if not p.is_file():
                 raise FileNotFoundError(f"{directory} is not a model directory: {p.name} is missing "
-                                        "(expected model.pt and config.json, as written by training)")
+                                        f"(expected {weights.name} and config.json, as written by training)")
         try:
             doc = json.loads(cfg.read_text())
         except json.JSONDecodeError as exc:
@@ -84,11 +93,16 @@ class ModelBundle:
             raise IncompatibleError(f"{directory} holds a {doc.get('kind')!r} model, expected {kind!r}",
                                     [("kind", doc.get("kind"), kind)])
         try:
-            state = torch.load(weights, map_location=map_location, weights_only=True)
+            state = _read_arrays(weights) if arrays else _read_torch(weights, map_location)
         except Exception as exc:
             raise ValueError(f"cannot read {weights}: {type(exc).__name__}: {exc}") from exc
         scalers = {k: MinMaxScaler.from_dict(v) for k, v in doc.get("scalers", {}).items()}
         return cls(doc["kind"], doc["config"], doc["data"], scalers, state, doc.get("extra", {}))
+
+    @staticmethod
+    def has_arrays(directory: str | os.PathLike) -> bool:
+        """Whether a model directory holds ``weights.npz`` (every one :meth:`save` writes)."""
+        return (Path(directory) / WEIGHT_ARRAYS).is_file()
 
     def check_data(self, signature: dict, what: str = "the data", hint: str | None = None) -> None:
         """Refuse ``signature`` unless it equals the stored training-data signature; ``hint``
@@ -102,3 +116,42 @@ class ModelBundle:
         stored = {k: v for k, v in self.config.items() if k not in ignore}
         asked = {k: v for k, v in config.items() if k not in ignore}
         require_same(stored, asked, f"this {self.kind} model")
+
+
+def _flatten(state: dict, prefix: str = "") -> dict:
+    """``{"net": {"w": t}}`` -> ``{"net/w": t}`` (keys must not hold "/")."""
+    flat = {}
+    for key, value in state.items():
+        if "/" in str(key):
+            raise ValueError(f"state dict key {key!r} holds '/', which {WEIGHT_ARRAYS} uses to nest keys")
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}/"))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _read_arrays(path: Path) -> dict:
+    """The nested state dict of a ``weights.npz`` (numpy arrays)."""
+    import numpy as np
+
+    with np.load(path, allow_pickle=False) as data:
+        return _nest({key: data[key] for key in data.files})
+
+
+def _nest(flat: dict) -> dict:
+    """Inverse of :func:`_flatten`."""
+    state: dict = {}
+    for key, value in flat.items():
+        *parents, leaf = key.split("/")
+        node = state
+        for parent in parents:
+            node = node.setdefault(parent, {})
+        node[leaf] = value
+    return state
+
+
+def _read_torch(path: Path, map_location) -> dict:
+    import torch
+
+    return torch.load(path, map_location=map_location, weights_only=True)
