@@ -52,14 +52,14 @@ def first_system(folder: Path) -> dict:
     bones = {p.stem: p for p in folder.glob("*.vtu") if p.stem != "face"}
     plan = SurgicalPlan.from_dict(json.loads((folder / "plan.json").read_text()))
     case = load_case(folder / "face.vtu", plan=plan, bones=bones)
-    solve = StaticProblem._solve_reduced
-    StaticProblem._solve_reduced = capture
+    solve = StaticProblem.solve_reduced
+    StaticProblem.solve_reduced = capture
     try:
         case.simulate(increments=3, material="linear", sliding="mucosa+lip")
     except _Captured:
         pass
     finally:
-        StaticProblem._solve_reduced = solve
+        StaticProblem.solve_reduced = solve
     return captured
 
 

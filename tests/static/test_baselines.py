@@ -29,6 +29,28 @@ def test_influence_matrix_is_exact_for_linear_without_sliding():
         im.predict(np.zeros((5, 3)))
 
 
+def test_influence_matrix_on_amg_agrees_with_the_factor():
+    """Where a factor would be too large the influence matrix solves K_ff by AMG-CG (the FE's
+    rtol 1e-9): on the coarse phantom, forced to ``amg``, its prediction and its solves (one
+    right-hand side or several) agree with the factorized one to 1e-7 of their largest value;
+    ``auto`` factorizes this small face, and an unknown solver is refused."""
+    ph = face_hex("coarse")
+    res = simulate(ph, default_plan(ph), 1, "linear", "none")
+    bc = res.boundary
+    driven, fixed = bc.nodes(NodeType.MOVING), bc.nodes(NodeType.FIXED)
+    direct = InfluenceMatrix.build(ph.mesh, driven, fixed, solver="superlu")
+    amg = InfluenceMatrix.build(ph.mesh, driven, fixed, solver="amg")
+    assert (direct.method, amg.method) == ("superlu", "amg")
+    assert InfluenceMatrix.build(ph.mesh, driven, fixed).method == "superlu"
+    u = direct.predict(res.displacement)
+    np.testing.assert_allclose(amg.predict(res.displacement), u, rtol=0, atol=1e-7 * np.abs(u).max())
+    columns = direct.coupling[:, :4].toarray()  # several right-hand sides at once, as H solves them
+    x = direct.solve(columns)
+    np.testing.assert_allclose(amg.solve(columns), x, rtol=0, atol=1e-7 * np.abs(x).max())
+    with pytest.raises(ValueError, match="solver = 'cg'; expected 'auto', 'superlu' or 'amg'"):
+        InfluenceMatrix.build(ph.mesh, driven, fixed, solver="cg")
+
+
 def test_pod_regression_recovers_a_quadratic_family():
     """Displacements that are three fixed fields weighted by quadratic functions of 4
     parameters lie in a 3-dimensional space: POD keeps 3 modes (all the energy) and the

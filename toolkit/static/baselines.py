@@ -4,7 +4,9 @@
   stiffness is condensed on the nodes a bone drives (attached and mucosa, all moving
   with their bone: the lip-sliding paper's method without sliding) and the fixed nodes:
   ``u_free = H u_bone`` with ``H = -K_ff^-1 K_fb``, kept factored (one factorization, then
-  one solve per prediction; the dense ``H`` is formed only when asked for). Exact for a
+  one solve per prediction; the dense ``H`` is formed only when asked for). Where the factor
+  would be too large (the fine phantom, a meshed face), ``K_ff`` is solved by conjugate
+  gradients on an AMG hierarchy built once, the FE's own choice. Exact for a
   linear material without sliding or lip contact on the mesh it was built for, in one
   increment; it ignores sliding, lip contact and the geometry update between increments.
 - :class:`PODRegression`: the displacements of the training samples are compressed by
@@ -42,8 +44,9 @@ class InfluenceMatrix:
     fixed : (f,) int64 — nodes held at zero
     free : (k,) int64 — the others
     coupling : (3k, 3m) sparse — ``K_fb``, the free rows and driven columns of the stiffness, N/mm
-    solve : the factor of ``K_ff`` (3k, 3k): ``b (3k,) or (3k, s) -> K_ff^-1 b``
+    solve : ``b (3k,) or (3k, s) -> K_ff^-1 b`` (3k, 3k), by a factorization or AMG-CG
     seconds : time to build (assembly and factorization), s
+    method : how ``solve`` solves: ``superlu`` or ``amg``
     """
 
     driven: np.ndarray
@@ -52,6 +55,7 @@ class InfluenceMatrix:
     coupling: sp.csr_matrix
     solve: Callable[[np.ndarray], np.ndarray]
     seconds: float
+    method: str = "superlu"
 
     @property
     def H(self) -> np.ndarray:
@@ -61,7 +65,8 @@ class InfluenceMatrix:
         return -self.solve(self.coupling.toarray())
 
     @classmethod
-    def build(cls, mesh: Mesh, driven: np.ndarray, fixed: np.ndarray, materials="linear") -> InfluenceMatrix:
+    def build(cls, mesh: Mesh, driven: np.ndarray, fixed: np.ndarray, materials="linear",
+              solver: str = "auto") -> InfluenceMatrix:
         """Condense the linear stiffness of ``mesh`` (mm, N/mm) on ``driven`` and ``fixed`` nodes.
 
         Parameters
@@ -70,7 +75,12 @@ class InfluenceMatrix:
         driven, fixed : node indices (disjoint)
         materials : ``linear`` (the lip-sliding paper: the lip muscle transversely isotropic) or a
             MaterialAssignment of linear materials
+        solver : ``auto`` (SuperLU while the factor's expected size is below
+            :data:`~toolkit.common.fem.factors.AUTO_DIRECT_MAX_ENTRIES`, else AMG-CG, as the FE
+            chooses), ``superlu`` or ``amg``
         """
+        from toolkit.common.fem.factors import choose_method
+        from toolkit.common.fem.ordering import estimate_factor_entries
         from toolkit.common.fem.solvers import superlu
         from toolkit.static.problem import StaticProblem
         from toolkit.static.simulate import material_assignment
@@ -82,13 +92,28 @@ class InfluenceMatrix:
         assignment = material_assignment(materials, mesh)
         if not assignment.is_linear:
             raise ValueError("the influence matrix needs a linear material (it superposes unit responses)")
-        K = StaticProblem(mesh, assignment, "superlu").stiffness.tocsr()
+        if solver not in ("auto", "superlu", "amg"):
+            raise ValueError(f"solver = {solver!r}; expected 'auto', 'superlu' or 'amg'")
+        problem = StaticProblem(mesh, assignment, "amg" if solver == "auto" else solver)
+        K = problem.stiffness.tocsr()
+        if solver == "auto":
+            solver = choose_method("auto", K.shape[0], estimate_factor_entries(problem.pattern.node_graph()))
         free = np.setdiff1d(np.arange(mesh.n_points), np.concatenate([driven, fixed]))
         dof = lambda nodes: (3 * nodes[:, None] + np.arange(3)).ravel()  # noqa: E731
         f, b = dof(free), dof(driven)
         Kf = K[f]
-        solve = superlu(Kf[:, f].tocsc())
-        return cls(driven, fixed, free, Kf[:, b].tocsr(), solve, time.perf_counter() - t0)
+        Kff = Kf[:, f]
+        if solver == "superlu":
+            solve = superlu(Kff.tocsc())
+        else:
+            T = sp.identity(K.shape[0], format="csr")[:, f]
+
+            def solve(rhs: np.ndarray) -> np.ndarray:
+                rhs = np.asarray(rhs, dtype=float)
+                columns = [problem.solve_reduced(T, Kff, c)[0] for c in rhs.reshape(rhs.shape[0], -1).T]
+                return np.stack(columns, axis=1).reshape(rhs.shape)
+
+        return cls(driven, fixed, free, Kf[:, b].tocsr(), solve, time.perf_counter() - t0, solver)
 
     def predict(self, driven_displacement: np.ndarray) -> np.ndarray:
         """Displacement ``(n, 3)`` mm from the driven nodes' displacement ``(m, 3)`` mm (or

@@ -113,7 +113,11 @@ class StaticProblem:
             self._K = linear_stiffness(self.kin, D, lam, self.pattern)
         return self._K
 
-    def _solve_reduced(self, T, A, b, x0=None) -> tuple[np.ndarray, SolveInfo]:
+    def solve_reduced(self, T, A, b, x0=None) -> tuple[np.ndarray, SolveInfo]:
+        """Solve ``A v = b`` for a system reduced by ``T`` ((3n, m) sparse: ``u = T v``; ``A``
+        (m, m) sparse, usually ``T^T K T``; ``b`` (m,)) with this problem's solver, which
+        keeps its factorization or AMG hierarchy for the next system of the same matrix; the
+        rigid-body modes and a quadratic mesh's corner nodes are reduced by ``T`` for AMG."""
         # columns no constraint leaves free (tie slaves kept so that every system of a step
         # has the same size, see Constraints.reduction) get a unit equation: their value is 0
         d = A.diagonal()
@@ -130,7 +134,7 @@ class StaticProblem:
         if self.linear:
             K = self.stiffness
             A = reduced_matrix(K, T)
-            v, info = self._solve_reduced(T, A, -(T.T @ (K @ u0)), x0=self._reduced_guess(T, u0, u_start))
+            v, info = self.solve_reduced(T, A, -(T.T @ (K @ u0)), x0=self._reduced_guess(T, u0, u_start))
             u = T @ v + u0
             return Solution(u.reshape(-1, 3), K @ u, [info], 0)
         return self._newton(T, u0, u_start)
@@ -192,7 +196,7 @@ class StaticProblem:
             return Trial(v, T.T @ f, E, (u, f, K))
 
         def correction(trial):
-            dv, info = self._solve_reduced(T, reduced_matrix(trial.data[2], T), -trial.residual)
+            dv, info = self.solve_reduced(T, reduced_matrix(trial.data[2], T), -trial.residual)
             infos.append(info)
             return dv
 
@@ -209,7 +213,7 @@ class StaticProblem:
 
         f, K = neo_hookean_system(self.kin, u_prev.reshape(-1, 3), self.groups, self.pattern)
         A = reduced_matrix(K, T)
-        v, info = self._solve_reduced(T, A, -(T.T @ (f + K @ (u0 - u_prev))))
+        v, info = self.solve_reduced(T, A, -(T.T @ (f + K @ (u0 - u_prev))))
         infos.append(info)
         try:
             start = evaluate(v)
