@@ -10,6 +10,7 @@ import sys
 import pytest
 
 from toolkit.cli import build_parser, main
+from toolkit.cli._common import Parser
 from toolkit.common import io
 
 
@@ -146,6 +147,36 @@ def test_static_simulate_writes_the_documented_outputs(tmp_path):
         assert key in summary, key
     assert summary["increments"] == 3 and summary["min_scaled_jacobian"] > 0
     assert (out / "preview.png").stat().st_size > 0
+    # the folder says what ran, with which toolkit, and how to run it again
+    from toolkit import __version__
+    from toolkit.static import SurgicalPlan, default_plan, load_case
+
+    assert summary["toolkit_version"] == __version__
+    assert summary["command"] == f"toolkit static simulate --out {out}"
+    ran = SurgicalPlan.read(out / "plan.toml")
+    assert ran.as_dict() == default_plan(load_case(resolution="coarse").subject).as_dict()
+
+
+def test_version_and_did_you_mean(capsys):
+    """``toolkit --version`` prints the version; a mistyped option is reported by its subcommand
+    with the closest option, and a mistyped subcommand with the closest one."""
+    from toolkit import __version__
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and capsys.readouterr().out.strip() == f"toolkit {__version__}"
+    with pytest.raises(SystemExit) as info:
+        main(["static", "simulate", "--resolutoin", "coarse", "--no-previw", "--out", "x"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "usage: toolkit static simulate" in err
+    assert "unrecognized arguments: --resolutoin coarse --no-previw; did you mean --resolution for --resolutoin, " \
+           "--no-preview for --no-previw?" in err
+    with pytest.raises(SystemExit):
+        main(["impact", "simulat"])
+    assert "invalid choice: 'simulat'" in (err := capsys.readouterr().err) and "did you mean 'simulate'?" in err
+    with pytest.raises(SystemExit):
+        main(["static", "simulate", "--out", "x", "--zzz"])
+    assert "unrecognized arguments: --zzz\n" in capsys.readouterr().err
 
 
 def test_static_simulate_from_a_mesh_file_and_plan(tmp_path):
@@ -361,7 +392,7 @@ def test_an_error_starts_its_own_line_after_a_progress_bar(monkeypatch, capsys):
 
     args = build_parser().parse_args(["static", "simulate", "--out", "unused"])
     args.func = fail
-    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", lambda self, argv=None: args)
+    monkeypatch.setattr(Parser, "parse_args", lambda self, argv=None: args)
     assert main([]) == 2
     lines = capsys.readouterr().err.split("\n")
     assert "error: the solve failed" in lines, lines
@@ -423,7 +454,7 @@ def test_a_full_disk_is_an_error_line_not_a_traceback(monkeypatch, capsys):
 
     args = build_parser().parse_args(["static", "simulate", "--out", "unused"])
     args.func = full
-    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", lambda self, argv=None: args)
+    monkeypatch.setattr(Parser, "parse_args", lambda self, argv=None: args)
     assert main([]) == 2
     assert capsys.readouterr().err.startswith("error: run/face.h5: No space left on device")
 

@@ -4,6 +4,7 @@ the database-run options and the Dask client."""
 from __future__ import annotations
 
 import argparse
+import difflib
 import re
 import signal
 import threading
@@ -33,6 +34,37 @@ class Command:
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace], int]
     interrupted: str = "rerun the same command"
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse's parser, whose errors suggest the closest valid option or choice ("did you
+    mean --resolution?") and name the subcommand whose option was mistyped, with its usage."""
+
+    def parse_args(self, args=None, namespace=None):
+        namespace, extras = self.parse_known_args(args, namespace)
+        if extras:  # reported by the subcommand that read the options, not by the top level
+            parser = getattr(namespace, "command_parser", self)
+            parser.error(f"unrecognized arguments: {' '.join(extras)}{did_you_mean(parser, extras)}")
+        return namespace
+
+    def error(self, message: str):
+        choice = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if choice:
+            close = difflib.get_close_matches(choice.group(1), re.findall(r"'([^']*)'", choice.group(2)), n=1)
+            message += f"; did you mean {close[0]!r}?" if close else ""
+        super().error(message)
+
+
+def did_you_mean(parser: argparse.ArgumentParser, extras: list[str]) -> str:
+    """``"; did you mean --x?"`` for the unrecognized options among ``extras`` that are close to
+    one of ``parser``'s, else ``""``."""
+    options = [o for o in parser._option_string_actions if o.startswith("--")]
+    hints = []
+    for token in extras:
+        if token.startswith("--"):
+            close = difflib.get_close_matches(token.split("=", 1)[0], options, n=1, cutoff=0.6)
+            hints += [f"{close[0]} for {token.split('=', 1)[0]}"] if close else []
+    return f"; did you mean {', '.join(hints)}?" if hints else ""
 
 
 class HelpFormatter(argparse.HelpFormatter):

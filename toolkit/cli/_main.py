@@ -14,7 +14,7 @@ import signal
 import sys
 
 from toolkit.cli import ct, demo, impact, mesh, phantom, static
-from toolkit.cli._common import Command, HelpFormatter, add_common, with_options
+from toolkit.cli._common import Command, HelpFormatter, Parser, add_common, with_options
 
 __all__ = ["main", "build_parser"]
 
@@ -24,7 +24,10 @@ COMMANDS = {"demo": demo.COMMAND, "phantom": phantom.COMMAND, "ct": ct.COMMAND, 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="toolkit", description=DESCRIPTION, formatter_class=HelpFormatter)
+    from toolkit import __version__
+
+    parser = Parser(prog="toolkit", description=DESCRIPTION, formatter_class=HelpFormatter)
+    parser.add_argument("--version", action="version", version=f"toolkit {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, command in COMMANDS.items():
         _add(sub, name, command)
@@ -40,7 +43,7 @@ def _add(subparsers, name: str, command: Command) -> None:
     p = subparsers.add_parser(name, help=command.help, description=command.description, formatter_class=HelpFormatter)
     command.add_arguments(p)
     add_common(p)
-    p.set_defaults(func=command.run, interrupted=command.interrupted)
+    p.set_defaults(func=command.run, interrupted=command.interrupted, command_parser=p)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
 
         set_threads(args.threads)
         code = int(args.func(args) or 0)
+        if code == 0:
+            _record_command(args, argv)
     except KeyboardInterrupt:
         return _interrupted(args, program)
     except ImportError as exc:
@@ -83,6 +88,24 @@ def main(argv: list[str] | None = None) -> int:
     if program:  # the work is done and written: a Ctrl-C while the interpreter shuts down changes nothing
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     return code
+
+
+def _record_command(args, argv: list[str]) -> None:
+    """Add ``command`` (the command line that wrote it) to the ``summary.json`` of the output
+    folder ``--out`` of a command that finished, so that the folder says how to make it again."""
+    import json
+    import shlex
+    from pathlib import Path
+
+    from toolkit.common.io import atomic_path
+
+    out = getattr(args, "out", None)
+    path = Path(out) / "summary.json" if out is not None else None
+    if path is None or not path.is_file():
+        return
+    summary = json.loads(path.read_text())
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps({**summary, "command": shlex.join(["toolkit", *argv])}, indent=2))
 
 
 def _interrupted(args, program: bool) -> int:

@@ -39,7 +39,7 @@ from toolkit.impact.plasticity import HardeningTable, J2Plasticity
 from toolkit.impact.scene import MaterialSpec, Scene, SceneError
 
 __all__ = ["simulate", "ImpactResult", "build_model", "UnstableTimeStepError", "SceneGeometryWarning", "sweep_travel",
-           "face_mesh", "fixed_nodes", "ball_start", "travel_limit", "check_travel", "write_preview",
+           "face_mesh", "fixed_nodes", "ball_start", "travel_limit", "check_travel", "write_preview", "write_summary",
            "COMPRESSED_TISSUE_FRACTION", "MESH_ORDERS", "mesh_order"]
 
 
@@ -444,8 +444,8 @@ def _run(scene: Scene, built: BuiltScene, on_frame, progress: bool, initial_gues
 
 def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False, preview: bool = True,
              fidelity=None, initial_guess: tuple[np.ndarray, np.ndarray] | None = None) -> ImpactResult:
-    """Run ``scene``; with ``out``, stream frames to ``out/face.xdmf`` (and ``ball.xdmf``) and write
-    ``history.h5``, ``summary.json`` and ``preview.png``.
+    """Run ``scene``; with ``out``, write ``scene.toml`` (the scene that runs) first, stream frames to
+    ``out/face.xdmf`` (and ``ball.xdmf``) and write ``history.h5``, ``summary.json`` and ``preview.png``.
 
     ``fidelity``: the :class:`~toolkit.common.fidelity.FidelityChoice` the scene's options come
     from (:meth:`Scene.with_fidelity_choice`); its record goes to the summary as ``fidelity``.
@@ -487,6 +487,7 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
+        scene.write(out / "scene.toml")
         writers.append(TimeSeriesWriter(out / "face.xdmf", built.face.without_fields()))
         if built.ball is not None:
             writers.append(TimeSeriesWriter(out / "ball.xdmf", built.ball.without_fields()))
@@ -525,11 +526,11 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
                           + _crushed_remedy(scene, result.times, result.checks), result.checks)
         if out is not None:
             _write_history(out / "history.h5", frames)
-            _write_summary(out / "summary.json", {"status": "failed", "error": str(exc), **result.summary()})
+            write_summary(out / "summary.json", {"status": "failed", "error": str(exc), **result.summary()})
         raise exc
     if out is not None:
         _write_history(out / "history.h5", frames)
-        _write_summary(out / "summary.json", {"status": "finished", **result.summary()})
+        write_summary(out / "summary.json", {"status": "finished", **result.summary()})
         if preview:
             centre = built.ball_centre + scene.ball.velocity * np.asarray(scene.ball.direction) * result.times[-1]
             write_preview(out / "preview.png", built.face, result.displacement[-1], result.von_mises[-1],
@@ -576,11 +577,13 @@ def _write_history(path: Path, frames: list) -> None:
             h5["plastic_volume_fraction"] = np.array([f.plastic_volume_fraction for f in frames], dtype=float)
 
 
-def _write_summary(path: Path, summary: dict) -> None:
+def write_summary(path: Path, summary: dict) -> None:
+    """``summary`` (JSON-ready) with ``toolkit_version``, written to ``path`` atomically."""
+    from toolkit import __version__
     from toolkit.common.io import atomic_path
 
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(summary, indent=2))
+        tmp.write_text(json.dumps({**summary, "toolkit_version": __version__}, indent=2))
 
 
 def _write_partial(out: Path, scene: Scene, frames: list, exc: BaseException, wall_time_s: float,
@@ -603,7 +606,7 @@ def _write_partial(out: Path, scene: Scene, frames: list, exc: BaseException, wa
     }
     if frames:
         _write_history(out / "history.h5", frames)
-    _write_summary(out / "summary.json", summary)
+    write_summary(out / "summary.json", summary)
 
 
 def write_preview(path: str | Path, face: Mesh, displacement: np.ndarray, von_mises: np.ndarray, time_s: float,

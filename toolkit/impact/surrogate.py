@@ -452,10 +452,9 @@ class Prediction:
         ``summary.json``, ``scene.toml`` (run the FE of the same case with
         ``toolkit impact simulate --scene scene.toml``) and, with ``preview``, ``preview.png`` of
         the last frame (as :func:`toolkit.impact.simulate.simulate` draws it)."""
-        import json
 
-        from toolkit.common.io import TimeSeriesWriter, atomic_path
-        from toolkit.impact.simulate import ball_start, write_preview
+        from toolkit.common.io import TimeSeriesWriter
+        from toolkit.impact.simulate import ball_start, write_preview, write_summary
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -463,8 +462,7 @@ class Prediction:
             for k, t in enumerate(self.times):
                 w.append(float(t), displacement=self.displacement[k], von_mises=self.von_mises[k],
                          **{name: np.asarray(v)[k] for name, v in (point_data or {}).items()})
-        with atomic_path(out / "summary.json") as tmp:
-            tmp.write_text(json.dumps({"status": "finished", **self.summary()}, indent=2))
+        write_summary(out / "summary.json", {"status": "finished", **self.summary()})
         self.scene.write(out / "scene.toml")
         if preview:
             ball = None

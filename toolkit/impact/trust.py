@@ -34,7 +34,6 @@ Units: mm, s, mm/s, MPa.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -309,10 +308,9 @@ class TrustedImpactAnswer:
 
     def write_summary(self, out) -> None:
         """``out/summary.json``: the result's summary with ``answer`` (atomically)."""
-        from toolkit.common.io import atomic_path
+        from toolkit.impact.simulate import write_summary
 
-        with atomic_path(Path(out) / "summary.json") as tmp:
-            tmp.write_text(json.dumps(jsonable({"status": "finished", **self.summary()}), indent=2))
+        write_summary(Path(out) / "summary.json", jsonable({"status": "finished", **self.summary()}))
 
     def summary(self) -> dict:
         est = {k: v for k, v in self.estimate.items() if k != "node_mm"}

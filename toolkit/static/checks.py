@@ -170,9 +170,10 @@ def check_answer(mesh: Mesh, bc, plan: SurgicalPlan, displacement: np.ndarray, m
 def with_answer_checks(result, plan: SurgicalPlan):
     """``result`` (a :class:`~toolkit.static.simulate.SimulationResult`, e.g. a surrogate's
     prediction) with ``checks["answer"]``: its :func:`answer_checks` against ``plan``, which does not
-    raise (a surrogate answer that fails is flagged, and ``predict --tolerance`` runs the FE)."""
+    raise (a surrogate answer that fails is flagged, and ``predict --tolerance`` runs the FE), and
+    with ``plan`` (written beside it)."""
     from dataclasses import replace
 
     checks = answer_checks(result.reference, result.boundary, plan, result.displacement,
                            min(r.min_scaled_jacobian for r in result.reports))
-    return replace(result, checks={**(result.checks or {}), "answer": checks})
+    return replace(result, checks={**(result.checks or {}), "answer": checks}, plan=plan)

@@ -75,6 +75,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit import __version__
 from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.fem.solvers import SolverError, require_method
@@ -234,6 +235,7 @@ class SimulationResult:
         its options from (``summary()["fidelity"]``), or None
     checks : ``{"plan": ..., "answer": ...}``, the values :func:`~toolkit.static.checks.check_plan`
         and :func:`~toolkit.static.checks.check_answer` checked (``summary()["checks"]``), or None
+    plan : the SurgicalPlan that ran (written as ``plan.toml`` beside the result), or None
     """
 
     reference: Mesh
@@ -249,6 +251,7 @@ class SimulationResult:
     far_mucosa: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     fidelity: dict | None = None
     checks: dict | None = None
+    plan: SurgicalPlan | None = None
 
     @property
     def displacement(self) -> np.ndarray:
@@ -298,13 +301,14 @@ class SimulationResult:
             "increments_report": [asdict(r) for r in self.reports],
             **({} if self.checks is None else {"checks": self.checks}),
             **fidelity,
+            "toolkit_version": __version__,
         }
 
     def write(self, out: str | Path, preview: bool = True, point_data: Mapping | None = None) -> Path:
         """Write ``result.vtu`` (pre-operative face with ``displacement`` and any ``point_data``,
         name -> ``(n, ...)`` array), ``postop.vtu`` (the post-operative face), ``summary.json``,
-        ``increments.xdmf`` (+ .h5, one XDMF ``Mixed`` topology for a mesh of several cell types)
-        and ``preview.png``."""
+        ``increments.xdmf`` (+ .h5, one XDMF ``Mixed`` topology for a mesh of several cell types),
+        ``plan.toml`` (the plan that ran, when the result holds it) and ``preview.png``."""
         from toolkit.common.io import atomic_path, write, write_time_series
 
         out = Path(out)
@@ -313,6 +317,8 @@ class SimulationResult:
         write(out / "postop.vtu", self.final_mesh)
         with atomic_path(out / "summary.json") as tmp:
             tmp.write_text(json.dumps(self.summary(), indent=2))
+        if self.plan is not None:
+            self.plan.write(out / "plan.toml")
         write_time_series(out / "increments.xdmf", self.reference.without_fields(),
                           np.arange(self.displacements.shape[0], dtype=float),
                           {"displacement": self.displacements})
@@ -855,7 +861,7 @@ def simulate(
     return SimulationResult(model.mesh, displacements, model.bc, reports, time.perf_counter() - t_start,
                             material_name, sliding, release_width=width, freed_cut=freed,
                             mucosa_offset=model.mucosa_offset, far_mucosa=model.far_mucosa,
-                            checks={"plan": plan_checks, "answer": checks})
+                            checks={"plan": plan_checks, "answer": checks}, plan=plan)
 
 
 def _cut_near(model: _Model, element: int | None) -> np.ndarray:
