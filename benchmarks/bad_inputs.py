@@ -248,7 +248,7 @@ def catalogue() -> list[Case]:
              ["nothere.h5"]),
         Case(cmd, "empty model folder", ["--model", "emptymodel", "--data", "{F}/static.h5", "--out", "e"],
              ["emptymodel"], {"emptymodel/.keep": ""}),
-        Case(cmd, "--out an existing file", ["--model", "{F}/smodel", "--data", "{F}/static.h5", "--no-render",
+        Case(cmd, "--out an existing file", ["--model", "{F}/smodel", "--data", "{F}/static.h5", "--no-preview",
                                              "--out", "taken"], ["taken"], dict(out_files)),
     ]
 
@@ -402,11 +402,11 @@ def catalogue() -> list[Case]:
     # demo
     cmd = "demo"
     cases += [
-        Case(cmd, "--out an existing file", ["--resolution", "coarse", "--no-render", "--out", "taken"], ["taken"],
+        Case(cmd, "--out an existing file", ["--resolution", "coarse", "--no-preview", "--out", "taken"], ["taken"],
              dict(out_files)),
-        Case(cmd, "--out under /proc", ["--resolution", "coarse", "--no-render", "--out", "/proc/x"], ["/proc/x"]),
+        Case(cmd, "--out under /proc", ["--resolution", "coarse", "--no-preview", "--out", "/proc/x"], ["/proc/x"]),
         Case(cmd, "unknown resolution", ["--resolution", "corse", "--out", "d"], ["corse"]),
-        Case(cmd, "--threads -2", ["--resolution", "coarse", "--no-render", "--threads", "-2", "--out", "d"],
+        Case(cmd, "--threads -2", ["--resolution", "coarse", "--no-preview", "--threads", "-2", "--out", "d"],
              ["--threads"]),
     ]
     return cases

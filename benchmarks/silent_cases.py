@@ -68,7 +68,7 @@ def main(argv=None):
         files = write_surfaces(tmp / "surfaces", surfaces)
         bones = [f"--bone={k}={files[k]}" for k in surfaces.bones]
         moving = [f"--bone={k}={files[k]}" for k in surfaces.bones if k != "skull"]
-        mesh = ["mesh", "--tissue", files["tissue"], *bones, "--size", args.size, "--no-image"]
+        mesh = ["mesh", "--tissue", files["tissue"], *bones, "--size", args.size, "--no-preview"]
 
         def add(case, expect, code, line, seconds, ok, **figures):
             rows.append({"case": case, "expect": expect, "exit": code, "error": line[:200], "seconds": seconds,
@@ -108,7 +108,7 @@ def main(argv=None):
                                    surfaces.commissures * flip)
         lps = write_surfaces(tmp / "lps", mirrored)
         lps_mesh = ["mesh", "--tissue", lps["tissue"], *[f"--bone={k}={lps[k]}" for k in surfaces.bones],
-                    "--size", args.size, "--no-image"]
+                    "--size", args.size, "--no-preview"]
         code, line, sec = toolkit(*lps_mesh, "--out", tmp / "lps-out" / "face.vtu", cwd=tmp)
         add("lps-surfaces", "refused naming --axes LPS", code, line, sec, code == 2 and "LPS" in line)
         code, line, sec = toolkit(*lps_mesh, "--axes", "LPS", "--out", tmp / "lps-ok" / "face.vtu", cwd=tmp)

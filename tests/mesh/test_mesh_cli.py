@@ -35,7 +35,7 @@ def test_mesh_command_writes_mesh_labels_and_image(files, tmp_path, capsys):
 def test_commissures_given_inline_with_a_leading_minus(files, tmp_path):
     c = np.loadtxt(files["commissures"], delimiter=",")
     value = ":".join(",".join(f"{v:g}" for v in p) for p in c[::-1])  # the right corner (x < 0) first
-    assert main(_args(files, tmp_path / "face.inp", "--size", "12", "--order", "1", "--no-image",
+    assert main(_args(files, tmp_path / "face.inp", "--size", "12", "--order", "1", "--no-preview",
                       f"--commissures={value}")) == 0
     assert read(tmp_path / "face.inp").node_sets["lip_sliding"].size > 0
 
@@ -83,7 +83,7 @@ def test_surfaces_in_lps_are_refused_and_meshed_with_axes_lps(lps_files, tmp_pat
     """Without --axes the y-mirrored surfaces are refused before any meshing, naming the file, what
     the anatomy says and --axes LPS; with it the face is meshed and labelled as the phantom is."""
     out = tmp_path / "face.vtu"
-    args = _args(lps_files, out, "--size", "10", "--order", "1", "--no-image", "--commissures",
+    args = _args(lps_files, out, "--size", "10", "--order", "1", "--no-preview", "--commissures",
                  str(lps_files["commissures"]))
     assert main(args) == 2
     err = capsys.readouterr().err

@@ -135,7 +135,7 @@ def test_the_commands_print_what_was_scored_and_the_extrapolation(db6, model, tm
 
     saved = model.bundle.save(tmp_path / "m")
     assert main(["static", "evaluate", "--model", str(saved), "--data", str(db6), "--out", str(tmp_path / "ev"),
-                 "--no-render"]) == 0
+                 "--no-preview"]) == 0
     assert "scored: test split of the training database" in capsys.readouterr().out
     plan = tmp_path / "plan.toml"
     plan.write_text("[distal]\ntranslation_mm = [0.0, -20.0, 0.0]\n")

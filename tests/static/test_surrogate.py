@@ -181,7 +181,7 @@ def test_cli_dataset_train_evaluate_predict(tmp_path):
     assert main(["static", "train", "--data", str(db), "--out", str(model), "--epochs", "2", "--network", "tiny",
                  "--lr-schedule", "cosine", "--variant", "explicit", "--no-linear-prior"]) == 0
     assert main(["static", "evaluate", "--model", str(model), "--data", str(db), "--out", str(ev),
-                 "--no-render"]) == 0
+                 "--no-preview"]) == 0
     metrics = json.loads((ev / "metrics.json").read_text())
     for key in ("mean_error_mm", "median_error_mm", "p95_error_mm", "inference_ms", "fe_ms"):
         assert np.isfinite(metrics[key])

@@ -16,7 +16,7 @@ MESHES = (("face_hex", "face-hex"), ("face_tet10", "face-tet10"), ("ball", "ball
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--resolution", default="coarse", choices=RESOLUTIONS, help="phantom resolution")
-    parser.add_argument("--no-render", action="store_true", help="skip the PNG previews")
+    parser.add_argument("--no-preview", action="store_true", help="skip the PNG previews")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -25,14 +25,14 @@ def run(args: argparse.Namespace) -> int:
     out: Path = check_output_dir(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    rows = [_write_phantom(name, kind, args.resolution, out, render=not args.no_render) for name, kind in MESHES]
+    rows = [_write_phantom(name, kind, args.resolution, out, render=not args.no_preview) for name, kind in MESHES]
     t0 = time.perf_counter()
     static = _static(args.resolution)
-    static.write(out / "static", preview=not args.no_render)
+    static.write(out / "static", preview=not args.no_preview)
     st = static.summary()
     st_seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
-    impact = _impact(out / "impact", preview=not args.no_render)
+    impact = _impact(out / "impact", preview=not args.no_preview)
     im = impact.summary()
     im_seconds = time.perf_counter() - t0
     summary = {"resolution": args.resolution, "meshes": rows, "wall_time_s": round(time.perf_counter() - t_all, 2),

@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--memory", type=positive_float, default=None, metavar="GIB",
                         help="memory meshing and simulating a plan may take, GiB (default: what the system has "
                              "available); a --size whose estimate exceeds it is refused before meshing")
-    parser.add_argument("--no-image", action="store_true", help="skip labels.png")
+    parser.add_argument("--no-preview", action="store_true", help="skip labels.png (the labels preview)")
     parser.add_argument("--out", required=True, type=Path,
                         help="output mesh (.vtu or .inp); labels.json and labels.png are written beside it")
 
@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
                      backend=args.backend, rules=args.rules, units=args.units, axes=args.axes,
                      max_hole_edges=args.max_hole_edges, threads=1 if args.threads is None else args.threads,
                      memory_gib=args.memory)
-    written = face.write(args.out, image=not args.no_image)
+    written = face.write(args.out, image=not args.no_preview)
     r = face.report
     print(face.summary())
     print("seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in r["seconds"].items()))

@@ -220,7 +220,7 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, type=Path, help="database (.h5) to score it on")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
-    parser.add_argument("--no-render", action="store_true", help="skip error_map.png")
+    parser.add_argument("--no-preview", action="store_true", help="skip error_map.png")
 
 
 def evaluate(args: argparse.Namespace) -> int:
@@ -231,7 +231,7 @@ def evaluate(args: argparse.Namespace) -> int:
     check_output_dir(args.out)
     model = Surrogate.load(args.model, device=args.device)
     result = evaluate_surrogate(model, args.data)
-    mesh = None if args.no_render else subject_mesh(args.data, 0)
+    mesh = None if args.no_preview else subject_mesh(args.data, 0)
     with uninterruptible():
         write_evaluation(result, args.out, mesh)
     m = result["metrics"]
