@@ -118,6 +118,25 @@ def test_on_the_cpu_a_model_predicts_in_numpy_without_torch(db6, quick_model):
     assert done.stdout.strip() == "[]"
 
 
+def test_a_prediction_reports_what_it_computed_and_no_solver_field(quick_model, tmp_path):
+    """A prediction's summary holds its displacements, quality, checks and extrapolation, and
+    none of the FE's solver, contact, sliding or regulation records; its folder holds the plan."""
+    from toolkit.common import face_hex
+    from toolkit.static import SurgicalPlan, default_plan
+    from toolkit.static.surrogate import FE_ONLY
+
+    face = face_hex("coarse")
+    result = quick_model.predict_plan(face, default_plan(face))
+    summary = result.summary()
+    assert not set(FE_ONLY) & set(summary)
+    assert [set(r) for r in summary["increments_report"]] == [{"increment", "seconds", "min_scaled_jacobian",
+                                                               "worst_element"}] * 3
+    for key in ("max_displacement_mm", "min_scaled_jacobian", "checks", "extrapolation", "toolkit_version"):
+        assert key in summary, key
+    result.write(tmp_path / "pred", preview=False)
+    assert SurgicalPlan.read(tmp_path / "pred" / "plan.toml").as_dict() == default_plan(face).as_dict()
+
+
 def test_a_model_refuses_what_it_was_not_built_for(db6, quick_model, tmp_path):
     """A database of another resolution (the paper face) named as such, another model kind, and
     material channels on a database that does not vary the material are refused with errors

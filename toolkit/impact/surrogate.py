@@ -431,18 +431,16 @@ class Prediction:
     checks: dict | None = None
 
     def summary(self) -> dict:
-        """The keys of :meth:`toolkit.impact.simulate.ImpactResult.summary`; what only an FE run
-        knows (steps, energies, contact) is None."""
+        """The keys of :meth:`toolkit.impact.simulate.ImpactResult.summary` that a prediction
+        computes (what only an FE run knows, its steps, energies and contact, is left out), with
+        ``predicted_by`` and ``extrapolation``."""
         mag = np.linalg.norm(self.displacement, axis=2)
         return {"face_nodes": self.face.n_points, "face_elements": self.face.n_cells,
                 "element": self.face.volume_type,
                 "ball": "rigid" if self.scene.ball.rigid else "deformable",
-                "velocity_mm_s": float(self.scene.ball.velocity), "steps": None, "dt_s": None, "dt_critical_s": None,
+                "velocity_mm_s": float(self.scene.ball.velocity),
                 "wall_time_s": self.wall_time_s, "max_displacement_mm": float(mag.max()),
-                "max_von_mises_mpa": float(self.von_mises.max()), "max_equivalent_plastic_strain": None,
-                "plastic_volume_fraction": None, "energy_error": None, "max_energy_error": None,
-                "added_mass_fraction": None, "max_contact_force_n": None, "max_penetration_mm": None,
-                "fixed_clearance_mm": None, "predicted_by": f"{MODEL_KIND} ({self.config})",
+                "max_von_mises_mpa": float(self.von_mises.max()), "predicted_by": f"{MODEL_KIND} ({self.config})",
                 "extrapolation": self.extrapolation,
                 **({} if self.checks is None else {"checks": {"answer": self.checks}})}
 

@@ -227,18 +227,29 @@ def _mesh_signature(points: np.ndarray, cells: dict) -> dict:
 
 
 # ------------------------------------------------------------------ the model
+#: summary keys of a FE run that a prediction does not compute (solver, contact, sliding and
+#: regulation records)
+FE_ONLY = ("max_penetration_mm", "max_mucosa_gap_mm", "mucosa_offset_mm", "far_mucosa_nodes", "release_width_mm",
+           "freed_cut_nodes", "substeps", "increments_cut", "regulated_nodes", "max_regulation_shift_mm")
+
+
 @dataclass(frozen=True, eq=False)
 class PlanPrediction(SimulationResult):
     """A surrogate's prediction of a plan: a SimulationResult whose summary also holds
-    ``extrapolation`` (:func:`plan_extrapolation`: the plan parameters outside the training plans).
-    ``prescribed`` ``(increments, n, 3)`` mm holds each increment's prescribed bone motion (zero
-    off the bone-driven nodes), as the network saw it."""
+    ``extrapolation`` (:func:`plan_extrapolation`: the plan parameters outside the training plans)
+    and reports only what the prediction computed (no :data:`FE_ONLY` key; per increment, its time
+    and quality). ``prescribed`` ``(increments, n, 3)`` mm holds each increment's prescribed bone
+    motion (zero off the bone-driven nodes), as the network saw it."""
 
     extrapolation: dict = field(default_factory=dict)
     prescribed: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))
 
     def summary(self) -> dict:
-        return {**super().summary(), "extrapolation": self.extrapolation}
+        summary = {k: v for k, v in super().summary().items() if k not in FE_ONLY}
+        summary["increments_report"] = [{"increment": r.increment, "seconds": r.seconds_step1,
+                                         "min_scaled_jacobian": r.min_scaled_jacobian,
+                                         "worst_element": r.worst_element} for r in self.reports]
+        return {**summary, "extrapolation": self.extrapolation}
 
 
 def with_exact_attachment(U: np.ndarray, X: np.ndarray, bc, plan) -> np.ndarray:
