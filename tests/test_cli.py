@@ -152,6 +152,9 @@ def test_static_simulate_writes_the_documented_outputs(tmp_path):
     from toolkit.static import SurgicalPlan, default_plan, load_case
 
     assert summary["toolkit_version"] == __version__
+    from toolkit.static.boundary import NodeType
+
+    assert set(summary["boundary_type_codes"]) == {str(int(t)) for t in NodeType}  # the legend of boundary_type
     assert summary["command"] == f"toolkit static simulate --out {out}"
     ran = SurgicalPlan.read(out / "plan.toml")
     assert ran.as_dict() == default_plan(load_case(resolution="coarse").subject).as_dict()

@@ -209,6 +209,12 @@ class IncrementReport:
     max_regulation_shift: float = 0.0
 
 
+#: the ``boundary_type`` point field's codes (:class:`~toolkit.static.boundary.NodeType`), as
+#: ``summary.json`` lists them
+BOUNDARY_TYPE_CODES = {"0": "free", "1": "moving with a bone", "2": "fixed",
+                       "3": "mucosa sliding on its bone", "4": "lip sliding on the other lip"}
+
+
 @dataclass(frozen=True, eq=False)
 class SimulationResult:
     """Everything an incremental simulation produced.
@@ -260,8 +266,9 @@ class SimulationResult:
 
     @property
     def reference_mesh(self) -> Mesh:
-        """The pre-operative face with point fields ``displacement`` (mm) and ``boundary_type``:
-        the usual convention (ParaView's Warp By Vector gives the post-operative face)."""
+        """The pre-operative face with point fields ``displacement`` (mm) and ``boundary_type``
+        (:data:`BOUNDARY_TYPE_CODES`): the usual convention (ParaView's Warp By Vector gives the
+        post-operative face)."""
         return self.reference.with_point_data(displacement=self.displacement,
                                               boundary_type=self.boundary.types.astype(np.int32))
 
@@ -301,6 +308,7 @@ class SimulationResult:
             "increments_report": [asdict(r) for r in self.reports],
             **({} if self.checks is None else {"checks": self.checks}),
             **fidelity,
+            "boundary_type_codes": BOUNDARY_TYPE_CODES,
             "toolkit_version": __version__,
         }
 
