@@ -27,7 +27,8 @@ from toolkit.cli._common import (
 )
 
 HELP = "ball-impact workflow (the impact paper)"
-DESCRIPTION = "Impact workflow: explicit elastoplastic simulation of a ball pressed into the face."
+DESCRIPTION = ("Impact workflow: elastoplastic simulation of a ball pressed into the face (quasi-static load steps "
+               "by default, explicit dynamics by name), its database and surrogate.")
 
 
 class _Choices(tuple):
@@ -113,7 +114,7 @@ def simulate(args: argparse.Namespace) -> int:
           f"{s['max_displacement_mm']:.2f} mm, max von Mises {s['max_von_mises_mpa']:.4f} MPa, energy error "
           f"{s['energy_error']:.2%}")
     print(f"wrote {args.out}/ (face.xdmf, {'ball.xdmf, ' if result.ball is not None else ''}history.h5, "
-          f"summary.json{'' if args.no_preview else ', preview.png'})")
+          f"summary.json, scene.toml{'' if args.no_preview else ', preview.png'})")
     return 0
 
 
@@ -425,7 +426,7 @@ COMMANDS = {
     "simulate": Command(
         help="run an impact scene",
         description="Run the simulation (quasi-static by default, or explicit) and write face.xdmf (displacement, "
-                    "von_mises), ball.xdmf (deformable ball), history.h5, summary.json and preview.png.",
+                    "von_mises), ball.xdmf (deformable ball), history.h5, summary.json, scene.toml and preview.png.",
         add_arguments=add_simulate_arguments, run=simulate,
         interrupted="{out} holds nothing from this run, or summary.json with \"status\": \"interrupted\" and the "
                     "frames finished so far (readable); rerun the same command to run it whole"),

@@ -87,7 +87,7 @@ def simulate(args: argparse.Namespace) -> int:
           f"max displacement {s['max_displacement_mm']:.2f} mm, min scaled Jacobian {s['min_scaled_jacobian']:.3f}, "
           f"max penetration {s['max_penetration_mm']:.2e} mm, {s['wall_time_s']:.1f} s")
     print(f"wrote {args.out}/ (result.vtu: pre-operative face with 'displacement'; postop.vtu: post-operative face; "
-          f"increments.xdmf, summary.json{'' if args.no_preview else ', preview.png'})")
+          f"increments.xdmf, summary.json, plan.toml{'' if args.no_preview else ', preview.png'})")
     return 0
 
 
@@ -346,7 +346,7 @@ def predict(args: argparse.Namespace) -> int:
     s = result.summary()
     print(f"{s['nodes']} nodes, {s['increments']} increments predicted in {s['wall_time_s'] * 1e3:.0f} ms: max "
           f"displacement {s['max_displacement_mm']:.2f} mm, min scaled Jacobian {s['min_scaled_jacobian']:.3f} -> "
-          f"{args.out}/ (result.vtu, postop.vtu, increments.xdmf, summary.json)")
+          f"{args.out}/ (result.vtu, postop.vtu, increments.xdmf, summary.json, plan.toml)")
     from toolkit.common.training import describe_extrapolation
 
     print(f"plan: {describe_extrapolation(s['extrapolation'])}")
@@ -376,7 +376,7 @@ def _predict_within(args, model, case) -> int:
     print(f"plan: {describe_extrapolation(a['out_of_distribution']['plan'])}")
     print(f"{s['nodes']} nodes: max displacement {s['max_displacement_mm']:.2f} mm; surrogate "
           f"{sec['surrogate']:.2f} s, estimate {sec['estimate']:.2f} s, FE {sec['fe']:.2f} s -> {args.out}/ "
-          "(result.vtu, postop.vtu, increments.xdmf, summary.json)")
+          "(result.vtu, postop.vtu, increments.xdmf, summary.json, plan.toml)")
     return 0
 
 
@@ -416,8 +416,8 @@ COMMANDS = {
     "simulate": Command(
         help="simulate a surgical plan on a face",
         description="Run the incremental FE simulation (mucosa and lip sliding) and write result.vtu (reference "
-                    "mesh + displacement), postop.vtu (post-operative face), increments.xdmf, summary.json and "
-                    "preview.png.",
+                    "mesh + displacement), postop.vtu (post-operative face), increments.xdmf, summary.json, plan.toml "
+                    "and preview.png.",
         add_arguments=add_simulate_arguments, run=simulate,
         interrupted=NOTHING_WRITTEN + " (the files are written after the last increment)"),
     "dataset": Command(
