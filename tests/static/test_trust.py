@@ -101,6 +101,28 @@ def test_a_calibration_of_an_earlier_version_is_refused(calibrated, tmp_path, ke
         Calibration.load(tmp_path / "model")
 
 
+def test_a_calibration_belongs_to_the_weights_it_was_made_for(calibrated, quick_model, tmp_path):
+    """A calibration copied beside another model's weights is refused, naming the command that
+    calibrates; saving new weights into a calibrated folder (a retraining) removes the calibration
+    made for the weights it replaces."""
+    from toolkit.common.training.bundle import ModelBundle
+
+    model, _ = calibrated
+    other = tmp_path / "other"
+    shutil.copytree(quick_model.directory, other)
+    for name in ("calibration.json", "calibration.npz"):
+        shutil.copy(model.directory / name, other / name)
+    with pytest.raises(ValueError, match=r"was made for another model .*toolkit static calibrate --model"):
+        Calibration.load(other)
+    retrained = tmp_path / "retrained"
+    shutil.copytree(model.directory, retrained)
+    assert Calibration.load(retrained).bound.factor > 0  # a copy of the folder keeps its calibration
+    ModelBundle.load(quick_model.directory).save(retrained)
+    assert not (retrained / "calibration.json").exists() and not (retrained / "calibration.npz").exists()
+    with pytest.raises(FileNotFoundError, match="holds no calibration"):
+        Calibration.load(retrained)
+
+
 def test_too_few_plans_for_the_coverage_are_refused(hard_model, db100):
     with pytest.raises(ValueError, match="needs at least 19"):
         calibrate_surrogate(hard_model, db100, coverage=0.95, progress=False)

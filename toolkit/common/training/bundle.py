@@ -49,14 +49,18 @@ class ModelBundle:
 
     def save(self, directory: str | os.PathLike) -> Path:
         """Write ``model.pt``, ``weights.npz`` then ``config.json`` (each atomically; the JSON
-        last, so a directory with a ``config.json`` always has the weights it describes)."""
+        last, so a directory with a ``config.json`` always has the weights it describes). A
+        calibration in the directory, made for the weights these replace, is removed first."""
         import numpy as np
         import torch
 
         from toolkit.common.io import atomic_path
+        from toolkit.common.training.conformal import CALIBRATION_FILES
 
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
+        for name in CALIBRATION_FILES:  # made for the weights these replace
+            (directory / name).unlink(missing_ok=True)
         flat = {key: torch.as_tensor(value).detach().cpu() for key, value in _flatten(self.state_dict).items()}
         with atomic_path(directory / "model.pt") as tmp:
             torch.save(_nest(flat), tmp)
@@ -98,6 +102,13 @@ class ModelBundle:
             raise ValueError(f"cannot read {weights}: {type(exc).__name__}: {exc}") from exc
         scalers = {k: MinMaxScaler.from_dict(v) for k, v in doc.get("scalers", {}).items()}
         return cls(doc["kind"], doc["config"], doc["data"], scalers, state, doc.get("extra", {}))
+
+    @staticmethod
+    def weights_sha1(directory: str | os.PathLike) -> str:
+        """SHA-1 of a model directory's ``model.pt``: which weights a calibration was made for."""
+        import hashlib
+
+        return hashlib.sha1((Path(directory) / "model.pt").read_bytes()).hexdigest()
 
     @staticmethod
     def has_arrays(directory: str | os.PathLike) -> bool:

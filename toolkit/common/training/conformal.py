@@ -129,12 +129,16 @@ CALIBRATION_FILES = ("calibration.json", "calibration.npz")
 
 def save_calibration(directory, meta: dict, arrays: dict):
     """Write ``arrays`` (name -> ndarray) to ``calibration.npz`` and ``meta`` (JSON-ready) to
-    ``calibration.json`` in ``directory``, each atomically, the JSON last; returns the directory."""
+    ``calibration.json`` in the model directory ``directory``, each atomically, the JSON last, with
+    the fingerprint of the model's weights (``model_sha1``, read back by :func:`load_calibration`);
+    returns the directory."""
     from pathlib import Path
 
     from toolkit.common.io import atomic_path
+    from toolkit.common.training.bundle import ModelBundle
 
     directory = Path(directory)
+    meta = {**meta, "model_sha1": ModelBundle.weights_sha1(directory)}
     with atomic_path(directory / CALIBRATION_FILES[1]) as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **arrays)
@@ -144,15 +148,24 @@ def save_calibration(directory, meta: dict, arrays: dict):
 
 
 def load_calibration(directory, command: str) -> tuple[dict, dict]:
-    """``(meta, arrays)`` of the calibration saved in ``directory``; FileNotFoundError naming
-    ``command`` (the one that makes a calibration, e.g. ``toolkit static calibrate``) when absent."""
+    """``(meta, arrays)`` of the calibration saved in the model directory ``directory``;
+    FileNotFoundError naming ``command`` (the one that makes a calibration, e.g. ``toolkit static
+    calibrate``) when absent, ValueError naming it when the calibration was made for other weights
+    (a calibration copied from another model, or one that training replaced)."""
     from pathlib import Path
+
+    from toolkit.common.training.bundle import ModelBundle
 
     directory = Path(directory)
     if not all((directory / name).is_file() for name in CALIBRATION_FILES):
         raise FileNotFoundError(f"{directory} holds no calibration ({', '.join(CALIBRATION_FILES)}): make one with "
                                 f"`{command} --model {directory} --data DB.h5`")
     meta = json.loads((directory / CALIBRATION_FILES[0]).read_text())
+    made_for, weights = meta.get("model_sha1"), ModelBundle.weights_sha1(directory)
+    if made_for != weights:
+        raise ValueError(f"{directory / CALIBRATION_FILES[0]} was made for another model (weights {made_for}, this "
+                         f"directory's model.pt is {weights}): calibrate this model again: "
+                         f"`{command} --model {directory} --data DB.h5`")
     with np.load(directory / CALIBRATION_FILES[1]) as z:
         arrays = {k: z[k] for k in z.files}
     return meta, arrays
