@@ -100,9 +100,9 @@ def test_every_option_shows_its_default(path):
             assert f"(default: {action.default})" in printed, (path, action.option_strings)
 
 
-def test_deprecated_config_name_seed_trains_the_paper_configuration(monkeypatch, capsys):
-    """``toolkit impact train --config seed`` trains the configuration now called ``paper`` and
-    says so on stderr; ``--help`` lists only paper, strong and baseline."""
+def test_impact_train_configurations_are_named_paper_strong_baseline(monkeypatch, capsys):
+    """``toolkit impact train --config strong`` trains that configuration; ``--help`` lists paper,
+    strong and baseline, and another name (``seed``) is refused with the choices."""
     import toolkit.impact.surrogate as surrogate
 
     received = {}
@@ -112,15 +112,14 @@ def test_deprecated_config_name_seed_trains_the_paper_configuration(monkeypatch,
         raise RuntimeError("stopped before training")
 
     monkeypatch.setattr(surrogate, "train_surrogate", stop)
-    assert main(["impact", "train", "--data", "db.h5", "--out", "model", "--config", "seed"]) == 2
-    err = capsys.readouterr().err
-    assert "warning: the configuration name 'seed' is deprecated: use 'paper'" in err
-    assert "error: stopped before training" in err
-    assert received["cfg"] is surrogate.CONFIGS["paper"]
     parser = dict(_subcommands(build_parser()))[("impact", "train")]
     assert "{paper,strong,baseline}" in parser.format_help()
     assert main(["impact", "train", "--data", "db.h5", "--out", "model", "--config", "strong"]) == 2
-    assert "deprecated" not in capsys.readouterr().err and received["cfg"] is surrogate.CONFIGS["strong"]
+    assert "error: stopped before training" in capsys.readouterr().err
+    assert received["cfg"] is surrogate.CONFIGS["strong"]
+    with pytest.raises(SystemExit):
+        main(["impact", "train", "--data", "db.h5", "--out", "model", "--config", "seed"])
+    assert "invalid choice: 'seed'" in capsys.readouterr().err
 
 
 def test_phantom_command_and_clear_errors(tmp_path, capsys):

@@ -23,14 +23,6 @@ def test_default_held_out_velocities_sit_between_the_paper_ones():
     assert default_held_out([20, 26, 32, 38, 44, 50]) == [23.0, 35.0, 47.0]
 
 
-def test_seed_velocities_is_a_deprecated_spelling_of_paper_velocities():
-    """SEED_VELOCITIES still reads, with a DeprecationWarning naming PAPER_VELOCITIES."""
-    from toolkit.impact import dataset
-
-    with pytest.warns(DeprecationWarning, match="PAPER_VELOCITIES"):
-        assert dataset.SEED_VELOCITIES is dataset.PAPER_VELOCITIES
-
-
 def test_records_hold_the_simulation_fields_and_their_inputs(tiny_db, tiny_db_path):
     """Seven simulations sorted by velocity, the held-out one flagged; fields (S, F, N, 3) mm and
     (S, F, N) MPa on the shared face; the shared fixed mask is the scene's fixed nodes (bone side

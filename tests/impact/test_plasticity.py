@@ -286,18 +286,6 @@ def test_hardening_table_interpolation_and_paper_values():
     np.testing.assert_array_equal(r.plastic, [False, True])
 
 
-def test_seed002_names_are_deprecated_spellings_of_the_paper_materials():
-    """SEED002_FACE and SEED002_BALL still read, with a DeprecationWarning naming the new name."""
-    from toolkit.impact import plasticity
-
-    with pytest.warns(DeprecationWarning, match="PAPER_FACE"):
-        assert plasticity.SEED002_FACE is PAPER_FACE
-    with pytest.warns(DeprecationWarning, match="PAPER_BALL"):
-        assert plasticity.SEED002_BALL is PAPER_BALL
-    with pytest.raises(AttributeError, match="SEED003"):
-        _ = plasticity.SEED003
-
-
 @pytest.mark.parametrize(
     "stress, strain, match",
     [

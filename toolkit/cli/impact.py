@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 from pathlib import Path
 
 from toolkit.cli._common import (
@@ -30,20 +29,7 @@ HELP = "ball-impact workflow (the impact paper)"
 DESCRIPTION = ("Impact workflow: elastoplastic simulation of a ball pressed into the face (quasi-static load steps "
                "by default, explicit dynamics by name), its database and surrogate.")
 
-
-class _Choices(tuple):
-    """Names shown in ``--help`` (``{a,b,c}``) that also accept deprecated spellings."""
-
-    def __new__(cls, names, deprecated=()):
-        choices = super().__new__(cls, names)
-        choices.deprecated = frozenset(deprecated)
-        return choices
-
-    def __contains__(self, value) -> bool:
-        return super().__contains__(value) or value in self.deprecated
-
-
-CONFIG_NAMES = _Choices(["paper", "strong", "baseline"], deprecated=["seed"])
+CONFIG_NAMES = ["paper", "strong", "baseline"]
 
 
 def _add_scene_options(parser: argparse.ArgumentParser, scene: str) -> None:
@@ -186,11 +172,7 @@ def train(args: argparse.Namespace) -> int:
     torch_threads(args)
     from toolkit.impact.surrogate import resolve_config, train_surrogate
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", DeprecationWarning)
-        cfg = resolve_config(args.config)
-    for w in caught:
-        print(f"warning: {w.message}", file=sys.stderr)
+    cfg = resolve_config(args.config)
     if args.epochs is not None:
         cfg = cfg.with_(epochs=args.epochs)
     if args.max_minutes is not None:
@@ -439,8 +421,7 @@ COMMANDS = {
     "train": Command(
         help="train a surrogate on a database",
         description="Train the impact paper's LSTM, the stronger LSTM or the non-recurrent baseline; writes "
-                    "model.pt, config.json (with the scalers) and checkpoint.pt. The configuration 'seed' is the "
-                    "deprecated name of 'paper'.",
+                    "model.pt, weights.npz, config.json (with the scalers) and checkpoint.pt.",
         add_arguments=add_train_arguments, run=train, interrupted=EPOCHS_KEPT),
     "evaluate": Command(
         help="score a model on its test split",

@@ -30,7 +30,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -295,11 +294,3 @@ def _tomllib_loads(text) -> dict:
 
     return tomllib.loads(_str(text))
 
-
-def __getattr__(name: str):
-    """``SEED_VELOCITIES``: the deprecated spelling of :data:`PAPER_VELOCITIES` (a DeprecationWarning)."""
-    if name == "SEED_VELOCITIES":
-        warnings.warn("toolkit.impact.dataset.SEED_VELOCITIES is deprecated: use PAPER_VELOCITIES", DeprecationWarning,
-                      stacklevel=2)
-        return PAPER_VELOCITIES
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -37,7 +37,6 @@ impact reaches. The ball (E = 0.38 MPa, yield 0.034 MPa) yields at a Hencky stra
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -774,15 +773,3 @@ PAPER_FACE = J2Plasticity(E=papers.FACE_E, nu=papers.FACE_NU, density=papers.FAC
 #: the impact paper's ball: E = 0.38 MPa, nu = 0.39, density of a solid 110 mm sphere of 0.43 kg,
 #: yield table :data:`BALL_TABLE`
 PAPER_BALL = J2Plasticity(E=papers.BALL_E, nu=papers.BALL_NU, density=papers.ball_density(), table=BALL_TABLE)
-
-_DEPRECATED = {"SEED002_FACE": "PAPER_FACE", "SEED002_BALL": "PAPER_BALL"}
-
-
-def __getattr__(name: str):
-    """``SEED002_FACE`` and ``SEED002_BALL``: deprecated spellings of :data:`PAPER_FACE` and
-    :data:`PAPER_BALL` (a DeprecationWarning)."""
-    if name in _DEPRECATED:
-        warnings.warn(f"toolkit.impact.plasticity.{name} is deprecated: use {_DEPRECATED[name]}", DeprecationWarning,
-                      stacklevel=2)
-        return globals()[_DEPRECATED[name]]
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

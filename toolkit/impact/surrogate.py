@@ -166,10 +166,7 @@ CONFIGS = {
 
 
 def resolve_config(config: SurrogateConfig | str) -> SurrogateConfig:
-    """A :data:`CONFIGS` name (``seed`` is the deprecated spelling of ``paper``) or a SurrogateConfig."""
-    if config == "seed":
-        warnings.warn("the configuration name 'seed' is deprecated: use 'paper'", DeprecationWarning, stacklevel=3)
-        config = "paper"
+    """A :data:`CONFIGS` name or a SurrogateConfig."""
     cfg = CONFIGS.get(config, config) if isinstance(config, str) else config
     if not isinstance(cfg, SurrogateConfig):
         raise ValueError(f"config {config!r} is not one of {sorted(CONFIGS)} or a SurrogateConfig")
