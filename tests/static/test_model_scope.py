@@ -10,8 +10,8 @@ import pytest
 
 from toolkit.common.config_diff import IncompatibleError
 from toolkit.static.dataset import DatasetConfig, StaticDatabase, generate, subject_phantom
-from toolkit.static.plan import PlanRangeWarning, SurgicalPlan, default_plan, sample_plans
-from toolkit.static.surrogate import PLAN_PARAMETERS, evaluate_surrogate
+from toolkit.static.plan import PHYSIOLOGICAL_RANGES, PlanRangeWarning, SurgicalPlan, default_plan, sample_plans
+from toolkit.static.surrogate import evaluate_surrogate
 
 
 def _database(tmp_path_factory, name, **kw):
@@ -77,13 +77,13 @@ def test_a_database_of_other_settings_is_refused(model, tmp_path_factory, settin
 
 
 def test_a_bundle_without_its_training_simulations_says_so(db6, model, tmp_path_factory):
-    """A model saved without ``seen_simulations`` (or ``train_plan_ranges``) still scores and
+    """A model saved without ``seen_simulations`` (or the dental arch's nodes) still scores and
     predicts, saying what it cannot know."""
     from toolkit.common.training import ModelBundle
     from toolkit.static.surrogate import Surrogate
 
     b = model.bundle
-    extra = {k: v for k, v in b.extra.items() if k not in ("seen_simulations", "train_plan_ranges")}
+    extra = {k: v for k, v in b.extra.items() if k not in ("seen_simulations", "arch_nodes")}
     out = ModelBundle(b.kind, b.config, b.data, b.scalers, b.state_dict, extra).save(
         tmp_path_factory.mktemp("old") / "m")
     old = Surrogate.load(out)
@@ -91,7 +91,8 @@ def test_a_bundle_without_its_training_simulations_says_so(db6, model, tmp_path_
     m = evaluate_surrogate(old, other)["metrics"]
     assert "does not record its training simulations" in m["scored"] and m["training_samples_excluded"] is None
     phantom = subject_phantom("coarse", 0)
-    assert old.predict_plan(phantom, default_plan(phantom)).summary()["extrapolation"]["outside"] == "unknown"
+    # the verdict on a plan comes from the database's sampler settings, which every model records
+    assert old.predict_plan(phantom, default_plan(phantom)).summary()["extrapolation"]["outside"] in (True, False)
 
 
 # ------------------------------------------------------------------ extrapolation
@@ -102,13 +103,12 @@ def test_a_training_plan_is_inside_the_training_ranges(db6, model):
     plan = plans[int(sorted(train_plans)[0][-5:])]
     ex = model.predict_plan(phantom, plan).summary()["extrapolation"]
     assert ex == {"outside": False, "parameters": {}}
-    ranges = model.bundle.extra["train_plan_ranges"]
-    assert list(ranges) == list(PLAN_PARAMETERS) and all(lo <= hi for lo, hi in ranges.values())
 
 
 def test_a_plan_beyond_the_training_ranges_is_recorded(model, tmp_path):
-    """A setback of 20 mm (the sampled plans stay within 11.5 mm) is recorded in the summary and
-    in summary.json: the parameter, its value, the training range and how far outside."""
+    """A setback of 20 mm (the sampler draws distal translations up to the physiological top) is
+    recorded in the summary and in summary.json: the parameter, its value, the range the training
+    database's sampler spans and how far outside."""
     phantom = subject_phantom("coarse", 0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PlanRangeWarning)
@@ -119,10 +119,10 @@ def test_a_plan_beyond_the_training_ranges_is_recorded(model, tmp_path):
     assert [str(w.message) for w in predicted if issubclass(w.category, PlanRangeWarning)] == []
     ex = result.summary()["extrapolation"]
     assert ex["outside"] is True
-    ty = ex["parameters"]["distal.translation_y_mm"]
-    lo, hi = model.bundle.extra["train_plan_ranges"]["distal.translation_y_mm"]
-    assert ty["value"] == -20.0 and ty["train_range"] == [lo, hi]
-    assert ty["outside_by"] == pytest.approx(lo + 20.0, abs=1e-6) and ty["outside_by"] > 0
+    length = ex["parameters"]["distal.translation_mm"]
+    top = PHYSIOLOGICAL_RANGES["distal"].translation_mm[1]
+    assert length["value"] == pytest.approx(20.0) and length["train_range"] == [0.0, top]
+    assert length["outside_by"] == pytest.approx(20.0 - top, abs=1e-6) and length["outside_by"] > 0
     result.write(tmp_path / "pred", preview=False)
     assert json.loads((tmp_path / "pred" / "summary.json").read_text())["extrapolation"] == json.loads(
         json.dumps(ex))
@@ -144,4 +144,4 @@ def test_the_commands_print_what_was_scored_and_the_extrapolation(db6, model, tm
         assert main(["static", "predict", "--model", str(saved), "--plan", str(plan), "--out", str(tmp_path / "p"),
                      "--no-preview"]) == 0
     out = capsys.readouterr().out
-    assert "plan: OUTSIDE the training data" in out and "distal.translation_y_mm = -20 (trained" in out
+    assert "plan: OUTSIDE the training data" in out and "distal.translation_mm = 20 (trained 0 to" in out

@@ -170,6 +170,8 @@ def test_a_plan_within_the_samplers_hull_is_in_distribution_beyond_the_training_
     ood = out_of_distribution(cal, case.subject.mesh, plan)
     assert not ood["outside"], ood["reasons"]
     assert 0 < ood["plan"]["nearest_plan_distance"]
+    model, _ = calibrated  # static predict without a tolerance says the same
+    assert model.predict_plan(case.subject, plan).summary()["extrapolation"] == {"outside": False, "parameters": {}}
 
 
 @pytest.mark.parametrize("lefort, distal, parameter", [
@@ -181,11 +183,15 @@ def test_a_plan_within_the_samplers_hull_is_in_distribution_beyond_the_training_
     ({"translation_mm": [0.0, 0.0, -6.0]}, {**DISTAL, "translation_mm": [0.0, 0.0, 11.0]}, "jaw_closing_mm"),
 ], ids=["lefort beyond the range", "distal rotated beyond it", "lateral", "yaw", "jaws through each other"])
 def test_a_plan_the_sampler_cannot_draw_is_out_of_distribution(calibrated, lefort, distal, parameter):
-    _, cal = calibrated
+    """... and ``static predict`` without a tolerance gives the same verdict on the same parameter."""
+    model, cal = calibrated
     case = load_case(resolution="coarse")
-    ood = out_of_distribution(cal, case.subject.mesh, _plan(case, lefort, distal))
+    plan = _plan(case, lefort, distal)
+    ood = out_of_distribution(cal, case.subject.mesh, plan)
     assert ood["outside"] and list(ood["plan"]["parameters"]) == [parameter]
     assert any(r.startswith("plan:") and parameter in r for r in ood["reasons"])
+    predicted = model.predict_plan(case.subject, plan).summary()["extrapolation"]
+    assert predicted == {k: v for k, v in ood["plan"].items() if k != "nearest_plan_distance"}
 
 
 def test_in_distribution_plan_answered_by_whichever_the_tolerance_allows(calibrated, db100):

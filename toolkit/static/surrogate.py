@@ -190,26 +190,34 @@ def _simulation_identities(db) -> dict:
     return out
 
 
-def _plan_ranges(db, keys) -> dict:
-    """Plan parameter -> ``[min, max]`` over the whole plans (last increment) of simulations ``keys``."""
-    from toolkit.static.dataset import PLAN_FEATURES
+def plan_extrapolation(plan, hull: dict, arch: np.ndarray | None = None) -> dict:
+    """How far ``plan`` lies beyond what the training database's sampler spans: each of its
+    :func:`~toolkit.static.plan.sampled_parameters` (translation lengths and rotation angles per
+    segment, out-of-plane motion, and with the face's dental ``arch`` ``(k, 3)`` mm the jaw
+    closing) outside ``hull`` (:func:`training_hull`). The one verdict of ``static predict``,
+    with or without a tolerance (:func:`~toolkit.static.trust.out_of_distribution`)."""
+    from toolkit.static.plan import sampled_parameters
 
-    s = db.samples
-    last = s[s.key.isin(list(keys))].sort_values("increment").groupby("key").tail(1)
-    values = last[list(PLAN_FEATURES[:len(PLAN_PARAMETERS)])].to_numpy(np.float64)
-    return {name: [float(values[:, j].min()), float(values[:, j].max())] for j, name in enumerate(PLAN_PARAMETERS)}
+    return extrapolation(sampled_parameters(plan, arch), hull, "plans")
 
 
-def plan_extrapolation(plan, ranges: dict | None) -> dict:
-    """How far each parameter of ``plan`` (:data:`PLAN_PARAMETERS`) lies outside the training
-    ``ranges`` (name -> [min, max]) (``"outside": "unknown"`` when the model holds no ranges)."""
-    from toolkit.static.dataset import plan_features
+def training_hull(database: dict) -> dict:
+    """:func:`~toolkit.static.plan.sampling_hull` of a training database's settings (its
+    ``DatasetConfig`` as a dict: ``mode``, ``max_jaw_closing_mm``), physiological ranges."""
+    from toolkit.static.plan import PHYSIOLOGICAL_RANGES, sampling_hull
 
-    with warnings.catch_warnings():  # the plan warned of its range where it was built
-        warnings.simplefilter("ignore", PlanRangeWarning)
-        features = plan_features(plan, 1)[0]
-    values = dict(zip(PLAN_PARAMETERS, features[:len(PLAN_PARAMETERS)].tolist()))
-    return extrapolation(values, ranges, "plans")
+    return sampling_hull(database.get("mode", "sagittal"), PHYSIOLOGICAL_RANGES, database.get("max_jaw_closing_mm"))
+
+
+def arch_nodes(db) -> np.ndarray:
+    """The nodes of a database's first subject nearest its dental arch (the jaw closing's
+    points, on every subject of that topology), ``(k,)`` int64."""
+    from scipy.spatial import cKDTree
+
+    from toolkit.static.plan import dental_arch
+
+    first = min(db.points)
+    return cKDTree(db.points[first]).query(dental_arch(db.subject(first)))[1].astype(np.int64)
 
 
 def _points_key(points: np.ndarray) -> str:
@@ -523,11 +531,15 @@ class Surrogate:
         U = with_exact_attachment(np.stack(U), X, bc, plan)
         return with_answer_checks(
             PlanPrediction(mesh, U, bc, reports, wall, f"surrogate ({self.config.features.variant})", data.sliding,
-                           extrapolation=self.extrapolation(plan), prescribed=np.stack(given)), plan)
+                           extrapolation=self.extrapolation(plan, mesh), prescribed=np.stack(given)), plan)
 
-    def extrapolation(self, plan) -> dict:
-        """How far ``plan`` lies outside the plans the model was trained on (:func:`plan_extrapolation`)."""
-        return plan_extrapolation(plan, self.bundle.extra.get("train_plan_ranges"))
+    def extrapolation(self, plan, mesh=None) -> dict:
+        """How far ``plan`` lies beyond what the training database's sampler spans
+        (:func:`plan_extrapolation`); the jaw closing too on a ``mesh`` of the training topology."""
+        nodes = self.bundle.extra.get("arch_nodes")
+        same = mesh is not None and nodes is not None and mesh.n_points == self.bundle.data["mesh"]["nodes"]
+        arch = mesh.points[np.asarray(nodes, np.int64)] if same else None
+        return plan_extrapolation(plan, training_hull(self.bundle.data["database"]), arch)
 
 
 # ------------------------------------------------------------------ data
@@ -677,8 +689,9 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
              "history": result.history.to_dict(orient="list"),
              "split": {"train": int(train_idx.size), "validation": int(val_idx.size), "test": int(test_idx.size)},
              "test_keys": test_keys, "parameters": int(sum(p.numel() for p in module.net.parameters())),
-             "seen_simulations": seen, "train_plan_ranges": _plan_ranges(db, seen_keys),
-             "subject_points": {_points_key(pts): int(s) for s, pts in db.points.items()}}
+             "seen_simulations": seen,
+             "subject_points": {_points_key(pts): int(s) for s, pts in db.points.items()},
+             "arch_nodes": arch_nodes(db).tolist()}
     bundle = ModelBundle(MODEL_KIND, {"surrogate": config.as_dict(), "network": net_config.to_dict()}, signature,
                          {"inputs": scaler}, state, extra)
     bundle.save(out)

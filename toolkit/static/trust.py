@@ -239,7 +239,7 @@ def baseline_prediction(model, residual, face, plan, segments=None):
     prescribed = np.where((response.bc.types == 1)[None, :, None], bones, 0.0)
     return with_answer_checks(
         PlanPrediction(mesh, U, response.bc, reports, wall, "baseline (sliding response + POD residual)",
-                       data.sliding, extrapolation=model.extrapolation(plan), prescribed=prescribed), plan)
+                       data.sliding, extrapolation=model.extrapolation(plan, mesh), prescribed=prescribed), plan)
 
 
 def _scale_field(calibration_scale: str, network: np.ndarray | None, baseline: np.ndarray) -> np.ndarray:
@@ -280,13 +280,18 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     -------
     Calibration (not saved: ``.save(model_directory)``)
     """
-    from scipy.spatial import cKDTree
     from tqdm import tqdm
 
     from toolkit.static.baselines import LinearPlusPOD
     from toolkit.static.dataset import PLAN_FEATURES, StaticDatabase
-    from toolkit.static.plan import PHYSIOLOGICAL_RANGES, dental_arch, sampling_hull
-    from toolkit.static.surrogate import PLAN_PARAMETERS, _simulation_identities, check_database, evaluation_keys
+    from toolkit.static.surrogate import (
+        PLAN_PARAMETERS,
+        _simulation_identities,
+        check_database,
+        evaluation_keys,
+        training_hull,
+    )
+    from toolkit.static.surrogate import arch_nodes as surrogate_arch_nodes
 
     if scale not in SCALES + ("auto",):
         raise ValueError(f"scale = {scale!r}; expected one of {SCALES + ('auto',)}")
@@ -325,9 +330,9 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
                    for j, n in enumerate(PLAN_PARAMETERS)}
     seen_subjects = sorted({int(s) for s in train_db.samples.subject[train_db.samples.key.isin(seen_keys)]})
     pts = np.stack([train_db.points[s] for s in seen_subjects])
-    hull = sampling_hull(train_db.config.mode, PHYSIOLOGICAL_RANGES, train_db.config.max_jaw_closing_mm)
-    first = train_db.subject(seen_subjects[0])
-    arch_nodes = cKDTree(pts[0]).query(dental_arch(first))[1].astype(np.int64)
+    hull = training_hull(train_db.config.as_dict())
+    stored = model.bundle.extra.get("arch_nodes")  # the model's own, so that predict gives the same verdict
+    arch = np.asarray(stored, np.int64) if stored is not None else surrogate_arch_nodes(train_db)
     spread = max([_rms(a, b) for i, a in enumerate(pts) for b in pts[i + 1:]] + [MIN_SHAPE_SPREAD_MM])
     cases = []
     fe_s = db.samples.groupby("key").seconds.sum()
@@ -350,7 +355,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     return Calibration(scale, bounds[answerer], residual, train_plans, plan_ranges, pts, float(spread),
                        db.config.material, cases, {"database": str(Path(db.path).resolve()), "plans": how,
                                                    "training_database": str(Path(train_db.path).resolve())},
-                       answerer, bounds, hull, arch_nodes, candidates)
+                       answerer, bounds, hull, arch, candidates)
 
 
 def _choose(cases: list, coverage: float, scale: str, answerer: str) -> tuple[str, str, dict, tuple]:
@@ -446,15 +451,14 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
     lie from each other, or when one of its nodes lies more than :data:`MIN_SHAPE_SPREAD_MM`
     outside the per-coordinate box of that node over the training subjects.
     """
-    from toolkit.common.training.extrapolation import describe_extrapolation, extrapolation
-    from toolkit.static.plan import sampled_parameters
-    from toolkit.static.surrogate import PLAN_PARAMETERS
+    from toolkit.common.training.extrapolation import describe_extrapolation
+    from toolkit.static.surrogate import PLAN_PARAMETERS, plan_extrapolation
 
     reasons = []
     same_shape = same_topology and mesh.points.shape == calibration.subjects.shape[1:]
     arch = mesh.points[calibration.arch_nodes] if same_shape and "jaw_closing_mm" in calibration.plan_hull \
         else None
-    ex = extrapolation(sampled_parameters(plan, arch), calibration.plan_hull, "plans")
+    ex = plan_extrapolation(plan, calibration.plan_hull, arch)
     values = np.array(_plan_values(plan))
     lo = np.array([calibration.plan_ranges[n][0] for n in PLAN_PARAMETERS])
     span = np.array([calibration.plan_ranges[n][1] for n in PLAN_PARAMETERS]) - lo
