@@ -10,8 +10,9 @@ import pytest
 from toolkit.common.io import write
 from toolkit.common.mesh import Mesh, MeshError
 from toolkit.common.phantom import face_hex
+from toolkit.common.surfaces import orient_surface, read_surface
 from toolkit.static import default_plan, simulate
-from toolkit.static.bones import orient_surface, read_surface, segments_from_files
+from toolkit.static.bones import segments_from_files
 
 
 @pytest.fixture(scope="module")

@@ -140,7 +140,7 @@ def _check_budget(surface: Mesh, size_mm: float, order: int, memory_gib: float |
 
 
 def _read_bone(name: str, source, units: str) -> Mesh:
-    from toolkit.static.bones import read_surface
+    from toolkit.common.surfaces import read_surface
 
     if isinstance(source, Mesh):
         return source
@@ -313,9 +313,9 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
         under ``estimate``); a size whose estimate exceeds this is refused, naming the finest
         size that fits
     """
+    from toolkit.common.surfaces import orient_surface
     from toolkit.mesh.labels import label_nodes
     from toolkit.mesh.surface import closed_surface, read_tissue_surface
-    from toolkit.static.bones import orient_surface
 
     _check_inputs(bones, size_mm, order, commissures)
     axes_matrix(axes)

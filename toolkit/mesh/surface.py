@@ -154,7 +154,7 @@ def _drop_small_pieces(tris: np.ndarray, fraction: float) -> tuple[np.ndarray, i
 def _orient(points: np.ndarray, tris: np.ndarray, name: str) -> tuple[np.ndarray, int]:
     """Consistent orientation per piece, outward (positive signed volume); and how many
     triangles turned."""
-    from toolkit.static.bones import consistent_orientation
+    from toolkit.common.surfaces import consistent_orientation
 
     try:
         out, piece = consistent_orientation(tris, name)
@@ -285,7 +285,7 @@ def read_tissue_surface(path, units: str = "mm", **repair) -> tuple[Mesh, Surfac
     """
     from pathlib import Path
 
-    from toolkit.static.bones import read_surface
+    from toolkit.common.surfaces import read_surface
 
     surface = read_surface(path, units=units)
     return closed_surface(surface.points, surface.cells["tri3"], name=f"tissue surface {Path(path).name}", **repair)

@@ -204,8 +204,8 @@ def database_subject(config: DatasetConfig, subject: int):
         return subject_phantom(config.resolution, subject)
     from toolkit.common.axes import check_mesh_axes, mesh_to_toolkit, to_toolkit
     from toolkit.common.io import read
+    from toolkit.common.surfaces import read_surface
     from toolkit.static.anatomy import face_anatomy
-    from toolkit.static.bones import read_surface
 
     for path, sha1 in ((config.mesh, config.mesh_sha1), *((p, h) for _, p, h in config.bones)):
         if not Path(path).is_file():
