@@ -56,9 +56,10 @@ These safeguards keep the physiological plan space simulable (``benchmarks/stati
   held (fixed) above the condyles. Where a plan drags the tissue just below the held part
   (a large proximal-segment rotation with a setback and yaw of the distal mandible), the
   clamped-to-free corner at the lower end of the held cut inverts the skin element there,
-  worse as the mesh is refined (plan 10 of the full sampler at ``fine``). When the element
-  that blocks a plan touches a fixed node off the bone (the ``bone`` node set), the fixed
-  nodes off the bone within ``free_cut_radius`` of it are freed and the plan is run again:
+  worse as the mesh is refined (plan 10 of the full sampler at ``fine``); on a meshed face the
+  held upper cut pins the cheek above a lifted maxilla alike. When the element that blocks a
+  plan lies within ``free_cut_radius`` of a fixed node off the bone (the ``bone`` node set),
+  the fixed nodes off the bone within that distance of it are freed and the plan is run again:
   the truncation moves locally, the bony boundary conditions do not change. The result
   lists them (``freed_cut_nodes``).
 """
@@ -146,10 +147,10 @@ class SimulationOptions:
         elements of a real mesh are kept from inverting rather than remeshed; None: never;
         Neo-Hookean never regulates)
     max_cuts : how many times a failing increment may be halved (``2 ** max_cuts`` sub-steps)
-    free_cut_radius : mm; when the element that blocks a plan touches a fixed node off the bone
-        (the truncation cut of the face; meshes without a ``bone`` node set have none), the fixed
-        nodes off the bone within this distance of its centroid are freed and the plan is run
-        again, before any wider release band (0: never)
+    free_cut_radius : mm; when the element that blocks a plan lies within this distance of a
+        fixed node off the bone (the truncation cut of the face; meshes without a ``bone`` node
+        set have none), the fixed nodes off the bone within this distance of its centroid are
+        freed and the plan is run again, before any wider release band (0: never)
     max_mucosa_offset : mm; a mucosa node farther than this from its bone surface on the
         pre-operative mesh is left free instead of sliding (inf: every mucosa node slides)
     min_carried_mm2 : mm^2; a plan that moves the Le Fort I or distal segment is refused before
@@ -819,7 +820,7 @@ def simulate(
     Raises
     ------
     SimulationError naming the increment, the worst element and a suggestion (after the
-    retries: fixed nodes of the cut freed near an element that touches it,
+    retries: fixed nodes of the cut freed near the element that failed,
     ``options.free_cut_radius``; then each of ``options.wider_release``).
     """
     t_start = time.perf_counter()
@@ -874,16 +875,13 @@ def simulate(
 
 def _cut_near(model: _Model, element: int | None) -> np.ndarray:
     """Fixed nodes off the bone (the truncation cut) not yet freed within
-    ``free_cut_radius`` mm of the centroid of ``element``, when that element touches one;
-    else empty. A mesh without a ``bone`` node set has no such cut."""
+    ``free_cut_radius`` mm of the centroid of ``element`` (empty when none is that close).
+    A mesh without a ``bone`` node set has no such cut."""
     radius, mesh = model.options.free_cut_radius, model.mesh
     if element is None or radius <= 0 or "bone" not in mesh.node_sets:
         return np.zeros(0, np.int64)
     cut = np.setdiff1d(model.fixed, mesh.node_sets["bone"])
-    nodes = _element_nodes(mesh, element)
-    if not np.isin(nodes, cut).any():
-        return np.zeros(0, np.int64)
-    centroid = mesh.points[nodes].mean(axis=0)
+    centroid = mesh.points[_element_nodes(mesh, element)].mean(axis=0)
     return cut[np.linalg.norm(mesh.points[cut] - centroid, axis=1) < radius]
 
 
