@@ -7,7 +7,8 @@ in turn so that they share the machine's load of the same minutes:
 
 - ``simulate``: ``toolkit static simulate --resolution R --plan default_plan.toml``;
 - ``predict``: ``toolkit static predict --model M --plan default_plan.toml`` (the same plan);
-- ``import torch`` and ``import toolkit.static``: what each process pays before any work.
+- ``import torch`` and ``import toolkit.static``: what a process pays to import them (a prediction on
+  the CPU does not import torch).
 
 Each row is one run: its wall time (``wall_s``, the process from start to exit) and, for the two
 commands, the in-process time the summary reports (``in_process_s``: the increments for the FE,
