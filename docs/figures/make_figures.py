@@ -3,8 +3,9 @@
     python docs/figures/make_figures.py            # all figures, about 1 minute on 2 cores
     python docs/figures/make_figures.py phantom    # only some: phantom, static, impact, ladder, own_face
 
-Every figure names its view (axes: x lateral, y anterior, z superior) and the unit of its colour
-bar. Rendering is off-screen (pyvista through EGL); nothing needs a display.
+Every figure names its view and length unit in its title, shows the axes (x lateral, y anterior,
+z superior) and the unit of its colour bar (``toolkit.common.plotting.render``). Rendering is
+off-screen (pyvista through EGL); nothing needs a display.
 """
 
 from __future__ import annotations
@@ -41,9 +42,9 @@ def phantom() -> list[Path]:
     inside = {name: sets[name] for name in ("fixed", "maxilla", "mandible", "mucosa_sliding")}
     return [
         _shrink(render(mesh, HERE / "phantom_front.png", camera="front", node_sets=front, window_size=SIZE,
-                       title="coarse face phantom, front view (z up)")),
+                       title="coarse face phantom")),
         _shrink(render(mesh, HERE / "phantom_inside.png", camera="inner", node_sets=inside, window_size=SIZE,
-                       title="coarse face phantom, seen from behind and inside (z up)")),
+                       title="coarse face phantom")),
     ]
 
 
@@ -61,9 +62,9 @@ def static() -> list[Path]:
                   clim=(0.0, float(magnitude.max())), window_size=SIZE, cmap="viridis")
     return [
         _shrink(render(result.reference, HERE / "static_front.png", camera="front",
-                       title="default plan, paper face, post-operative: front view", **common)),
+                       title="default plan, paper face, post-operative", **common)),
         _shrink(render(result.reference, HERE / "static_side.png", camera="left",
-                       title="default plan, paper face, post-operative: left side view (face looks +y)",
+                       title="default plan, paper face, post-operative",
                        **common)),
     ]
 
@@ -88,11 +89,11 @@ def impact() -> list[Path]:
     return [
         _shrink(render(face, HERE / "impact_side.png", scalars=magnitude, displacement=u, camera="left",
                        scalar_label="displacement (mm)", window_size=SIZE, extra=extra,
-                       title=f"ball at 30 mm/s, t = {result.times[-1]:.1f} s: left side view (ball moves -y)")),
-        _shrink(render(face, HERE / "impact_von_mises.png", scalars=1e3 * result.von_mises[-1], displacement=u,
-                       camera="front", scalar_label="von Mises stress (kPa)",
-                       clim=(0.0, 1e3 * float(result.von_mises[-1].max())), window_size=SIZE,
-                       title=f"ball at 30 mm/s, t = {result.times[-1]:.1f} s: front view (ball not drawn)")),
+                       title=f"ball at 30 mm/s, t = {result.times[-1]:.1f} s (ball moves -y)")),
+        _shrink(render(face, HERE / "impact_von_mises.png", scalars=result.von_mises[-1], displacement=u,
+                       camera="front", scalar_label="von Mises stress (MPa)",
+                       clim=(0.0, float(result.von_mises[-1].max())), window_size=SIZE,
+                       title=f"ball at 30 mm/s, t = {result.times[-1]:.1f} s (ball not drawn)")),
     ]
 
 

@@ -32,6 +32,27 @@ def test_headless_render_shows_the_field(tmp_path):
     assert len(colours) > 20  # a colour map, not a flat silhouette
 
 
+def test_a_node_set_has_one_colour_whichever_sets_are_shown(tmp_path):
+    """A set's colour depends on its name only: ``mandible`` is drawn in the same colour with or
+    without ``maxilla`` beside it (a segmentation that lost a set does not recolour the others),
+    and a set of another name always gets the same colour of the palette."""
+    pytest.importorskip("pyvista")
+    from toolkit.common.plotting import SET_COLOURS, render, set_colour
+
+    assert set_colour("mandible") == SET_COLOURS["mandible"] != set_colour("maxilla")
+    assert set_colour("my_set") == set_colour("my_set")
+    mesh = face_hex("coarse").mesh
+    target = np.array([int(SET_COLOURS["mandible"][i:i + 2], 16) for i in (1, 3, 5)]) / 255
+
+    def share(sets):
+        rgb = _image(render(mesh, tmp_path / "sets.png", node_sets=sets, show_edges=False))[..., :3]
+        return float(np.all(np.abs(rgb - target) < 0.08, axis=-1).mean())
+
+    alone = share({"mandible": mesh.node_sets["mandible"]})
+    with_others = share({k: mesh.node_sets[k] for k in ("maxilla", "mandible")})
+    assert alone > 0.001 and with_others > 0.5 * alone
+
+
 def test_render_mixed_mesh(tmp_path):
     """A mesh with hex8, wedge6 and tet4 blocks renders off-screen, coloured by a cell
     field over all blocks: a non-empty PNG that is not all background."""

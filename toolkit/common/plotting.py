@@ -20,9 +20,20 @@ import numpy as np
 
 from toolkit.common.mesh import Mesh
 
-__all__ = ["render", "plot_curves", "plot_tradeoff", "CAMERAS"]
+__all__ = ["render", "plot_curves", "plot_tradeoff", "CAMERAS", "SET_COLOURS", "set_colour"]
 
 _SET_COLOURS = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#e377c2", "#8c564b", "#bcbd22"]
+#: the colour of each boundary node set, the same in every image whichever sets a mesh has
+SET_COLOURS = {"fixed": "#1f77b4", "maxilla": "#d62728", "mandible": "#2ca02c", "mucosa_sliding": "#9467bd",
+               "lip_sliding": "#ff7f0e", "skin": "#17becf", "bone": "#8c564b"}
+
+
+def set_colour(name: str) -> str:
+    """The colour of node set ``name``: :data:`SET_COLOURS`, else one of a palette chosen by the
+    name (not by its place in a list), so that it is the same in every image."""
+    import zlib
+
+    return SET_COLOURS.get(name) or _SET_COLOURS[zlib.crc32(name.encode()) % len(_SET_COLOURS)]
 
 #: camera direction (from the focal point) and view-up, in the phantom axes
 #: (x lateral, y anterior, z superior)
@@ -82,7 +93,9 @@ def render(
     node_sets: Mapping[str, np.ndarray] | None = None,
     extra: Sequence[tuple[Mesh, dict]] = (),
 ) -> Path:
-    """Render ``mesh`` (its outer surface) to a PNG, off-screen.
+    """Render ``mesh`` (its outer surface) to a PNG, off-screen, with the view's name and the
+    length unit after ``title``, the axes' directions in the lower left corner and, with
+    ``node_sets``, a legend in the lower right (each set in its :func:`set_colour`).
 
     Parameters
     ----------
@@ -95,7 +108,7 @@ def render(
     camera : one of :data:`CAMERAS`
     clim : colour range; default the data range
     node_sets : name -> node indices to mark as coloured points with a legend
-        (e.g. the boundary sets)
+        (e.g. the boundary sets), each in its :func:`set_colour`
     extra : further ``(mesh, pyvista add_mesh keyword arguments)`` to draw, e.g. a ball
 
     Returns
@@ -121,23 +134,27 @@ def render(
         plotter.set_background("white")
         kwargs = dict(show_edges=show_edges, edge_color="#404040", line_width=0.5, smooth_shading=False)
         if values is not None:
-            bar = {"title": scalar_label or label, "color": "black"}
+            # upright on the right, its title above it and its labels beside it: none overlaps another
+            bar = {"title": scalar_label or label, "color": "black", "vertical": True, "position_x": 0.84,
+                   "position_y": 0.2, "width": 0.06, "height": 0.6, "fmt": "%.3g", "n_labels": 5,
+                   "title_font_size": 16, "label_font_size": 14}
             plotter.add_mesh(surface, scalars="_scalars", cmap=cmap, clim=clim, scalar_bar_args=bar, **kwargs)
         else:
             plotter.add_mesh(surface, color="#f1c9a5", **kwargs)
-        for i, (name, ids) in enumerate((node_sets or {}).items()):
+        for name, ids in (node_sets or {}).items():
             ids = np.asarray(ids, dtype=np.int64)
             if ids.size:
-                plotter.add_points(shown.points[ids], color=_SET_COLOURS[i % len(_SET_COLOURS)], label=name,
+                plotter.add_points(shown.points[ids], color=set_colour(name), label=name,
                                    point_size=8, render_points_as_spheres=True)
-        if node_sets:
-            plotter.add_legend(bcolor="white", face="circle", size=(0.22, 0.3))
+        if node_sets:  # in the lower right corner, beside the face (centred) rather than over it
+            plotter.add_legend(bcolor="white", face="circle", size=(0.2, 0.22), loc="lower right")
         for other, opts in extra:
             g = other.to_pyvista()
             plotter.add_mesh(g.extract_surface(algorithm="dataset_surface"),
                              **{"color": "#9fb7d9", "opacity": 0.6, **opts})
-        if title:
-            plotter.add_text(title, font_size=11, color="black")
+        view = f"{camera} view" if camera != "inner" else "view from inside"
+        plotter.add_text(f"{title} ({view}, mm)" if title else f"{view}, mm", font_size=11, color="black")
+        plotter.add_axes(color="black")  # the toolkit's axes: x lateral, y anterior, z superior
         direction, up = CAMERAS[camera]
         centre = np.asarray(surface.center)
         d = np.asarray(direction) / np.linalg.norm(direction)

@@ -430,7 +430,7 @@ def render_labels(face: MeshedFace, path) -> Path:
     with tempfile.TemporaryDirectory() as tmp:
         for i, camera in enumerate(("front", "inner")):
             png = render(face.mesh, Path(tmp) / f"{camera}.png", camera=camera, node_sets=sets, show_edges=False,
-                         title=f"{'front' if camera == 'front' else 'from inside'}")
+                         title="node sets")
             ax = fig.add_subplot(1, 2, i + 1)
             ax.imshow(imread(png))
             ax.set_axis_off()
