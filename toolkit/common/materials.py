@@ -118,6 +118,17 @@ class LinearMaterial(Protocol):
         ...
 
 
+def det_and_inverse_transpose(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``det F`` ``(...)`` and ``F^-T`` ``(..., 3, 3)`` of ``F (..., 3, 3)`` in closed form (the
+    cofactors over the determinant, a few times faster than ``np.linalg`` on many small
+    matrices); ``F^-T`` is not finite where ``det F = 0``."""
+    r0, r1, r2 = F[..., 0, :], F[..., 1, :], F[..., 2, :]
+    cof = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=-2)  # rows of det * F^-T
+    det = np.einsum("...i,...i->...", r0, cof[..., 0, :])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return det, cof / det[..., None, None]
+
+
 def lame(E: float, nu: float) -> tuple[float, float]:
     """Lame parameters ``(lam, mu)`` in MPa from Young's modulus (MPa) and Poisson's ratio."""
     return E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
@@ -373,10 +384,9 @@ class NeoHookean(IsotropicModuli):
         ``part``: ``"all"``, ``"shear"`` (the mu terms) or ``"volumetric"`` (the lam term),
         for selective reduced integration.
         """
-        J = np.linalg.det(F)
+        J, Finv_T = det_and_inverse_transpose(F)
         if np.any(J <= 0):
             raise FloatingPointError(f"deformation gradient with det F = {J.min():.3g} <= 0 (inverted material)")
-        Finv_T = np.swapaxes(np.linalg.inv(F), -1, -2)
         lnJ = np.log(J)[..., None, None]
         eye = np.eye(3)
         P = np.zeros_like(F)
