@@ -20,7 +20,7 @@ it has not seen, and says which samples it scored (``metrics["scored"]``); a dat
 another resolution, material, sliding model or increment count is refused.
 :meth:`Surrogate.predict_plan` runs a plan increment by increment like the FE
 (CLI ``toolkit static predict``); its summary records, per plan parameter, how far the plan
-lies outside the training plans (``"extrapolation"``).
+lies beyond what the training database's sampler spans (``"extrapolation"``).
 
 With ``FeatureSpec(linear_prior=True)`` the network learns a residual: the linear
 influence-matrix solution of each increment (:class:`~toolkit.static.baselines.InfluenceMatrix`,
@@ -244,10 +244,10 @@ FE_ONLY = ("max_penetration_mm", "max_mucosa_gap_mm", "mucosa_offset_mm", "far_m
 @dataclass(frozen=True, eq=False)
 class PlanPrediction(SimulationResult):
     """A surrogate's prediction of a plan: a SimulationResult whose summary also holds
-    ``extrapolation`` (:func:`plan_extrapolation`: the plan parameters outside the training plans)
-    and reports only what the prediction computed (no :data:`FE_ONLY` key; per increment, its time
-    and quality). ``prescribed`` ``(increments, n, 3)`` mm holds each increment's prescribed bone
-    motion (zero off the bone-driven nodes), as the network saw it."""
+    ``extrapolation`` (:func:`plan_extrapolation`: the plan parameters beyond what the training
+    database's sampler spans) and reports only what the prediction computed (no :data:`FE_ONLY`
+    key; per increment, its time and quality). ``prescribed`` ``(increments, n, 3)`` mm holds each
+    increment's prescribed bone motion (zero off the bone-driven nodes), as the network saw it."""
 
     extrapolation: dict = field(default_factory=dict)
     prescribed: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))
@@ -485,8 +485,8 @@ class Surrogate:
         Returns
         -------
         PlanPrediction (``.write(out)`` gives the files of ``toolkit static simulate``; its summary's
-        ``extrapolation`` names the plan parameters outside the training plans, and ``checks``
-        holds :func:`~toolkit.static.checks.answer_checks`: a failed check is flagged there, not
+        ``extrapolation`` names the plan parameters beyond what the training sampler spans, and
+        ``checks`` holds :func:`~toolkit.static.checks.answer_checks`: a failed check is flagged there, not
         raised). The plan is checked against the face first (:func:`~toolkit.static.checks.check_plan`)
         """
         from toolkit.static.checks import check_plan, with_answer_checks
