@@ -69,7 +69,7 @@ def prepare(face: str, size: float, order: int) -> Path:
         if name != "skull":
             write(folder / f"{name}.vtu", bone)
     plan = plans(meshed, condyles)["advance"] if face == "ct" else load_case(resolution="paper").plan
-    (folder / "plan.json").write_text(json.dumps(plan.as_dict()))
+    (folder / "plan.json").write_text(json.dumps(plan.to_dict()))
     return folder
 
 

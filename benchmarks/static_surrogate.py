@@ -95,8 +95,8 @@ def _pointnet(db_path, name, config, out: Path, subject: int = 0) -> dict:
     if (out / "config.json").exists():
         model = Surrogate.load(out)
         budget = ("epochs", "max_seconds", "patience", "device")
-        if {k: v for k, v in model.config.as_dict().items() if k not in budget} != \
-                {k: v for k, v in config.as_dict().items() if k not in budget}:
+        if {k: v for k, v in model.config.to_dict().items() if k not in budget} != \
+                {k: v for k, v in config.to_dict().items() if k not in budget}:
             print(f"{out}: trained with another configuration; retraining")
             shutil.rmtree(out)
             model = None

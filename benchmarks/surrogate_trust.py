@@ -180,7 +180,7 @@ def fe_of(case, face, data: dict, cache: Path, guess: np.ndarray | None = None
     started from that answer (``simulate(initial_guess=)``), cached apart."""
     from toolkit.static.simulate import simulate
 
-    tag = hashlib.sha1(json.dumps([case["plan"].as_dict(), case["material"], case["subject"],
+    tag = hashlib.sha1(json.dumps([case["plan"].to_dict(), case["material"], case["subject"],
                                    None if case["shape"] is None else str(case["shape"]), data["increments"],
                                    data["sliding"]] + ([] if guess is None else ["warm"]),
                                   sort_keys=True, default=str).encode()).hexdigest()[:16]

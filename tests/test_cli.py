@@ -156,7 +156,7 @@ def test_static_simulate_writes_the_documented_outputs(tmp_path):
     assert set(summary["boundary_type_codes"]) == {str(int(t)) for t in NodeType}  # the legend of boundary_type
     assert summary["command"] == f"toolkit static simulate --out {out}"
     ran = SurgicalPlan.read(out / "plan.toml")
-    assert ran.as_dict() == default_plan(load_case(resolution="coarse").subject).as_dict()
+    assert ran.to_dict() == default_plan(load_case(resolution="coarse").subject).to_dict()
 
 
 def test_version_and_did_you_mean(capsys):

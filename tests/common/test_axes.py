@@ -167,4 +167,4 @@ def test_a_static_database_on_a_mesh_converts_and_checks_it(tmp_path):
         database_subject(DatasetConfig.for_mesh(tmp_path / "face_lps.vtu", plans=1), 0)
     config = DatasetConfig.for_mesh(tmp_path / "face_lps.vtu", axes="LPS", plans=1)
     assert np.array_equal(database_subject(config, 0).mesh.points, ph.mesh.points)
-    assert config.as_dict()["axes"] == "LPS" and "axes" not in DatasetConfig().as_dict()
+    assert config.to_dict()["axes"] == "LPS" and "axes" not in DatasetConfig().to_dict()

@@ -280,7 +280,7 @@ def test_a_nearly_stuck_slave_converges_when_a_reversed_slip_is_linearized_on_th
 
 def test_the_integrator_is_a_fidelity_option():
     scene = Scene().with_fidelity(integrator="implicit", load_steps=20)
-    assert Scene.from_dict(scene.as_dict()).fidelity == scene.fidelity
+    assert Scene.from_dict(scene.to_dict()).fidelity == scene.fidelity
     with pytest.raises(ValueError, match="integrator 'newmark'"):
         Fidelity(integrator="newmark")
     with pytest.raises(ValueError, match="load_steps 0"):

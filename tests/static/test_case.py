@@ -42,7 +42,7 @@ def test_phantom_with_the_default_plan(phantom):
     assert isinstance(case, StaticCase) and isinstance(case.subject, FacePhantom)
     assert case.mesh.n_points == phantom.mesh.n_points
     np.testing.assert_array_equal(case.mesh.points, phantom.mesh.points)
-    assert case.plan.as_dict() == default_plan(phantom).as_dict() and not case.plan.force
+    assert case.plan.to_dict() == default_plan(phantom).to_dict() and not case.plan.force
     assert set(case.segments) == set(case.subject.segments)
     assert all(case.segments[k] is s for k, s in case.subject.segments.items())
     mine = case.simulate(increments=1, sliding="mucosa")
@@ -57,7 +57,7 @@ def test_phantom_shape_and_force():
     case = load_case(resolution="coarse", shape=shape, force=True)
     assert case.subject.shape == shape and case.plan.force
     again = load_case(resolution="coarse", plan=case.plan.scaled(0.5), force=True)
-    assert again.plan.force and again.plan.as_dict()["lefort"] == case.plan.scaled(0.5).as_dict()["lefort"]
+    assert again.plan.force and again.plan.to_dict()["lefort"] == case.plan.scaled(0.5).to_dict()["lefort"]
 
 
 def test_phantom_with_a_plan_file(phantom, tmp_path):
@@ -65,7 +65,7 @@ def test_phantom_with_a_plan_file(phantom, tmp_path):
     plan = default_plan(phantom).scaled(0.5)
     plan.write(tmp_path / "half.toml")
     case = load_case(resolution="coarse", plan=tmp_path / "half.toml")
-    assert case.plan.as_dict() == SurgicalPlan.read(tmp_path / "half.toml", phantom=phantom).as_dict()
+    assert case.plan.to_dict() == SurgicalPlan.read(tmp_path / "half.toml", phantom=phantom).to_dict()
     np.testing.assert_allclose(case.plan.motions["lefort"].translation, plan.motions["lefort"].translation)
     assert load_case(resolution="coarse", plan=str(tmp_path / "half.toml"), force=True).plan.force
 

@@ -110,7 +110,7 @@ def test_rerun_resumes_and_an_interrupted_run_gives_the_same_database(small_db, 
         generate(path, CONFIG, executor=Interrupting(), progress=False)
     from toolkit.common.database import Database
 
-    assert len(Database(path, dataset_module.DATABASE_KIND, dataset_module.DATABASE_VERSION, CONFIG.as_dict())
+    assert len(Database(path, dataset_module.DATABASE_KIND, dataset_module.DATABASE_VERSION, CONFIG.to_dict())
                .keys()) == 2
     copy = tmp_path / "copy" / "cut.h5"
     copy.parent.mkdir()

@@ -134,7 +134,7 @@ def test_a_prediction_reports_what_it_computed_and_no_solver_field(quick_model, 
     for key in ("max_displacement_mm", "min_scaled_jacobian", "checks", "extrapolation", "toolkit_version"):
         assert key in summary, key
     result.write(tmp_path / "pred", preview=False)
-    assert SurgicalPlan.read(tmp_path / "pred" / "plan.toml").as_dict() == default_plan(face).as_dict()
+    assert SurgicalPlan.read(tmp_path / "pred" / "plan.toml").to_dict() == default_plan(face).to_dict()
 
 
 def test_a_model_refuses_what_it_was_not_built_for(db6, quick_model, tmp_path):

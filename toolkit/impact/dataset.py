@@ -71,7 +71,7 @@ def velocity_key(velocity: float) -> str:
 
 def _scene_config(scene: Scene) -> dict:
     """What makes two databases comparable: the scene with the velocity left out."""
-    d = scene.as_dict()
+    d = scene.to_dict()
     d["ball"] = {k: v for k, v in d["ball"].items() if k != "velocity"}
     if d["face"]["units"] == "mm":  # the phantoms and mm files: the configuration of databases without units
         del d["face"]["units"]
@@ -162,7 +162,7 @@ def build_database(out: str | os.PathLike, velocities=PAPER_VELOCITIES, held_out
         db.create(shared={"points": face.points, "cells": face.volume_cells, "fixed": fixed, **masks},
                   shared_attrs={"cell_type": face.volume_type, "scene_toml": _scene_toml(scene),
                                 "mesh_checksum": mesh_checksum(face.points)})
-        return run_jobs(db, jobs, SimulationWorker(scene.as_dict()), workers=workers, executor=executor,
+        return run_jobs(db, jobs, SimulationWorker(scene.to_dict()), workers=workers, executor=executor,
                         retry_failed=retry_failed, progress=progress)
 
 

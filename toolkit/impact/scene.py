@@ -280,12 +280,12 @@ class Scene:
     def with_face(self, **kw) -> Scene:
         return replace(self, face=replace(self.face, **kw))
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> Scene:
-        """Inverse of :meth:`as_dict`. An unknown key or a value of the wrong type raises a
+        """Inverse of :meth:`to_dict`. An unknown key or a value of the wrong type raises a
         :class:`SceneError` naming the table and the key, e.g. ``[ball] velocity = 'fast':
         expected a number (mm/s)``, with the closest known key for a typo."""
         _check_table(d, cls, "")

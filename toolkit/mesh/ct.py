@@ -246,7 +246,7 @@ def _tissue_surface(surface) -> tuple[Mesh, dict]:
     x = mesh.points[mesh.cells["tri3"]]
     if np.einsum("ij,ij->i", x[:, 0], np.cross(x[:, 1], x[:, 2])).sum() < 0:
         mesh = Mesh(mesh.points, {"tri3": mesh.cells["tri3"][:, [0, 2, 1]]})
-    return mesh, {k: v for k, v in repair.as_dict().items() if v}
+    return mesh, {k: v for k, v in repair.to_dict().items() if v}
 
 
 # ---------------------------------------------------------------------------------- the pipeline
@@ -385,7 +385,7 @@ def ct_surfaces(volume, rules: CTRules | None = None) -> CTSurfaces:
                         for k, b in bones.items()}},
         "tissue_repair": repair,
         "voxels": {k: int(v.sum()) for k, v in masks.items()} | {"tissue_envelope": int(envelope.sum())},
-        "rules": rules.as_dict(),
+        "rules": rules.to_dict(),
         "seconds": {k: round(v, 3) for k, v in times.items()},
     }
     return CTSurfaces(tissue, bones, None, report)

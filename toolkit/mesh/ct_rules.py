@@ -90,7 +90,7 @@ class CTRules:
         if not 0 < self.min_bone_piece <= 1:
             raise CTError(f"min_bone_piece = {self.min_bone_piece!r}; expected a fraction in (0, 1]")
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         return asdict(self)
 
 

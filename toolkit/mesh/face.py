@@ -404,7 +404,7 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
         "bone_offset_mm": {"median": float(np.median(offsets)) if offsets.size else 0.0,
                            "p90": float(np.percentile(offsets, 90)) if offsets.size else 0.0,
                            "max": float(offsets.max(initial=0.0))},
-        "mouth": mouth, "repair": repair.as_dict(), "rules": rules.as_dict(),
+        "mouth": mouth, "repair": repair.to_dict(), "rules": rules.to_dict(),
         "seconds": {k: round(v, 3) for k, v in times.items()},
         "estimate": {"elements": estimate.elements, "nodes": estimate.nodes,
                      "mesher_gib": round(estimate.mesher_gib, 2), "simulation_gib": round(estimate.simulation_gib, 2)},

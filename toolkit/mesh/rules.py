@@ -143,7 +143,7 @@ class LabelRules:
             if len(d) != 3 or math.hypot(*d) == 0:
                 raise RulesError(f"cuts.directions: {list(d)!r}; expected non-zero [x, y, z] vectors")
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         out = asdict(self)
         out["cuts"]["directions"] = [list(d) for d in self.cuts.directions]
         return out

@@ -50,7 +50,7 @@ class SurfaceRepair:
     filled_holes: int = 0
     filled_hole_edges: int = 0
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         return asdict(self)
 
     @property

@@ -159,7 +159,7 @@ class DatasetConfig:
                 raise ValueError(f"poisson_range = {self.poisson_range!r}; expected 0 <= lo <= hi < 0.5")
             object.__setattr__(self, "poisson_range", (lo, hi))
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         """The attributes; ``axes`` only when not ``toolkit`` (the configuration of databases
         without the key)."""
         d = asdict(self)
@@ -251,8 +251,8 @@ def _jobs(config: DatasetConfig) -> list[Job]:
         nu_rng = np.random.default_rng([config.seed, subject, 1])
         for p, plan in enumerate(plans):
             nu = float(nu_rng.uniform(*config.poisson_range)) if config.poisson_range else None
-            jobs.append(Job(f"s{subject:03d}-p{p:05d}", {"subject": subject, "plan": p, "config": config.as_dict(),
-                                                          "motions": plan.as_dict(), "poisson": nu}))
+            jobs.append(Job(f"s{subject:03d}-p{p:05d}", {"subject": subject, "plan": p, "config": config.to_dict(),
+                                                          "motions": plan.to_dict(), "poisson": nu}))
     return jobs
 
 
@@ -409,7 +409,7 @@ def generate(path: str | os.PathLike, config: DatasetConfig, *, executor=None, w
     RunReport (``done``, ``failed`` with reasons, ``skipped``, ``seconds``)
     """
     check_workers(workers)
-    stored = dict(config.as_dict())
+    stored = dict(config.to_dict())
     with Database(path, DATABASE_KIND, DATABASE_VERSION, stored).locked():
         return _generate(Path(path), config, stored, executor, workers, retry_failed, progress)
 

@@ -306,7 +306,7 @@ class RigidMotion:
         )
         return RigidMotion(_hamilton(self.rotation, first.rotation), t, first.pivot)
 
-    def as_dict(self) -> dict[str, list[float]]:
+    def to_dict(self) -> dict[str, list[float]]:
         """Plain floats: ``rotation_quaternion`` (w, x, y, z), the readable
         ``rotation_vector_deg``, ``translation_mm`` and ``pivot_mm``."""
         return {
@@ -318,7 +318,7 @@ class RigidMotion:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], pivot=None) -> RigidMotion:
-        """From the keys of :meth:`as_dict`; give at most one of ``rotation_quaternion``,
+        """From the keys of :meth:`to_dict`; give at most one of ``rotation_quaternion``,
         ``rotation_vector_deg``, ``euler_deg`` — or the quaternion with the rotation
         vector, which must then agree (to 1e-6 degrees). Missing ``translation_mm``:
         zero; missing rotation: none; missing ``pivot_mm``: ``pivot`` (3,) mm if given,
@@ -547,13 +547,13 @@ class SurgicalPlan:
         return [self.interpolated(k / n) for k in range(1, n + 1)]
 
     # ---------------------------------------------------------------- dict/I-O
-    def as_dict(self) -> dict[str, Any]:
-        """``{"force": bool, segment: RigidMotion.as_dict(), ...}`` of plain Python values."""
-        return {"force": self.force, **{k: m.as_dict() for k, m in self.motions.items()}}
+    def to_dict(self) -> dict[str, Any]:
+        """``{"force": bool, segment: RigidMotion.to_dict(), ...}`` of plain Python values."""
+        return {"force": self.force, **{k: m.to_dict() for k, m in self.motions.items()}}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], phantom: FacePhantom | FaceAnatomy | None = None) -> SurgicalPlan:
-        """Inverse of :meth:`as_dict` (optional ``force``); with a ``phantom``, missing
+        """Inverse of :meth:`to_dict` (optional ``force``); with a ``phantom``, missing
         pivots come from its segments and missing proximal segments follow the distal one."""
         force = d.get("force", False)
         if not isinstance(force, bool):
@@ -596,7 +596,7 @@ class SurgicalPlan:
         """Write ``.toml`` or ``.json`` (atomically: temporary file, then rename)."""
         path = Path(path)
         fmt = _format(path)
-        text = _toml(self.as_dict()) if fmt == ".toml" else json.dumps(self.as_dict(), indent=2) + "\n"
+        text = _toml(self.to_dict()) if fmt == ".toml" else json.dumps(self.to_dict(), indent=2) + "\n"
         with atomic_path(path) as tmp:
             tmp.write_text(text, encoding="utf-8")
 
@@ -640,7 +640,7 @@ def _format(path: Path) -> str:
 
 
 def _toml(d: Mapping[str, Any]) -> str:
-    """The dict of :meth:`SurgicalPlan.as_dict` as TOML (floats by repr: exact)."""
+    """The dict of :meth:`SurgicalPlan.to_dict` as TOML (floats by repr: exact)."""
     lines = [
         "# Surgical plan (toolkit.static.plan): x' = R (x - pivot) + pivot + translation, mm.",
         "# Axes: x patient's left, y anterior, z superior. rotation_quaternion = [w, x, y, z];",

@@ -141,7 +141,7 @@ class SurrogateConfig:
             raise ValueError("split 'subjects' needs test_subjects=(...): the subjects held out for testing")
         object.__setattr__(self, "test_subjects", tuple(int(s) for s in self.test_subjects))
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         d = asdict(self)
         d["features"] = asdict(self.features)
         return d
@@ -669,10 +669,10 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
     tc = TrainConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, patience=config.patience,
                      seed=config.seed, device=config.device, max_seconds=config.max_seconds, progress=progress,
                      lr_schedule=config.lr_schedule)
-    signature = {"database": db.config.as_dict(), "mesh": _mesh_signature(db.points[0], db.cells),
+    signature = {"database": db.config.to_dict(), "mesh": _mesh_signature(db.points[0], db.cells),
                  "channels": list(channel_names(config.features))}
     # the training budget may grow on resume (TrainConfig.RESUMABLE); everything else must match
-    resumable = {k: v for k, v in config.as_dict().items() if k not in TrainConfig.RESUMABLE}
+    resumable = {k: v for k, v in config.to_dict().items() if k not in TrainConfig.RESUMABLE}
     identity = {"surrogate": resumable, "data": signature, "samples": int(len(data.keys)),
                 "train": [int(i) for i in train_idx[:5]]}
     result = train_loop(module, torch.nn.functional.mse_loss, tensors(train_idx), tensors(val_idx), tc,
@@ -692,7 +692,7 @@ def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), 
              "seen_simulations": seen,
              "subject_points": {_points_key(pts): int(s) for s, pts in db.points.items()},
              "arch_nodes": arch_nodes(db).tolist()}
-    bundle = ModelBundle(MODEL_KIND, {"surrogate": config.as_dict(), "network": net_config.to_dict()}, signature,
+    bundle = ModelBundle(MODEL_KIND, {"surrogate": config.to_dict(), "network": net_config.to_dict()}, signature,
                          {"inputs": scaler}, state, extra)
     bundle.save(out)
     return Surrogate.load(out, device=config.device)
@@ -712,7 +712,7 @@ def check_database(model: Surrogate, db) -> None:
     from toolkit.common.config_diff import require_same
 
     trained_on = model.bundle.data["database"]
-    asked = db.config.as_dict()
+    asked = db.config.to_dict()
     require_same({k: trained_on.get(k) for k in MUST_MATCH}, {k: asked[k] for k in MUST_MATCH},
                  f"database {db.path}: the model's training database",
                  hint="Score the model on a database generated with its settings (`toolkit static dataset "
@@ -723,7 +723,7 @@ def check_database(model: Surrogate, db) -> None:
 def _scored_keys(model: Surrogate, db, keys=None):
     check_database(model, db)
     trained_on = model.bundle.data["database"]
-    asked = db.config.as_dict()
+    asked = db.config.to_dict()
     same = json.loads(json.dumps(asked)) == trained_on  # tuples as the stored lists
     seen = model.bundle.extra.get("seen_simulations")
     identities = _simulation_identities(db) if seen is not None else {}

@@ -330,7 +330,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
                    for j, n in enumerate(PLAN_PARAMETERS)}
     seen_subjects = sorted({int(s) for s in train_db.samples.subject[train_db.samples.key.isin(seen_keys)]})
     pts = np.stack([train_db.points[s] for s in seen_subjects])
-    hull = training_hull(train_db.config.as_dict())
+    hull = training_hull(train_db.config.to_dict())
     stored = model.bundle.extra.get("arch_nodes")  # the model's own, so that predict gives the same verdict
     arch = np.asarray(stored, np.int64) if stored is not None else surrogate_arch_nodes(train_db)
     spread = max([_rms(a, b) for i, a in enumerate(pts) for b in pts[i + 1:]] + [MIN_SHAPE_SPREAD_MM])
