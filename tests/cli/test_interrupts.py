@@ -4,8 +4,8 @@ no traceback, and an output folder that holds nothing or a result marked as inte
 Each command runs as ``python -m toolkit`` does (``toolkit/__main__.py``), in its own process
 group, and gets a SIGINT (what a terminal sends on Ctrl-C) at a known point of its work, so that
 a slow machine gives the verdict a fast one gives: after its first stored simulation or written
-frame or its first increment (:func:`toolkit.common.runtime.interrupt_after`), or as torch
-starts to be imported. The tiny coarse fixtures keep each
+frame or its first increment (:func:`toolkit.common.runtime.interrupt_after`), or as the module
+of a network starts to be imported. The tiny coarse fixtures keep each
 case to seconds. Interrupts at fractions of each command's run, then a rerun, are
 ``benchmarks/bad_inputs.py --interrupts``."""
 
@@ -26,19 +26,22 @@ AFTER_FIRST_JOB = "from toolkit.common.runtime import interrupt_after\ninterrupt
 AFTER_SECOND_FRAME = "from toolkit.common.runtime import interrupt_after\ninterrupt_after('frame', 2)\n"
 #: SIGINT once the static simulation's first increment has reached equilibrium
 AFTER_FIRST_INCREMENT = "from toolkit.common.runtime import interrupt_after\ninterrupt_after('increment', 1)\n"
-#: SIGINT as ``import torch`` begins (the import then runs on)
-AT_TORCH_IMPORT = """\
+#: SIGINT as the import of module ``{module}`` begins (the import then runs on)
+AT_IMPORT = """\
 import signal, sys
 
 class CtrlC:
     def find_spec(self, name, path=None, target=None):
-        if name == "torch":
+        if name == "{module}":
             sys.meta_path.remove(self)
             signal.raise_signal(signal.SIGINT)
         return None
 
 sys.meta_path.insert(0, CtrlC())
 """
+#: the module each model's loading imports first: the static network runs in numpy on the CPU
+#: (no torch), the impact one in torch
+NETWORK_MODULE = {"static": "toolkit.static.pointnet2_inference", "impact": "torch"}
 
 
 def interrupted(args, cwd: Path, trigger: str, timeout: float = 120) -> tuple[int, str]:
@@ -107,9 +110,11 @@ def test_impact_simulate_mid_run(tmp_path):
     ["impact", "evaluate", "--model", "{R}/imodel", "--data", "{R}/impact.h5", "--out", "o"],
 ], ids=lambda c: " ".join(c[:2]))
 def test_predict_and_evaluate(command, models, tmp_path):
-    """Interrupted as torch starts to be imported: the import ends,
-    then the command stops, leaving nothing or a result marked as interrupted."""
-    code, err = interrupted([a.replace("{R}", str(models)) for a in command], tmp_path, AT_TORCH_IMPORT)
+    """Interrupted as the network's module starts to be imported (the numpy inference for a static
+    model, torch for an impact one): the import ends, then the command stops, leaving nothing or a
+    result marked as interrupted."""
+    trigger = AT_IMPORT.replace("{module}", NETWORK_MODULE[command[0]])
+    code, err = interrupted([a.replace("{R}", str(models)) for a in command], tmp_path, trigger)
     assert_interrupted(code, err)
     assert_nothing_or_marked(tmp_path / "o")
 
