@@ -3,7 +3,8 @@ without torch.
 
 A trained model directory holds its weights as numpy arrays (``weights.npz``, written by
 :meth:`~toolkit.common.training.bundle.ModelBundle.save`), so a prediction on the CPU reads
-them and runs the network here, without importing torch (about 2 s of every command's start).
+them and runs the network here, without importing torch (what that import costs a command is in
+the `import torch` rows of `benchmarks/results/predict_speed.csv`).
 The batch normalisations are folded into the linear layers before them, as
 :meth:`~toolkit.static.pointnet2.PointNet2.fold_batch_norm` does; the arithmetic is float32,
 as the torch network's, so both give the same output to float32 rounding. The hierarchy of a
