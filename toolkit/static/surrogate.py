@@ -360,18 +360,17 @@ class Surrogate:
         """Load a model directory written by :func:`train_surrogate`. On ``device="cpu"`` the
         network runs in numpy from ``weights.npz`` (no torch import; a directory without that
         file is read with torch); on ``"cuda"`` or ``"auto"``, in torch."""
-        if _numpy_engine(device) and ModelBundle.has_arrays(directory):
+        arrays = _numpy_engine(device) and ModelBundle.has_arrays(directory)
+        bundle = ModelBundle.load(directory, kind=MODEL_KIND, arrays=arrays)
+        config = SurrogateConfig(**bundle.config["surrogate"])
+        if arrays:
             from toolkit.static.pointnet2_inference import HierarchyArrays, PointNet2Inference
 
-            bundle = ModelBundle.load(directory, kind=MODEL_KIND, arrays=True)
-            config = SurrogateConfig(**bundle.config["surrogate"])
             hierarchies = {int(k): HierarchyArrays.from_state(v) for k, v in bundle.state_dict["hierarchies"].items()}
             module = _ArrayFace(PointNet2Inference(network_config(config), bundle.state_dict["net"]), hierarchies)
             return cls(config, bundle, module, "cpu", Path(directory))
         from toolkit.static.pointnet2 import PointHierarchy
 
-        bundle = ModelBundle.load(directory, kind=MODEL_KIND)
-        config = SurrogateConfig(**bundle.config["surrogate"])
         dev = resolve_device(device)
         hierarchies = {int(k): PointHierarchy.from_state_dict(v, device=dev)
                        for k, v in bundle.state_dict["hierarchies"].items()}
@@ -445,28 +444,26 @@ class Surrogate:
                 raise ValueError("this model learns a residual over the linear prior: pass prior=(B, n, 3) mm "
                                  "(Surrogate.prior(mesh, types).predict(s))")
             prescribed = np.asarray(prescribed) - np.asarray(prior)
-        scaler = self.bundle.scalers["inputs"]
+        features = self.bundle.scalers["inputs"].transform(np.asarray(features, dtype=np.float64))
+        out = self._network(features, np.asarray(prescribed) / self.out_scale, np.asarray(mask, dtype=bool), hierarchy)
+        out = np.asarray(out, dtype=np.float64) * self.out_scale
+        return out + np.asarray(prior) if self.config.features.linear_prior else out
+
+    def _network(self, features: np.ndarray, values: np.ndarray, mask: np.ndarray, hierarchy) -> np.ndarray:
+        """The network's output ``(B, n, 3)`` in its unit for scaled ``features``, with the
+        prescribed ``values`` (its unit) exact where ``mask`` is set when it has hard boundaries."""
+        net = self.module.net
+        hard = net.config.hard_boundary
         if isinstance(self.module, _ArrayFace):
-            net = self.module.net
-            hard = net.config.hard_boundary
-            out = net(scaler.transform(np.asarray(features, dtype=np.float64)), hierarchy,
-                      np.asarray(mask, dtype=bool) if hard else None,
-                      np.asarray(prescribed) / self.out_scale if hard else None).astype(np.float64) * self.out_scale
-            return out + np.asarray(prior) if self.config.features.linear_prior else out
+            return net(features, hierarchy, mask if hard else None, values if hard else None)
         import torch
 
-        f = torch.as_tensor(scaler.transform(np.asarray(features, dtype=np.float64)), dtype=torch.float32,
-                            device=self.device)
-        p = torch.as_tensor(np.asarray(prescribed) / self.out_scale, dtype=torch.float32, device=self.device)
-        m = torch.as_tensor(np.asarray(mask, dtype=bool), device=self.device)
-        net = self.module.net
         from toolkit.static.pointnet2 import BoundaryTargets
 
+        as_tensor = lambda a, dtype: torch.as_tensor(a, dtype=dtype, device=self.device)  # noqa: E731
         with torch.no_grad():
-            boundary = BoundaryTargets(m, p) if net.config.hard_boundary else None
-            out = net(f, hierarchy, boundary)
-        out = out.double().cpu().numpy() * self.out_scale
-        return out + np.asarray(prior) if self.config.features.linear_prior else out
+            boundary = BoundaryTargets(as_tensor(mask, torch.bool), as_tensor(values, torch.float32)) if hard else None
+            return net(as_tensor(features, torch.float32), hierarchy, boundary).double().cpu().numpy()
 
     def predict_plan(self, face, plan, *, segments=None, any_mesh: bool = False):
         """Run ``plan`` on a face like :func:`~toolkit.static.simulate.simulate`, increment by
