@@ -4,9 +4,8 @@ import meshio
 import numpy as np
 import pytest
 
-from toolkit.common import io
+from toolkit.common import convert, io
 from toolkit.common.convert import skfem_node_map
-from toolkit.common.mesh import Mesh
 from toolkit.common.mixed_bar import mixed_bar
 from toolkit.common.phantom import ball, face_hex, face_tet
 
@@ -187,8 +186,8 @@ def test_time_series_resumes_after_interruption(tmp_path, meshes):
 def test_pyvista_round_trip(meshes, kind):
     pytest.importorskip("pyvista")
     mesh = meshes[kind]
-    assert Mesh.from_pyvista(mesh.to_pyvista()).equals(mesh)
-    assert Mesh.from_meshio(mesh.to_meshio()).equals(mesh)
+    assert convert.from_pyvista(convert.to_pyvista(mesh)).equals(mesh)
+    assert convert.from_meshio(convert.to_meshio(mesh)).equals(mesh)
 
 
 def test_abaqus_mixed_deck_from_elsewhere(tmp_path):
@@ -236,7 +235,7 @@ def test_pyvista_wedges_face_outward(meshes):
     negative, i.e. they assume the other order; its faces, which rendering uses, agree
     with the documented order used here."""
     pytest.importorskip("pyvista")
-    grid = mixed_bar(1).to_pyvista()
+    grid = convert.to_pyvista(mixed_bar(1))
     assert set(np.unique(grid.celltypes)) == {10, 12, 13}
     surf = grid.extract_surface(algorithm="dataset_surface").triangulate()
     tris = surf.faces.reshape(-1, 4)[:, 1:]
@@ -251,14 +250,14 @@ def test_pyvista_interleaved_types_are_grouped():
     and element sets follow the cells."""
     pv = pytest.importorskip("pyvista")
     m = mixed_bar(1)
-    grid = m.to_pyvista()
+    grid = convert.to_pyvista(m)
     vtk_perm = np.array([0, 16, 1, 17, 2, 18] + list(range(3, 16)) + list(range(19, 96)))
     cells = [grid.get_cell(int(i)) for i in vtk_perm]
     conn = np.concatenate([[c.n_points, *c.point_ids] for c in cells])
     mixed = pv.UnstructuredGrid(conn, np.asarray(grid.celltypes)[vtk_perm], grid.points)
     mixed.cell_data["id"] = vtk_perm
     mixed.cell_data["elset:upper"] = np.isin(vtk_perm, m.element_set("upper")).astype(np.uint8)
-    back = Mesh.from_pyvista(mixed)
+    back = convert.from_pyvista(mixed)
     assert list(back.cells) == ["hex8", "wedge6", "tet4"]
     assert np.array_equal(back.cell_data["id"], np.arange(96))
     assert all(np.array_equal(back.cells[t], m.cells[t]) for t in m.cells)
@@ -272,11 +271,11 @@ def test_skfem_round_trip_and_volume(meshes, kind):
     import skfem
 
     mesh = meshes[kind]
-    sk = mesh.to_skfem()
+    sk = convert.to_skfem(mesh)
     node_map = skfem_node_map(mesh, sk)
     assert np.array_equal(node_map, np.arange(mesh.n_points))
     assert np.allclose(sk.doflocs.T, mesh.points)
-    back = Mesh.from_skfem(sk, node_sets=dict(mesh.node_sets), cell_data=dict(mesh.cell_data))
+    back = convert.from_skfem(sk, node_sets=dict(mesh.node_sets), cell_data=dict(mesh.cell_data))
     assert back.equals(mesh)
     elem = {"hex8": skfem.ElementHex1(), "tet4": skfem.ElementTetP1(), "tet10": skfem.ElementTetP2()}[kind]
     basis = skfem.Basis(sk, elem)

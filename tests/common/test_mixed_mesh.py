@@ -5,6 +5,7 @@ Units mm."""
 import numpy as np
 import pytest
 
+from toolkit.common.convert import to_skfem
 from toolkit.common.mesh import InvertedElementError, Mesh, MeshError
 from toolkit.common.mixed_bar import mixed_bar
 from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
@@ -134,4 +135,4 @@ def _wedge_volumes(P, wedges):
 def test_skfem_conversion_refuses_wedges_by_name():
     """scikit-fem reads no meshio wedges: the conversion says so instead of failing inside skfem."""
     with pytest.raises(MeshError, match=r"not 'wedge6'"):
-        _wedge(PRISM).to_skfem()
+        to_skfem(_wedge(PRISM))

@@ -28,13 +28,18 @@ class                       raised when                            builtin base
 ``InvertedPointError``      a stress update met ``det F <= 0``     ``FloatingPointError``
 ==========================  =====================================  ========================
 
-The classes live beside the code that raises them; :class:`ConvergenceError` and
-:class:`AnswerError`, which both workflows raise, live here.
+The classes live beside the code that raises them; those raised in several places live here:
+:class:`ConvergenceError` and :class:`AnswerError` (both workflows) and the mesh errors
+(:mod:`toolkit.common.mesh`, :mod:`toolkit.common.quality`, :mod:`toolkit.common.convert`, which
+also export them).
 """
 
 from __future__ import annotations
 
-__all__ = ["ToolkitError", "ConvergenceError", "AnswerError"]
+import numpy as np
+
+__all__ = ["ToolkitError", "ConvergenceError", "AnswerError", "MeshError", "MissingSetError",
+           "InvertedElementError", "DegenerateElementError"]
 
 
 class ToolkitError(Exception):
@@ -87,3 +92,35 @@ class ConvergenceError(ToolkitError, RuntimeError):
         # keeps the attributes across pickling (process-pool executors send errors back pickled)
         return (_rebuild_convergence_error,
                 (type(self), self._message, self.iteration, self.residual, self.time))
+
+
+class MeshError(ToolkitError, ValueError):
+    """A mesh is malformed: bad shapes, indices out of range, NaN coordinates."""
+
+
+class MissingSetError(MeshError, KeyError):
+    """A node or element set a caller needs is not in the mesh (a ``KeyError`` too, for lookups)."""
+
+    def __str__(self) -> str:  # KeyError's would quote the message
+        return str(self.args[0]) if self.args else ""
+
+
+class InvertedElementError(MeshError):
+    """Elements have a non-positive Jacobian (inside-out or folded).
+
+    Attributes
+    ----------
+    elements : (k,) int64
+        Global indices of the offending elements, worst first.
+    values : (k,) float
+        Their scaled Jacobians.
+    """
+
+    def __init__(self, message: str, elements: np.ndarray, values: np.ndarray):
+        super().__init__(message)
+        self.elements = np.asarray(elements, dtype=np.int64)
+        self.values = np.asarray(values, dtype=float)
+
+
+class DegenerateElementError(InvertedElementError):
+    """Elements are positive but flat (scaled Jacobian below the tolerance)."""

@@ -38,8 +38,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from toolkit.common.errors import ToolkitError
+from toolkit.common.errors import DegenerateElementError, InvertedElementError, MeshError, MissingSetError
 from toolkit.common.fem.reference import REFERENCE_ELEMENTS
+from toolkit.common.quality import check_blocks, scaled_jacobian
+from toolkit.common.topology import boundary_face_blocks
 
 __all__ = [
     "Mesh",
@@ -88,38 +90,6 @@ class CellBlock(NamedTuple):
         """The global element ``ids`` that lie in this block, as indices into :attr:`cells`."""
         ids = np.asarray(ids, dtype=np.int64)
         return ids[(ids >= self.offset) & (ids < self.offset + self.cells.shape[0])] - self.offset
-
-
-class MeshError(ToolkitError, ValueError):
-    """A mesh is malformed: bad shapes, indices out of range, NaN coordinates."""
-
-
-class MissingSetError(MeshError, KeyError):
-    """A node or element set a caller needs is not in the mesh (a ``KeyError`` too, for lookups)."""
-
-    def __str__(self) -> str:  # KeyError's would quote the message
-        return str(self.args[0]) if self.args else ""
-
-
-class InvertedElementError(MeshError):
-    """Elements have a non-positive Jacobian (inside-out or folded).
-
-    Attributes
-    ----------
-    elements : (k,) int64
-        Global indices of the offending elements, worst first.
-    values : (k,) float
-        Their scaled Jacobians.
-    """
-
-    def __init__(self, message: str, elements: np.ndarray, values: np.ndarray):
-        super().__init__(message)
-        self.elements = np.asarray(elements, dtype=np.int64)
-        self.values = np.asarray(values, dtype=float)
-
-
-class DegenerateElementError(InvertedElementError):
-    """Elements are positive but flat (scaled Jacobian below the tolerance)."""
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -346,8 +316,6 @@ class Mesh:
         mesh's node numbering (corner nodes only for ``tet10``), counter-clockwise seen
         from outside. A face shared by two cells, of the same type or not, is interior.
         """
-        from toolkit.common.topology import boundary_face_blocks
-
         return boundary_face_blocks(self.cells)
 
     def boundary_faces(self) -> np.ndarray:
@@ -404,8 +372,6 @@ class Mesh:
         equilateral triangle, <= 0 for inverted elements. See
         :func:`toolkit.common.quality.scaled_jacobian` for the definitions.
         """
-        from toolkit.common.quality import scaled_jacobian
-
         parts = [scaled_jacobian(b.ctype, self.points[b.cells]) for b in self.volume_blocks]
         return np.concatenate(parts) if parts else np.zeros(0)
 
@@ -421,52 +387,8 @@ class Mesh:
         DegenerateElementError
             0 < scaled Jacobian < ``min_scaled_jacobian``.
         """
-        from toolkit.common.quality import check_blocks
-
         check_blocks(self.points, self.volume_blocks, min_scaled_jacobian)
         return self
-
-    # ----------------------------------------------------------- conversion
-    def to_meshio(self):
-        """meshio.Mesh with sets as ``point_sets``/``cell_sets`` and fields as data."""
-        from toolkit.common.convert import to_meshio
-
-        return to_meshio(self)
-
-    @classmethod
-    def from_meshio(cls, m) -> Mesh:
-        from toolkit.common.convert import from_meshio
-
-        return from_meshio(m)
-
-    def to_pyvista(self):
-        """pyvista.UnstructuredGrid; sets travel as ``nodeset:NAME``/``elset:NAME`` masks."""
-        from toolkit.common.convert import to_pyvista
-
-        return to_pyvista(self)
-
-    @classmethod
-    def from_pyvista(cls, grid) -> Mesh:
-        from toolkit.common.convert import from_pyvista
-
-        return from_pyvista(grid)
-
-    def to_skfem(self):
-        """scikit-fem mesh of the single volume block (``MeshHex1``, ``MeshTet1``, ``MeshTet2``).
-
-        Element sets become skfem subdomains. scikit-fem may renumber nodes (it puts
-        the vertices of quadratic meshes first); :func:`toolkit.common.convert.skfem_node_map`
-        gives the map, which is the identity for the phantoms.
-        """
-        from toolkit.common.convert import to_skfem
-
-        return to_skfem(self)
-
-    @classmethod
-    def from_skfem(cls, skmesh, **kwargs) -> Mesh:
-        from toolkit.common.convert import from_skfem
-
-        return from_skfem(skmesh, **kwargs)
 
     # --------------------------------------------------------------- equality
     def equals(self, other: Mesh, atol: float = 0.0) -> bool:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common.convert import to_pyvista
 from toolkit.common.mesh import Mesh
 
 __all__ = ["render", "plot_curves", "plot_tradeoff", "CAMERAS", "SET_COLOURS", "set_colour"]
@@ -125,7 +126,7 @@ def render(
 
     values, label, on_points = _scalars(mesh, scalars)
     shown = mesh if displacement is None else mesh.translated(displacement)
-    grid = shown.to_pyvista()
+    grid = to_pyvista(shown)
     if values is not None:
         (grid.point_data if on_points else grid.cell_data)["_scalars"] = values
     surface = grid.extract_surface(algorithm="dataset_surface") if mesh.volume_types else grid
@@ -149,7 +150,7 @@ def render(
         if node_sets:  # in the lower right corner, beside the face (centred) rather than over it
             plotter.add_legend(bcolor="white", face="circle", size=(0.2, 0.22), loc="lower right")
         for other, opts in extra:
-            g = other.to_pyvista()
+            g = to_pyvista(other)
             plotter.add_mesh(g.extract_surface(algorithm="dataset_surface"),
                              **{"color": "#9fb7d9", "opacity": 0.6, **opts})
         view = f"{camera} view" if camera != "inner" else "view from inside"

@@ -25,8 +25,8 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from toolkit.common.errors import DegenerateElementError, InvertedElementError, MeshError
 from toolkit.common.fem.reference import REFERENCE_ELEMENTS
-from toolkit.common.mesh import DegenerateElementError, InvertedElementError, MeshError
 
 __all__ = ["scaled_jacobian", "check_elements", "check_blocks", "tet10_shape_gradients", "TET10_SAMPLE_GRADIENTS"]
 

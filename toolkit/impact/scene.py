@@ -29,7 +29,8 @@ from toolkit.common.papers import BALL_YIELD, FACE_YIELD
 from toolkit.common.phantom import BALL_RESOLUTIONS, TET_RESOLUTIONS
 
 __all__ = ["SceneError", "MaterialSpec", "FaceSpec", "BallSpec", "ContactSpec", "Fidelity", "Scene", "default_scene",
-           "yielding_scene", "meshed_scene", "FACE_YIELD", "BALL_YIELD", "SUPPORTS", "YIELDING_DURATION", "INTEGRATORS"]
+           "yielding_scene", "meshed_scene", "mesh_order", "MESH_ORDERS",
+           "FACE_YIELD", "BALL_YIELD", "SUPPORTS", "YIELDING_DURATION", "INTEGRATORS"]
 
 
 class SceneError(ToolkitError, ValueError):
@@ -477,8 +478,19 @@ def meshed_scene(mesh: str | os.PathLike, units: str = "mm", velocity: float = p
     after 0.5 mm of travel, and held by its bones the path meets the bone after 21.2 mm, as on the
     skull-held phantom (:func:`toolkit.impact.simulate.check_travel` keeps 19.1 mm of it).
     """
-    from toolkit.impact.simulate import mesh_order
-
     scene = yielding_scene(velocity).with_face(mesh=str(mesh), units=units, axes=axes, fixed_set="bone")
     order = mesh_order(mesh, units)
     return scene.with_fidelity(order=order) if order else scene
+
+
+#: element order of each tetrahedron type a face mesh file may hold
+MESH_ORDERS = {"tet4": 1, "tet10": 2}
+
+
+def mesh_order(path, units: str = "mm") -> int:
+    """Element order (1: tet4, 2: tet10) of the face mesh file at ``path``, or 0 when it holds
+    other cells (:func:`toolkit.impact.simulate.face_mesh` then says why)."""
+    from toolkit.common.io import read
+
+    types = read(path, units=units).volume_types
+    return MESH_ORDERS.get(types[0], 0) if len(types) == 1 else 0

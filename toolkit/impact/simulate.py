@@ -36,7 +36,7 @@ from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceC
 from toolkit.impact.elements import critical_time_step, tet_kinematics
 from toolkit.impact.explicit import Body, ContactResponse, ExplicitModel, moving_sphere_contact, run_explicit
 from toolkit.impact.plasticity import HardeningTable, J2Plasticity
-from toolkit.impact.scene import MaterialSpec, Scene, SceneError
+from toolkit.impact.scene import MESH_ORDERS, MaterialSpec, Scene, SceneError, mesh_order
 
 __all__ = ["simulate", "ImpactResult", "build_model", "UnstableTimeStepError", "SceneGeometryWarning", "sweep_travel",
            "face_mesh", "fixed_nodes", "ball_start", "travel_limit", "check_travel", "write_preview", "write_summary",
@@ -286,10 +286,6 @@ def face_mesh(scene: Scene) -> Mesh:
                     lower_fixed_fraction=scene.face.lower_fixed_fraction)
 
 
-#: element order of each tetrahedron type a face mesh file may hold
-MESH_ORDERS = {"tet4": 1, "tet10": 2}
-
-
 def _face_file(scene: Scene) -> Mesh:
     """The face mesh file of ``scene`` in the toolkit's axes, checked: tetrahedra of the fidelity's
     order, the node sets the scene holds and aims at (:class:`~toolkit.impact.scene.SceneError`
@@ -317,15 +313,6 @@ def _face_file(scene: Scene) -> Mesh:
                          f"remesh with `toolkit mesh --order {scene.fidelity.order}`")
     check_mesh_axes(face, axes=spec.axes, source=Path(spec.mesh).name)
     return face
-
-
-def mesh_order(path, units: str = "mm") -> int:
-    """Element order (1: tet4, 2: tet10) of the face mesh file at ``path``, or 0 when it holds
-    other cells (:func:`face_mesh` then says why)."""
-    from toolkit.common.io import read
-
-    types = read(path, units=units).volume_types
-    return MESH_ORDERS.get(types[0], 0) if len(types) == 1 else 0
 
 
 def fixed_nodes(scene: Scene, face: Mesh) -> np.ndarray:

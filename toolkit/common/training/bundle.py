@@ -19,11 +19,14 @@ from pathlib import Path
 from toolkit.common.config_diff import IncompatibleError, jsonable, require_same
 from toolkit.common.training.scaling import MinMaxScaler
 
-__all__ = ["ModelBundle", "BUNDLE_FORMAT", "IncompatibleError"]
+__all__ = ["ModelBundle", "BUNDLE_FORMAT", "CALIBRATION_FILES", "IncompatibleError"]
 
 BUNDLE_FORMAT = ("toolkit-model", 1)
 #: the state dict as numpy arrays, keys of nested dicts joined by "/"
 WEIGHT_ARRAYS = "weights.npz"
+
+#: the files a calibration is saved to in a model directory
+CALIBRATION_FILES = ("calibration.json", "calibration.npz")
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,7 +58,6 @@ class ModelBundle:
         import torch
 
         from toolkit.common.io import atomic_path
-        from toolkit.common.training.conformal import CALIBRATION_FILES
 
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)

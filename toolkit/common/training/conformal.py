@@ -19,8 +19,11 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+
+from toolkit.common.training.bundle import CALIBRATION_FILES, ModelBundle
 
 __all__ = ["ConformalBound", "calibrate", "conformal_rank", "coverage_interval", "min_calibration_cases",
            "save_calibration", "load_calibration", "CALIBRATION_FILES"]
@@ -123,19 +126,12 @@ def calibrate(errors, scales, coverage: float = 0.9) -> ConformalBound:
     return ConformalBound(float(coverage), float(ratios[k - 1]), tuple(ratios.tolist()))
 
 
-#: the files a calibration is saved to in a model directory
-CALIBRATION_FILES = ("calibration.json", "calibration.npz")
-
-
 def save_calibration(directory, meta: dict, arrays: dict):
     """Write ``arrays`` (name -> ndarray) to ``calibration.npz`` and ``meta`` (JSON-ready) to
     ``calibration.json`` in the model directory ``directory``, each atomically, the JSON last, with
     the fingerprint of the model's weights (``model_sha1``, read back by :func:`load_calibration`);
     returns the directory."""
-    from pathlib import Path
-
     from toolkit.common.io import atomic_path
-    from toolkit.common.training.bundle import ModelBundle
 
     directory = Path(directory)
     meta = {**meta, "model_sha1": ModelBundle.weights_sha1(directory)}
@@ -152,10 +148,6 @@ def load_calibration(directory, command: str) -> tuple[dict, dict]:
     FileNotFoundError naming ``command`` (the one that makes a calibration, e.g. ``toolkit static
     calibrate``) when absent, ValueError naming it when the calibration was made for other weights
     (a calibration copied from another model, or one that training replaced)."""
-    from pathlib import Path
-
-    from toolkit.common.training.bundle import ModelBundle
-
     directory = Path(directory)
     if not all((directory / name).is_file() for name in CALIBRATION_FILES):
         raise FileNotFoundError(f"{directory} holds no calibration ({', '.join(CALIBRATION_FILES)}): make one with "
