@@ -65,6 +65,8 @@ FIXTURES = WORK / "bad_inputs" / "fixtures"
 PY = sys.executable
 #: coarse impact options (rigid ball, tet4): a bad input must be refused before any of it runs
 IMPACT = ["--resolution", "coarse", "--order", "1", "--ball", "rigid"]
+#: the quickest impact runs: explicit dynamics with mass scaling 100
+EXPLICIT = ["--integrator", "explicit", "--mass-scaling", "100"]
 #: modules each command imports before it can check its input
 MODULES = {"simulate": "toolkit.cli, toolkit.{workflow}", "dataset": "toolkit.cli, toolkit.{workflow}",
            "train": "toolkit.cli, toolkit.{workflow}, toolkit.{workflow}.surrogate, torch",
@@ -92,10 +94,10 @@ def build_fixtures() -> None:
                             "--sliding", "none", "--workers", "0", "--out", "static_none.h5"]),
         ("smodel/model.pt", ["static", "train", "--data", "static.h5", "--epochs", "1", "--network", "tiny",
                              "--out", "smodel"]),
-        ("impact.h5", ["impact", "dataset", *IMPACT, "--mass-scaling", "100", "--velocities", "30,40",
-                       "--held-out", "35", "--workers", "0", "--out", "impact.h5"]),
+        ("impact.h5", ["impact", "dataset", *IMPACT, *EXPLICIT,
+                       "--velocities", "30,40", "--held-out", "35", "--workers", "0", "--out", "impact.h5"]),
         ("imodel/model.pt", ["impact", "train", "--data", "impact.h5", "--epochs", "1", "--out", "imodel"]),
-        ("impact_no_held.h5", ["impact", "dataset", *IMPACT, "--mass-scaling", "100", "--velocities", "30",
+        ("impact_no_held.h5", ["impact", "dataset", *IMPACT, *EXPLICIT, "--velocities", "30",
                                "--held-out", "", "--workers", "0", "--out", "impact_no_held.h5"]),
     ]
     for target, args in steps:
@@ -123,7 +125,7 @@ class Case:
 
 def _skull_scene() -> str:
     return ("duration = 0.9\nn_frames = 9\n[face]\nresolution = \"coarse\"\nsupport = \"skull\"\n"
-            "[ball]\nrigid = true\nvelocity = 40.0\n[fidelity]\norder = 1\nintegrator = \"implicit\"\n")
+            "[ball]\nrigid = true\nvelocity = 40.0\n[fidelity]\norder = 1\nintegrator = \"quasi-static\"\n")
 
 
 def catalogue() -> list[Case]:
@@ -296,17 +298,18 @@ def catalogue() -> list[Case]:
         Case(cmd, "--velocity -30", [*IMPACT, "--velocity", "-30", "--out", "o"], ["--velocity", "-30"]),
         Case(cmd, "--velocity nan", [*IMPACT, "--velocity", "nan", "--out", "o"], ["--velocity", "nan"]),
         Case(cmd, "--duration 0", [*IMPACT, "--duration", "0", "--out", "o"], ["--duration"]),
-        Case(cmd, "--mass-scaling 0", [*IMPACT, "--mass-scaling", "0", "--out", "o"], ["--mass-scaling"]),
-        Case(cmd, "--safety 2", [*IMPACT, "--safety", "2", "--out", "o"], ["--safety"]),
+        Case(cmd, "--mass-scaling 0", [*IMPACT, "--integrator", "explicit", "--mass-scaling", "0", "--out", "o"],
+             ["--mass-scaling"]),
+        Case(cmd, "--safety 2", [*IMPACT, "--integrator", "explicit", "--safety", "2", "--out", "o"], ["--safety"]),
         Case(cmd, "--threads 0", [*IMPACT, "--threads", "0", "--out", "o"], ["--threads"]),
-        Case(cmd, "--out an existing file", [*IMPACT, "--integrator", "implicit", "--out", "taken"], ["taken"],
+        Case(cmd, "--out an existing file", [*IMPACT, "--integrator", "quasi-static", "--out", "taken"], ["taken"],
              dict(out_files)),
-        Case(cmd, "--out under /proc", [*IMPACT, "--integrator", "implicit", "--out", "/proc/x"], ["/proc/x"]),
+        Case(cmd, "--out under /proc", [*IMPACT, "--integrator", "quasi-static", "--out", "/proc/x"], ["/proc/x"]),
     ]
 
     # impact dataset
     cmd = "impact dataset"
-    base = [*IMPACT, "--mass-scaling", "100", "--workers", "0"]
+    base = [*IMPACT, *EXPLICIT, "--workers", "0"]
     cases += [
         Case(cmd, "empty velocity list", [*base, "--velocities", "", "--out", "d.h5"], ["--velocities"]),
         Case(cmd, "velocity list with a word", [*base, "--velocities", "30,fast", "--out", "d.h5"],
@@ -318,8 +321,8 @@ def catalogue() -> list[Case]:
              ["--workers"]),
         Case(cmd, "--out a static database", [*base, "--velocities", "30,40", "--out", "static.h5"], ["static.h5"],
              copy=["static.h5"]),
-        Case(cmd, "rerun with another --order", [*IMPACT[:2], "--order", "2", "--ball", "rigid", "--mass-scaling",
-                                                 "100", "--workers", "0", "--velocities", "30,40", "--held-out", "35",
+        Case(cmd, "rerun with another --order", [*IMPACT[:2], "--order", "2", "--ball", "rigid", *EXPLICIT,
+                                                 "--workers", "0", "--velocities", "30,40", "--held-out", "35",
                                                  "--out", "impact.h5"], ["order", "--order"], copy=["impact.h5"]),
         Case(cmd, "--out a garbage .h5", [*base, "--velocities", "30", "--out", "junk.h5"], ["junk.h5"],
              {"junk.h5": binary}),
@@ -474,8 +477,8 @@ def run_case(case: Case) -> dict:
 #: group (the command and its worker processes), as in a terminal.
 LONG = {
     "static dataset": ["static", "dataset", "--resolution", "coarse", "--plans", "24", "--out", "db.h5"],
-    "impact dataset": ["impact", "dataset", *IMPACT, "--mass-scaling", "100", "--velocities",
-                       ",".join(str(v) for v in range(20, 51, 2)), "--out", "db.h5"],
+    "impact dataset": ["impact", "dataset", *IMPACT, *EXPLICIT,
+                       "--velocities", ",".join(str(v) for v in range(20, 51, 2)), "--out", "db.h5"],
     "static train": ["static", "train", "--data", "{F}/static.h5", "--network", "tiny", "--epochs", "400",
                      "--out", "m"],
     "impact train": ["impact", "train", "--data", "{F}/impact.h5", "--epochs", "300", "--out", "m"],
@@ -576,7 +579,7 @@ def interrupt_rows(command: str, fractions=(0.3, 0.6, 0.9), early: float = 0.5) 
 #: marked as unfinished after a Ctrl-C; "{F}" is the fixtures folder
 SHORT = {
     "static simulate": ["static", "simulate", "--resolution", "paper", "--no-preview", "--out", "o"],
-    "impact simulate": ["impact", "simulate", *IMPACT, "--mass-scaling", "100", "--no-preview", "--out", "o"],
+    "impact simulate": ["impact", "simulate", *IMPACT, *EXPLICIT, "--no-preview", "--out", "o"],
     "static predict": ["static", "predict", "--model", "{F}/smodel", "--no-preview", "--out", "o"],
     "static evaluate": ["static", "evaluate", "--model", "{F}/smodel", "--data", "{F}/static.h5", "--out", "o"],
     "impact predict": ["impact", "predict", "--model", "{F}/imodel", "--velocity", "35", "--out", "o"],

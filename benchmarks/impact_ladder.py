@@ -28,12 +28,12 @@ The skin fields of each run (``.npz``) and the error-vs-time plot go to
 
     python benchmarks/impact_ladder.py --resolutions coarse --duration 1.8
     python benchmarks/impact_ladder.py --resolutions paper --orders 1 2 --balls rigid --mass-scaling 100
-    python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators implicit
-    python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators implicit \
+    python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators quasi-static
+    python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators quasi-static \
         --velocities 20 30 50 --mass-scaling 1 --out benchmarks/results/impact_ladder_velocities.csv
-    python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators implicit --tolerances 3e-3 1e-2
+    python benchmarks/impact_ladder.py --resolutions coarse --orders 2 --integrators quasi-static --tolerances 3e-3 1e-2
     python benchmarks/impact_ladder.py --scene yielding --resolutions coarse --orders 2 --balls deformable \
-        --mass-scaling 1 --integrators explicit implicit --velocities 20 23 26 32 35 38 44 47 50 \
+        --mass-scaling 1 --integrators explicit quasi-static --velocities 20 23 26 32 35 38 44 47 50 \
         --out benchmarks/results/impact_ladder_yielding.csv
 """
 
@@ -54,26 +54,26 @@ from _provenance import RESULTS, work_folder, write_result
 
 FIDELITY = ["integrator", "order", "ball", "mass_scaling", "safety"]
 PAPER_VELOCITY = 30.0  # mm/s, the impact paper's ball
-TOLERANCE = 3e-3  # the default Newton tolerance of the implicit runs (relative residual)
+TOLERANCE = 3e-3  # the default Newton tolerance of the quasi-static runs (relative residual)
 
 
 def _key(r) -> str:
     scene = "" if r.get("scene", "paper") == "paper" else f"{r['scene']}_"
-    implicit = "_implicit" if r.get("integrator", "explicit") == "implicit" else ""
+    quasi = "_quasistatic" if r.get("integrator", "explicit") == "quasi-static" else ""
     v = float(r.get("velocity", PAPER_VELOCITY))
     speed = "" if v == PAPER_VELOCITY else f"_v{v:g}"
     tol = float(r.get("tolerance", TOLERANCE))
-    if implicit and tol != TOLERANCE:
-        implicit += f"_tol{tol:g}"
+    if quasi and tol != TOLERANCE:
+        quasi += f"_tol{tol:g}"
     return f"{scene}{r['resolution']}_tet{4 if int(r['order']) == 1 else 10}_{r['ball']}" \
-           f"_ms{float(r['mass_scaling']):g}_s{float(r['safety']):g}_{float(r['duration']):g}s{speed}{implicit}"
+           f"_ms{float(r['mass_scaling']):g}_s{float(r['safety']):g}_{float(r['duration']):g}s{speed}{quasi}"
 
 
 def run_one(resolution, order, ball, mass_scaling, safety, duration, out, integrator="explicit",
             velocity=PAPER_VELOCITY, tolerance=TOLERANCE, scene="paper") -> dict:
     from toolkit.common.errors import AnswerError
     from toolkit.impact import InstabilityError, default_scene, simulate, yielding_scene
-    from toolkit.impact.implicit import ConvergenceError
+    from toolkit.impact.quasi_static import ConvergenceError
 
     name = scene
     scene = (yielding_scene() if name == "yielding" else default_scene()).with_face(resolution=resolution)
@@ -190,8 +190,8 @@ def main(argv=None) -> pd.DataFrame:
     p.add_argument("--balls", nargs="+", default=["rigid", "deformable"])
     p.add_argument("--mass-scaling", nargs="+", type=float, default=[1.0, 10.0, 100.0])
     p.add_argument("--safety", nargs="+", type=float, default=[0.9])
-    p.add_argument("--integrators", nargs="+", default=["explicit"], choices=["explicit", "implicit"],
-                   help="implicit: quasi-static Newton (mass scaling and safety do not apply; run once)")
+    p.add_argument("--integrators", nargs="+", default=["explicit"], choices=["quasi-static", "explicit"],
+                   help="quasi-static: Newton load steps (mass scaling and safety do not apply; run once)")
     p.add_argument("--scene", default="paper", choices=["paper", "yielding"],
                    help="the impact paper's scene (face held at its lower band), or the learning database's "
                         "(held by the skull, 0.36 s)")
@@ -199,7 +199,7 @@ def main(argv=None) -> pd.DataFrame:
     p.add_argument("--velocities", nargs="+", type=float, default=[PAPER_VELOCITY],
                    help="ball speeds, mm/s (the impact paper: 30; its range 20-50); each speed has its own reference")
     p.add_argument("--tolerances", nargs="+", type=float, default=[TOLERANCE],
-                   help="Newton tolerances of the implicit runs (relative residual; Fidelity.tolerance)")
+                   help="Newton tolerances of the quasi-static runs (relative residual; Fidelity.tolerance)")
     p.add_argument("--out", type=Path, default=RESULTS / "impact_ladder.csv")
     args = p.parse_args(argv)
     if args.duration is None:
@@ -220,9 +220,9 @@ def main(argv=None) -> pd.DataFrame:
                                                                 args.mass_scaling, args.safety, args.integrators,
                                                                 args.velocities, args.tolerances)
               if (i == "explicit" and tol == args.tolerances[0])
-              or (i == "implicit" and m == args.mass_scaling[0] and s == args.safety[0])]
+              or (i == "quasi-static" and m == args.mass_scaling[0] and s == args.safety[0])]
     for c in combos:  # no inertia in the quasi-static path: one run, recorded without mass scaling
-        if c["integrator"] == "implicit":
+        if c["integrator"] == "quasi-static":
             c["mass_scaling"], c["safety"] = 1.0, 0.9
     # cheapest first, so an interrupted ladder has the fast rungs
     combos.sort(key=lambda c: (c["resolution"] != "coarse", -c["mass_scaling"], c["order"], c["ball"] != "rigid"))
@@ -250,7 +250,7 @@ def main(argv=None) -> pd.DataFrame:
         from toolkit.common.plotting import plot_tradeoff
 
         labels = [f"{r.resolution[0]}/tet{4 if r.order == 1 else 10}/{r.ball[0]}/"
-                  + (f"implicit {r.tolerance:g}" if r.integrator == "implicit" else f"ms{r.mass_scaling:g}")
+                  + (f"quasi-static {r.tolerance:g}" if r.integrator == "quasi-static" else f"ms{r.mass_scaling:g}")
                   for r in ok.itertuples()]
         plot_tradeoff(ok.wall_time_s.to_numpy(), ok.rmse_displacement_mm.to_numpy(), labels,
                       ylabel="displacement RMSE to the reference (mm)", title="impact ladder",

@@ -62,9 +62,7 @@ def _scene(args):
     from toolkit.impact import yielding_scene
 
     scene = yielding_scene().with_face(resolution=args.resolution).with_ball(rigid=args.ball == "rigid")
-    scene = scene.with_fidelity(order=args.order, mass_scaling=args.mass_scaling)
-    if args.integrator is not None:
-        scene = scene.with_fidelity(integrator=args.integrator)
+    scene = scene.with_fidelity(order=args.order, integrator=args.integrator, mass_scaling=args.mass_scaling)
     return replace(scene, n_frames=args.frames) if args.frames else scene
 
 
@@ -214,8 +212,9 @@ def main(argv=None) -> int:
     parser.add_argument("--order", type=int, default=2, choices=[1, 2])
     parser.add_argument("--ball", default="deformable", choices=["deformable", "rigid"])
     parser.add_argument("--mass-scaling", type=float, default=1.0)
-    parser.add_argument("--integrator", choices=["explicit", "implicit"], default=None,
-                        help="the FE of the database (default: the scene's)")
+    parser.add_argument("--integrator", choices=["quasi-static", "explicit"], default="explicit",
+                        help="the FE of the database (default: explicit, which the committed results ran; "
+                             "--mass-scaling applies to it only)")
     parser.add_argument("--frames", type=int, default=None, help="output frames (default: the scene's 36)")
     parser.add_argument("--workers", type=int, default=1,
                         help="simulation processes (default 1: the machine is shared)")

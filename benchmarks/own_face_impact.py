@@ -54,7 +54,7 @@ def main(argv=None):
     ap.add_argument("--size", type=float, default=7.0, help="element size of the meshed face, mm")
     ap.add_argument("--velocities", type=float, nargs="+", default=[20.0, 30.0, 50.0], help="mm/s")
     ap.add_argument("--ball", default="deformable", choices=["deformable", "rigid"])
-    ap.add_argument("--integrator", default="implicit", choices=["implicit", "explicit"])
+    ap.add_argument("--integrator", default="quasi-static", choices=["quasi-static", "explicit"])
     ap.add_argument("--out", type=Path, default=RESULTS / "own_face_impact.csv")
     args = ap.parse_args(argv)
 

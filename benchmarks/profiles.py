@@ -52,7 +52,7 @@ def _run(path: str, size: float, velocity: float):
         return case.simulate
     from toolkit.impact import default_scene, simulate
 
-    scene = default_scene(velocity=velocity).with_face(resolution="paper").with_fidelity(integrator="implicit")
+    scene = default_scene(velocity=velocity).with_face(resolution="paper").with_fidelity(integrator="quasi-static")
     return lambda: simulate(scene, preview=False)
 
 

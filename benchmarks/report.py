@@ -193,7 +193,7 @@ def _headline(data: dict) -> str:
     fe = None
     if ladder is not None:
         df = ladder[0]
-        hit = df[(df.resolution == "paper") & (df.integrator == "implicit") & (df.order == 2)
+        hit = df[(df.resolution == "paper") & (df.integrator == "quasi-static") & (df.order == 2)
                  & (df.ball == "deformable") & (df.status == "ok")]
         if "velocity" in df:
             hit = hit[hit.velocity == 30]
@@ -434,10 +434,10 @@ def _impact_ladder(data):
 
 def _quasi_static(data):
     df = data["impact_ladder"][0]
-    df = df[df.integrator == "implicit"] if "integrator" in df else df.iloc[:0]
+    df = df[df.integrator == "quasi-static"] if "integrator" in df else df.iloc[:0]
     if not len(df):
         return not_measured(Source("impact_ladder", "python benchmarks/impact_ladder.py --resolutions coarse "
-                                   "--orders 2 --integrators implicit", 3))
+                                   "--orders 2 --integrators quasi-static", 3))
     return table(df, _QUASI_STATIC_COLUMNS)
 
 
@@ -942,13 +942,13 @@ SOURCES = {s.stem: s for s in (
     Source("static_surrogate_coarse", "python benchmarks/static_surrogate.py --resolution coarse --plans 30 "
            "--subjects 1 --max-minutes 1 --variants explicit implicit hard+prior --suffix _coarse", 5),
     Source("impact_ladder", "python benchmarks/impact_ladder.py --resolutions paper --orders 2 --balls deformable "
-           "--mass-scaling 1 --integrators implicit --tolerances 3e-3", 1),
+           "--mass-scaling 1 --integrators quasi-static --tolerances 3e-3", 1),
     Source("impact_ladder_velocities", "python benchmarks/impact_ladder.py --resolutions coarse --orders 2 "
-           "--balls deformable --integrators implicit --velocities 20 30 50 --mass-scaling 1 "
+           "--balls deformable --integrators quasi-static --velocities 20 30 50 --mass-scaling 1 "
            "--out benchmarks/results/impact_ladder_velocities.csv", 2),
     Source("impact_ladder_yielding", "python benchmarks/impact_ladder.py --scene yielding --resolutions coarse "
-           "--orders 2 --balls deformable --mass-scaling 1 --integrators implicit explicit --velocities 20 23 26 32 "
-           "35 38 44 47 50 --out benchmarks/results/impact_ladder_yielding.csv", 60),
+           "--orders 2 --balls deformable --mass-scaling 1 --integrators quasi-static explicit --velocities 20 23 26 "
+           "32 35 38 44 47 50 --out benchmarks/results/impact_ladder_yielding.csv", 60),
     Source("impact_surrogate", "python benchmarks/impact_surrogate.py --max-minutes 6 --strong-minutes 14", 130),
     Source("impact_surrogate_coarse", "python benchmarks/impact_surrogate.py --resolution coarse --order 1 "
            "--ball rigid --mass-scaling 100 --max-minutes 1 --suffix _coarse", 8),
@@ -1100,12 +1100,12 @@ BLOCKS = {b.name: b for b in (
           "the tolerance. Tolerances below the reference's own left-right asymmetry are refused.",
           (SOURCES["impact_ladder"],), _impact_fidelity),
     Block("impact_quasi_static", "Quasi-static impact path",
-          "The implicit (quasi-static Newton) runs of the impact ladder: load steps, Newton iterations, step cuts, "
+          "The quasi-static (Newton) runs of the impact ladder: load steps, Newton iterations, step cuts, "
           "time and memory, and the agreement with the explicit reference where one was run.",
           (SOURCES["impact_ladder"],), _quasi_static),
     Block("impact_yielding", "Quasi-static against explicit in the learning database's scene",
           "The skull-held yielding scene (0.36 s, 36 frames) on the coarse face (tet10, deformable ball) at the "
-          "database's velocities, quasi-static (implicit) against the unscaled explicit run at the same velocity: "
+          "database's velocities, quasi-static against the unscaled explicit run at the same velocity: "
           "skin displacement and von Mises series, RMSE as a share of the explicit run's peak. A velocity without an "
           "explicit row was not run explicitly; a run that failed the answer checks is listed with the check.",
           (SOURCES["impact_ladder_yielding"],), _yielding),

@@ -3,7 +3,7 @@ FE fallback (:mod:`toolkit.impact.trust`) on in-distribution and out-of-distribu
 and aims, against the FE of each case. Run through ``surrogate_trust.py --workflow impact``.
 
 The scene: the skull-held yielding scene (``toolkit.impact.yielding_scene``) on the ``--resolution``
-face, tet10, deformable ball, quasi-static (``integrator = "implicit"``, the FE that answers when
+face, tet10, deformable ball, quasi-static (``integrator = "quasi-static"``, the FE that answers when
 the surrogate may miss), over ``--duration`` s with a frame every 10 ms. The default 0.25 s keeps
 the fastest case (70 mm/s, 17.5 mm of travel) inside what the quasi-static FE of this scene
 completes: it stopped converging after 18.1 mm at 70 mm/s over 0.27 s with this ball, and after
@@ -65,7 +65,7 @@ def scene(args):
     from toolkit.impact.scene import yielding_scene
 
     s = yielding_scene().with_face(resolution=args.resolution)
-    s = s.with_fidelity(order=2, integrator="implicit")
+    s = s.with_fidelity(order=2, integrator="quasi-static")
     return replace(s, duration=args.duration, n_frames=int(round(args.duration / 0.01)))
 
 

@@ -339,7 +339,8 @@ def test_axes_option_reads_a_mesh_in_lps(tmp_path, monkeypatch, capsys):
 
 def test_defaults_are_the_best_measured_configurations(monkeypatch, capsys):
     """static train: hard variant with the linear prior; impact train: the strong LSTM;
-    impact simulate: the quasi-static integrator (the scene's own with --scene)."""
+    impact simulate: the quasi-static integrator (the scene's own with --scene), and an explicit-only
+    option without ``--integrator explicit`` refused."""
     parsers = dict(_subcommands(build_parser()))
     args = parsers[("static", "train")].parse_args(["--data", "db.h5", "--out", "m"])
     assert args.variant == "hard" and args.linear_prior is True
@@ -357,11 +358,13 @@ def test_defaults_are_the_best_measured_configurations(monkeypatch, capsys):
 
     monkeypatch.setattr(importlib.import_module("toolkit.impact.simulate"), "simulate", stop)
     assert main(["impact", "simulate", "--out", "unused"]) == 2
-    assert received["scene"].fidelity.integrator == "implicit"
+    assert received["scene"].fidelity.integrator == "quasi-static"
     assert main(["impact", "simulate", "--integrator", "explicit", "--safety", "0.5", "--out", "unused"]) == 2
     assert received["scene"].fidelity.integrator == "explicit" and received["scene"].fidelity.safety == 0.5
-    assert main(["impact", "simulate", "--mass-scaling", "100", "--out", "unused"]) == 2  # explicit-only option
-    assert received["scene"].fidelity.integrator == "explicit"
+    received.clear()  # an explicit-only option without --integrator explicit is refused before any run
+    assert main(["impact", "simulate", "--mass-scaling", "100", "--out", "unused"]) == 2
+    assert "scene" not in received
+    assert "--mass-scaling 100 applies to the explicit integrator only" in capsys.readouterr().err
 
 
 def test_every_remedy_names_an_option_that_exists():

@@ -1,7 +1,7 @@
 """The shared Newton solve (:mod:`toolkit.common.fem.newton`) on problems with known roots,
 and its load-step walk. Both workflows solve through it: the static Neo-Hookean face
 (energy line search, sub-steps; tests/static) and the quasi-static impact path (residual line
-search, adaptive steps; tests/impact/test_implicit.py)."""
+search, adaptive steps; tests/impact/test_quasi_static.py)."""
 
 import numpy as np
 import pytest

@@ -4,7 +4,7 @@ patch test on the tet faces (the hex8 and wedge6 patch tests are in tests/static
 Both map their cells through the shared kinematics (:mod:`toolkit.common.fem.kinematics`).
 The static linear path builds stiffness from Voigt B matrices (:mod:`toolkit.static.stiffness`);
 the impact workflow integrates finite-strain J2 (:mod:`toolkit.impact.plasticity`) and its
-critical time step and implicit path use ``element_tangent`` of ``dP/dF``
+critical time step and quasi-static path use ``element_tangent`` of ``dP/dF``
 (:mod:`toolkit.common.fem.assembly`). On the same tet4 and tet10 faces and the same
 isotropic material (no yield table, so the J2 material is hyperelastic) the small-strain
 limits must agree:
@@ -136,7 +136,7 @@ def test_impact_patch_test_on_the_tet_faces(face):
 
 @pytest.mark.parametrize("ctype", ["hex8", "wedge6", "tet4", "tet10"])
 def test_element_tangent_of_the_isotropic_tensor_is_the_voigt_stiffness(ctype):
-    """element_tangent (``dP/dF`` contracted with the gradients, what the implicit impact path
+    """element_tangent (``dP/dF`` contracted with the gradients, what the quasi-static impact path
     and the Neo-Hookean static path use) with the constant isotropic tensor equals the static
     workflow's Voigt ``B^T D B`` stiffness (full integration, no mean dilatation) on distorted
     cells of all four types, to round-off."""

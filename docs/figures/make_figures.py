@@ -77,7 +77,7 @@ def impact() -> list[Path]:
     from toolkit.impact.simulate import ball_start
 
     scene = (default_scene(velocity=30.0).with_face(resolution="coarse").with_ball(rigid=True)
-             .with_fidelity(integrator="implicit"))
+             .with_fidelity(integrator="quasi-static"))
     result = simulate(scene)
     face = result.face
     u = result.displacement[-1]
@@ -113,7 +113,8 @@ def ladder() -> list[Path]:
         print(f"skipped ladder: no run of {path} has an explicit reference to compare with", file=sys.stderr)
         return []
     labels = [f"{r.resolution}, tet{4 if r.order == 1 else 10}, {r.ball} ball, "
-              + (f"quasi-static {r.tolerance:g}" if r.integrator == "implicit" else f"mass scaling {r.mass_scaling:g}")
+              + (f"quasi-static {r.tolerance:g}" if r.integrator == "quasi-static"
+                 else f"mass scaling {r.mass_scaling:g}")
               for r in ok.itertuples()]
     out = HERE / "impact_ladder.png"
     plot_tradeoff(ok.wall_time_s.to_numpy(), ok.rmse_displacement_mm.to_numpy(), labels,

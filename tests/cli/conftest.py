@@ -23,7 +23,7 @@ def models(tmp_path_factory):
     train_surrogate(root / "static.h5", root / "smodel",
                     SurrogateConfig(network="tiny", coarse_radii=True, epochs=1), progress=False)
     scene = yielding_scene().with_face(resolution="coarse").with_ball(rigid=True)
-    scene = replace(scene.with_fidelity(order=1, mass_scaling=100.0), n_frames=6)
+    scene = replace(scene.with_fidelity(order=1, integrator="explicit", mass_scaling=100.0), n_frames=6)
     build_database(root / "impact.h5", (30.0, 40.0), (35.0,), scene, workers=0, progress=False)
     train_impact(root / "impact.h5", CONFIGS["paper"].with_(epochs=1), out=root / "imodel", progress=False)
     return root

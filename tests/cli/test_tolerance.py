@@ -82,7 +82,7 @@ def test_impact_tolerance_runs_the_choice_and_records_it(tmp_path, capsys):
     record = summary["fidelity"]
     assert set(record) == RECORD_KEYS
     assert record["options"] == {"order": 2, "ball": "rigid", "mass_scaling": 1.0, "safety": 0.9,
-                                 "integrator": "implicit"}
+                                 "integrator": "quasi-static"}
     assert record["error_mm"] <= 1.0 < record["uncertainty_mm"] + 1.0 and "coarse" in record["measured_on"]
     assert summary["ball"] == "rigid" and summary["element"] == "tet10"
 
@@ -93,7 +93,7 @@ def test_a_given_option_is_kept_and_the_choice_is_among_its_rows(captured, capsy
     assert captured["fidelity"].error_mm <= 1.0
     assert main(["impact", "simulate", "--tolerance", "1", "--ball", "deformable", "--out", "unused"]) == 2
     scene = captured["scene"]
-    assert scene.ball.rigid is False and scene.fidelity.integrator == "implicit" and scene.fidelity.order == 2
+    assert scene.ball.rigid is False and scene.fidelity.integrator == "quasi-static" and scene.fidelity.order == 2
     assert captured["fidelity"].options["ball"] == "deformable"
     capsys.readouterr()
 
@@ -105,7 +105,7 @@ def test_a_given_option_is_kept_and_the_choice_is_among_its_rows(captured, capsy
      "the static ladder did not measure resolution = 'fine' (measured: coarse, paper)"),
     (["static", "simulate", "--tolerance", "0.25", "--material", "linear"],
      "no measured static option with material linear is within 0.25 mm"),
-    (["impact", "simulate", "--tolerance", "1", "--mass-scaling", "100"],  # explicit only: 1.26 mm at best
+    (["impact", "simulate", "--tolerance", "1", "--integrator", "explicit", "--mass-scaling", "100"],  # 1.26 mm at best
      "no measured impact option with mass_scaling 100, integrator explicit is within 1 mm"),
 ])
 def test_a_given_option_the_ladder_cannot_meet_is_refused(argv, expected, no_compute, capsys):

@@ -110,12 +110,12 @@ def test_the_list_above_covers_every_exported_error():
 def test_one_convergence_error_for_both_workflows():
     """Static and impact raise the same class, re-exported where each workflow's code is."""
     import toolkit.impact
-    import toolkit.impact.implicit
+    import toolkit.impact.quasi_static
     import toolkit.static
     import toolkit.static.problem
 
     assert (toolkit.ConvergenceError is toolkit.common.ConvergenceError is toolkit.static.ConvergenceError
-            is toolkit.static.problem.ConvergenceError is toolkit.impact.implicit.ConvergenceError
+            is toolkit.static.problem.ConvergenceError is toolkit.impact.quasi_static.ConvergenceError
             is toolkit.impact.ConvergenceError is ConvergenceError)
 
 

@@ -15,7 +15,7 @@ def tiny_scene():
     from dataclasses import replace
 
     scene = yielding_scene().with_face(resolution="coarse").with_ball(rigid=True)
-    return replace(scene.with_fidelity(order=1, mass_scaling=100.0), n_frames=12)
+    return replace(scene.with_fidelity(order=1, integrator="explicit", mass_scaling=100.0), n_frames=12)
 
 
 @pytest.fixture(scope="session")

@@ -18,6 +18,9 @@ from toolkit.impact.simulate import face_mesh, fixed_nodes
 
 from .conftest import TINY_HELD_OUT, TINY_VELOCITIES, tiny_scene
 
+#: the quickest impact runs: explicit dynamics with mass scaling 100
+EXPLICIT = ["--integrator", "explicit", "--mass-scaling", "100"]
+
 
 def test_default_held_out_velocities_sit_between_the_paper_ones():
     assert default_held_out([20, 26, 32, 38, 44, 50]) == [23.0, 35.0, 47.0]
@@ -62,7 +65,8 @@ def test_resume_adds_only_missing_velocities_and_refuses_another_scene(tmp_path)
     report = build_database(path, [30.0, 40.0], [], scene, workers=0, progress=False)
     assert report.done == ["v40"] and report.skipped == ["v30"]
     with pytest.raises(IncompatibleError, match=r"scene\.fidelity\.mass_scaling: stored 100\.0, asked 50\.0"):
-        build_database(path, [30.0], [], scene.with_fidelity(mass_scaling=50.0), workers=0, progress=False)
+        build_database(path, [30.0], [], scene.with_fidelity(integrator="explicit", mass_scaling=50.0), workers=0,
+                       progress=False)
 
 
 def test_a_failing_simulation_is_recorded_and_the_others_kept(tmp_path, monkeypatch):
@@ -112,7 +116,7 @@ def test_dataset_command(tmp_path, capsys):
     database, prints the per-velocity yield table, and refuses a file that is not an impact database."""
     out = tmp_path / "db.h5"
     argv = ["impact", "dataset", "--velocities", "30,50", "--held-out", "40", "--resolution", "coarse",
-            "--ball", "rigid", "--order", "1", "--mass-scaling", "100", "--duration", "0.36", "--workers", "0",
+            "--ball", "rigid", "--order", "1", *EXPLICIT, "--duration", "0.36", "--workers", "0",
             "--out", str(out)]
     assert main(argv) == 0
     printed = capsys.readouterr().out

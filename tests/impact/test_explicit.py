@@ -311,7 +311,7 @@ def test_integrator_is_stable_below_and_unstable_above_two_over_omega_max():
 
 def _coarse_rigid_scene(**fidelity):
     return Scene(face=FaceSpec(resolution="coarse"), ball=BallSpec(rigid=True),
-                 fidelity=Fidelity(order=1, **fidelity), duration=0.3, n_frames=3)
+                 fidelity=Fidelity(order=1, integrator="explicit", **fidelity), duration=0.3, n_frames=3)
 
 
 def test_scene_time_step_above_the_stable_limit_is_refused_or_blows_up():
@@ -549,18 +549,18 @@ def _hertz_block():
 
 
 def test_quasi_static_hertz_contact_of_a_rigid_sphere_on_an_elastic_layer():
-    """The same block and penalty solved quasi-statically (toolkit.impact.implicit) in 12 load
+    """The same block and penalty solved quasi-statically (toolkit.impact.quasi_static) in 12 load
     steps, no mass and no time step: the force at both indentations matches Hertz with the
     bonded-layer factor within the explicit test's 10 % (same error budget, less the dynamics),
     with no step cut and an energy balance within 2 %."""
-    from toolkit.impact.implicit import ImplicitOptions, StepContact, run_quasistatic
+    from toolkit.impact.quasi_static import QuasiStaticOptions, StepContact, run_quasistatic
 
     hb = _hertz_block()
     speed = 1.1 * hb.deltas[-1]  # mm per unit of load time (1 s)
     model = ExplicitModel(hb.P, hb.mass, [hb.body], 1.0, None)
     contact = StepContact(hb.pair, hb.P.shape[0], centre0=np.array([0.0, 0.0, hb.R]),
                           velocity=np.array([0.0, 0.0, -speed]))
-    frames, stats = run_quasistatic(model, contact, 1.0, 24, ImplicitOptions(steps=12))
+    frames, stats = run_quasistatic(model, contact, 1.0, 24, QuasiStaticOptions(steps=12))
     assert stats["cuts"] == 0 and stats["energy_error"] < 0.02
     centre_node = np.flatnonzero(np.all(hb.P == 0.0, axis=1))[0]
     delta = np.array([-f.displacement[centre_node, 2] for f in frames])
@@ -577,7 +577,7 @@ def test_quasi_static_steps_are_cut_where_newton_fails_and_the_answer_holds():
     (measured: 3 cuts) and still land on Hertz within the same 10 % with the energy balance
     within 2 %; a ``min_step`` above the needed step ends in a ConvergenceError that names the
     time and the option."""
-    from toolkit.impact.implicit import ConvergenceError, ImplicitOptions, StepContact, run_quasistatic
+    from toolkit.impact.quasi_static import ConvergenceError, QuasiStaticOptions, StepContact, run_quasistatic
 
     def press(options):
         hb = _hertz_block()
@@ -585,7 +585,7 @@ def test_quasi_static_steps_are_cut_where_newton_fails_and_the_answer_holds():
                               velocity=np.array([0.0, 0.0, -1.1 * hb.deltas[-1]]))
         return hb, run_quasistatic(ExplicitModel(hb.P, hb.mass, [hb.body], 1.0, None), contact, 1.0, 4, options)
 
-    hb, (frames, stats) = press(ImplicitOptions(steps=1, max_iterations=3))
+    hb, (frames, stats) = press(QuasiStaticOptions(steps=1, max_iterations=3))
     assert stats["cuts"] >= 1 and stats["energy_error"] < 0.02
     centre_node = np.flatnonzero(np.all(hb.P == 0.0, axis=1))[0]
     delta = np.array([0.0] + [-f.displacement[centre_node, 2] for f in frames])
@@ -593,7 +593,7 @@ def test_quasi_static_steps_are_cut_where_newton_fails_and_the_answer_holds():
     for d in hb.deltas:
         assert np.interp(d, delta, force) / hb.hertz(d)[1] == pytest.approx(1.0, rel=0.1)
     with pytest.raises(ConvergenceError, match="below min_step 0.3 s"):
-        press(ImplicitOptions(steps=1, max_iterations=2, min_step=0.3))
+        press(QuasiStaticOptions(steps=1, max_iterations=2, min_step=0.3))
 
 
 # ----------------------------------------------------------------------------------------------

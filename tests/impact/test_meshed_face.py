@@ -17,6 +17,9 @@ from toolkit.mesh import DEFAULT
 from toolkit.mesh.face import mesh_face
 from toolkit.mesh.surface import tissue_surface_of
 
+#: the quickest impact runs: explicit dynamics with mass scaling 100
+EXPLICIT = ["--integrator", "explicit", "--mass-scaling", "100"]
+
 
 @pytest.fixture(scope="module")
 def meshed(tmp_path_factory):
@@ -35,7 +38,7 @@ def _run(*argv):
 
 def test_simulate_runs_on_a_meshed_face(meshed, tmp_path, capsys):
     out = tmp_path / "run"
-    code = _run("--mesh", meshed, "--integrator", "implicit", "--ball", "rigid", "--duration", "0.1",
+    code = _run("--mesh", meshed, "--integrator", "quasi-static", "--ball", "rigid", "--duration", "0.1",
                 "--no-preview", "--out", out)
     assert code == 0, capsys.readouterr().err
     s = json.loads((out / "summary.json").read_text())
@@ -77,7 +80,7 @@ def test_bad_meshes_and_aims_are_refused_before_output(meshed, tmp_path, capsys,
     if "--missing" in argv:
         mesh, argv = tmp_path / "nowhere.vtu", []
     out = tmp_path / "run"
-    assert _run("--mesh", mesh, "--integrator", "implicit", "--ball", "rigid", *argv, "--out", out) == 2
+    assert _run("--mesh", mesh, "--integrator", "quasi-static", "--ball", "rigid", *argv, "--out", out) == 2
     assert expected in capsys.readouterr().err
     assert not out.exists()
 
@@ -90,7 +93,7 @@ def test_the_order_check_holds_in_python(meshed):
 def test_dataset_takes_the_mesh_and_refuses_a_missed_aim_before_the_database(meshed, tmp_path, capsys):
     db = tmp_path / "db.h5"
     argv = ["impact", "dataset", "--mesh", str(meshed), "--ball", "rigid", "--velocities", "20", "--held-out", "",
-            "--duration", "0.05", "--mass-scaling", "100", "--workers", "0", "--out", str(db)]
+            "--duration", "0.05", *EXPLICIT, "--workers", "0", "--out", str(db)]
     assert main(argv + ["--target", "0,0,1000"]) == 2
     assert "misses the face" in capsys.readouterr().err and not db.exists()
     assert main(argv) == 0, capsys.readouterr().err
@@ -102,7 +105,7 @@ def test_an_answer_within_a_tolerance_on_a_meshed_face(meshed, tmp_path, capsys)
     error estimate per node and frame, and by the quasi-static FE of the meshed face at a tight one."""
     from toolkit.common.io import read_time_series
 
-    scene = ["--mesh", str(meshed), "--ball", "rigid", "--duration", "0.05", "--mass-scaling", "100",
+    scene = ["--mesh", str(meshed), "--ball", "rigid", "--duration", "0.05", *EXPLICIT,
              "--workers", "0"]
     train, cal, model = tmp_path / "train.h5", tmp_path / "cal.h5", tmp_path / "model"
     assert main(["impact", "dataset", *scene, "--velocities", "20,30,40", "--held-out", "", "--out", str(train)]) == 0

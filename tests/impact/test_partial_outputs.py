@@ -23,7 +23,7 @@ sim = importlib.import_module("toolkit.impact.simulate")  # the module (toolkit.
 
 
 def _fast(scene: Scene) -> Scene:
-    return scene.with_fidelity(order=1, mass_scaling=100.0)
+    return scene.with_fidelity(order=1, integrator="explicit", mass_scaling=100.0)
 
 
 def _quick_scene(n_frames: int = 6) -> Scene:

@@ -26,7 +26,8 @@ BALL_YIELD = [(0.034, 0.0), (0.035, 0.03), (0.036, 0.032), (0.037, 0.05), (0.038
 
 def _coarse(rigid, order=1, **fidelity):
     return Scene(face=FaceSpec(resolution="coarse"), ball=BallSpec(rigid=rigid),
-                 fidelity=Fidelity(order=order, **fidelity), duration=0.3, n_frames=6)
+                 fidelity=Fidelity(order=order, **{"integrator": "explicit", **fidelity}),
+                 duration=0.3, n_frames=6)
 
 
 def test_toml_round_trip(tmp_path):
@@ -38,7 +39,8 @@ def test_toml_round_trip(tmp_path):
         ball=BallSpec(rigid=True, velocity=45.0, direction=(0.0, -3.0, 4.0), target=(1.0, 2.0, 3.0), gap=1.5,
                       target_offset=(0.0, 1.0, -2.0)),
         contact=ContactSpec(friction=0.3, dt_fraction=0.8),
-        fidelity=Fidelity(order=1, mass_scaling=25.0, safety=0.7, dt=1e-4, allow_unstable_dt=True),
+        fidelity=Fidelity(order=1, integrator="explicit", mass_scaling=25.0, safety=0.7, dt=1e-4,
+                          allow_unstable_dt=True),
         duration=0.25,
         n_frames=7,
     )
@@ -165,7 +167,7 @@ def test_paper_velocity_extremes_run_the_full_duration(velocity):
     rotates about the fixed band, moving its upper edge down: +18 % at 50 mm/s); the energy
     balance closes to 2 %."""
     scene = Scene(face=FaceSpec(resolution="coarse"), ball=BallSpec(rigid=True, velocity=velocity),
-                  fidelity=Fidelity(order=1, mass_scaling=100.0), duration=1.8, n_frames=6)
+                  fidelity=Fidelity(order=1, integrator="explicit", mass_scaling=100.0), duration=1.8, n_frames=6)
     summary = simulate(scene, preview=False).summary()
     assert summary["fixed_clearance_mm"] is None
     travel = velocity * 1.8 - scene.ball.gap
@@ -188,7 +190,7 @@ def test_skull_support_makes_the_face_yield_and_the_band_does_not():
 
     fast = dict(rigid=True)
     scene = yielding_scene(50.0).with_face(resolution="coarse").with_ball(**fast).with_fidelity(
-        order=1, mass_scaling=100.0)
+        order=1, integrator="explicit", mass_scaling=100.0)
     assert scene.face.support == "skull" and scene.duration == pytest.approx(0.36)
     with warnings.catch_warnings():
         warnings.simplefilter("error", SceneGeometryWarning)

@@ -101,7 +101,7 @@ def test_in_range_velocity_is_answered_by_the_surrogate_within_a_loose_tolerance
     assert np.percentile(node, 95) == pytest.approx(ans.estimate["bound_mm"], rel=1e-9)
     tight = trust.answer(model, 33.0, 0.5 * ans.estimate["bound_mm"], calibration=cal)
     assert tight.answered_by == "fe" and "above the tolerance" in tight.reason
-    assert tight.seconds["fe"] > 0 and tight.fe_integrator == "implicit"
+    assert tight.seconds["fe"] > 0 and tight.fe_integrator == "quasi-static"
 
 
 def test_a_velocity_beyond_the_training_falls_back_to_the_quasi_static_fe(calibrated):
@@ -112,7 +112,7 @@ def test_a_velocity_beyond_the_training_falls_back_to_the_quasi_static_fe(calibr
     assert ans.answered_by == "fe" and ans.reason.startswith("out of distribution: velocity")
     assert ans.ood["velocity"]["parameters"]["velocity_mm_s"]["outside_by"] == pytest.approx(10.0)
     assert ans.ood["velocity"]["nearest_training_mm_s"] == pytest.approx(10.0)
-    fe = simulate(tiny_scene().with_ball(velocity=10.0).with_fidelity(integrator="implicit"))
+    fe = simulate(tiny_scene().with_ball(velocity=10.0).with_fidelity(integrator="quasi-static", mass_scaling=1.0))
     np.testing.assert_allclose(ans.displacement, fe.displacement, rtol=0, atol=1e-9)
 
 
@@ -147,7 +147,8 @@ def test_another_aim_is_out_of_distribution(calibrated):
     ood = trust.out_of_distribution(model, scene)
     assert ood["outside"] and ood["scene"]["differences"][0][0] == "ball.target_offset"
     assert not ood["velocity"]["outside"]
-    same = trust.out_of_distribution(model, tiny_scene().with_ball(velocity=32.0).with_fidelity(integrator="implicit"))
+    same = trust.out_of_distribution(model, tiny_scene().with_ball(velocity=32.0)
+                                     .with_fidelity(integrator="quasi-static", mass_scaling=1.0))
     assert not same["outside"], same["reasons"]
 
 

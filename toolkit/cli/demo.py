@@ -86,7 +86,7 @@ def _impact(out: Path, preview: bool):
     from toolkit.impact import default_scene, simulate
 
     scene = default_scene().with_face(resolution="coarse").with_ball(rigid=True)
-    scene = replace(scene.with_fidelity(order=1, mass_scaling=100.0), duration=0.9, n_frames=9)
+    scene = replace(scene.with_fidelity(order=1, integrator="explicit", mass_scaling=100.0), duration=0.9, n_frames=9)
     return simulate(scene, out=out, preview=preview)
 
 

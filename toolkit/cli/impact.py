@@ -53,21 +53,21 @@ def _add_scene_options(parser: argparse.ArgumentParser, scene: str) -> None:
                         help="tetrahedron order (1: tet4, 2: tet10) (default: the scene's; with --mesh, the mesh's, "
                              "and another order is refused)")
     parser.add_argument("--mass-scaling", type=float,
-                        help="density factor >= 1 (longer stable steps) (default: the scene's)")
+                        help="explicit integrator (with --integrator explicit): density factor >= 1 (longer stable "
+                             "steps) (default: the scene's, 1)")
     parser.add_argument("--safety", type=float,
-                        help="explicit integrator: time-step safety factor in (0, 1] on the critical step "
-                             "(default: the scene's, 0.9)")
+                        help="explicit integrator (with --integrator explicit): time-step safety factor in (0, 1] "
+                             "on the critical step (default: the scene's, 0.9)")
 
 
 def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
     _add_scene_options(parser, "the impact paper's scene: paper face, deformable ball, tet10, no mass scaling")
     parser.add_argument("--velocity", type=float,
                         help="ball velocity, mm/s (the impact paper: 20-50) (default: the scene's, 30)")
-    parser.add_argument("--integrator", choices=["explicit", "implicit"],
-                        help="quasi-static Newton load steps (implicit: the same answer as explicit dynamics at these "
-                             "ball speeds, in a fraction of the time) or explicit dynamics (the impact paper) "
-                             "(default: implicit; explicit when --mass-scaling or --safety is given; with --scene, "
-                             "the scene's)")
+    parser.add_argument("--integrator", choices=["quasi-static", "explicit"],
+                        help="quasi-static Newton load steps (the same answer as explicit dynamics at these ball "
+                             "speeds, in a fraction of the time) or explicit dynamics (the impact paper) (default: "
+                             "the scene's, quasi-static; with --tolerance, chosen)")
     parser.add_argument("--duration", type=float,
                         help="simulated time, s (default: the scene's, 1.8; with --mesh, 0.36)")
     parser.add_argument("--tolerance", type=tolerance_mm, default=None, metavar="MM",
@@ -85,9 +85,6 @@ def simulate(args: argparse.Namespace) -> int:
     from toolkit.impact.simulate import simulate
 
     check_output_dir(args.out)
-    explicit_only = args.mass_scaling is not None or args.safety is not None
-    if args.integrator is None and (args.scene is None or args.tolerance is not None):
-        args.integrator = "explicit" if explicit_only else None if args.tolerance is not None else "implicit"
     run_scene = scene(args, default_scene)
     choice = None
     if args.tolerance is not None:
@@ -112,10 +109,10 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
                         help="held-out velocities, mm/s (default: midpoints of every other gap, 23,35,47); '' for "
                              "none")
     _add_scene_options(parser, "the skull-held yielding scene, 0.36 s")
-    parser.add_argument("--integrator", choices=["explicit", "implicit"],
-                        help="explicit dynamics or quasi-static load steps (implicit: the FE that answers "
-                             "`toolkit impact predict --tolerance` when the surrogate may miss) (default: the "
-                             "scene's, explicit)")
+    parser.add_argument("--integrator", choices=["quasi-static", "explicit"],
+                        help="quasi-static load steps (the FE that answers `toolkit impact predict --tolerance` "
+                             "when the surrogate may miss) or explicit dynamics (the impact paper) (default: the "
+                             "scene's, quasi-static)")
     parser.add_argument("--duration", type=float, help="simulated time, s (default: the scene's, 0.36)")
     add_database_run(parser, "velocities")
 
@@ -337,8 +334,7 @@ def calibrate(args: argparse.Namespace) -> int:
 
 def choose_impact_fidelity(args: argparse.Namespace, run_scene):
     """The FidelityChoice of ``--tolerance`` (printed): among the ladder's options with those given
-    on the command line (``--mass-scaling`` or ``--safety`` alone: the explicit integrator); on a
-    face mesh, with the mesh's element order."""
+    on the command line; on a face mesh, with the mesh's element order."""
     from toolkit.common.fidelity import choose_fidelity
 
     given = {"ball": args.ball, "order": args.order, "mass_scaling": args.mass_scaling, "safety": args.safety,
@@ -393,12 +389,15 @@ def scene(args: argparse.Namespace, base):
         out = out.with_ball(rigid=args.ball == "rigid")
     if args.order is not None:
         out = out.with_fidelity(order=args.order)
-    if args.mass_scaling is not None:
-        out = out.with_fidelity(mass_scaling=args.mass_scaling)
-    if args.safety is not None:
-        out = out.with_fidelity(safety=args.safety)
-    if getattr(args, "integrator", None) is not None:
-        out = out.with_fidelity(integrator=args.integrator)
+    integrator = getattr(args, "integrator", None) or out.fidelity.integrator
+    explicit_only = [f"--{name} {value:g}" for name, value in (("mass-scaling", args.mass_scaling),
+                                                              ("safety", args.safety)) if value is not None]
+    if explicit_only and integrator != "explicit":
+        verb, them = ("apply", "them") if len(explicit_only) > 1 else ("applies", "it")
+        raise ValueError(f"{' and '.join(explicit_only)} {verb} to the explicit integrator only (the {integrator} "
+                         f"one has no inertia and no time step): add --integrator explicit, or leave {them} out")
+    explicit = {k: v for k, v in (("mass_scaling", args.mass_scaling), ("safety", args.safety)) if v is not None}
+    out = out.with_fidelity(integrator=integrator, **explicit)
     if args.duration is not None:
         out = replace(out, duration=args.duration)
     return out

@@ -1,7 +1,9 @@
-"""Impact workflow: explicit finite-strain elastoplastic ball impact on the face (the impact paper).
+"""Impact workflow: finite-strain elastoplastic ball impact on the face (the impact paper).
 
-``simulate(default_scene())`` runs the impact paper's scene; the pieces (scene, elements,
-plasticity, contact, integrator) are importable. The surrogate side: ``build_database``
+``simulate(default_scene())`` runs the impact paper's scene by quasi-static load steps
+(``Fidelity.integrator = "quasi-static"``, the default) or, by name, by the paper's explicit
+dynamics (``"explicit"``); the pieces (scene, elements, plasticity, contact, integrators) are
+importable. The surrogate side: ``build_database``
 (one simulation per velocity, HDF5), ``train_surrogate`` (the impact paper's LSTM, a stronger one,
 an MLP baseline), ``evaluate_surrogate`` and ``predict_scene``. Imports nothing from
 :mod:`toolkit.static`.
@@ -10,7 +12,7 @@ an MLP baseline), ``evaluate_surrogate`` and ``predict_scene``. Imports nothing 
 from toolkit.impact.dataset import ImpactDatabase, build_database, load_database
 from toolkit.impact.evaluation import evaluate_surrogate
 from toolkit.impact.explicit import InstabilityError
-from toolkit.impact.implicit import ConvergenceError
+from toolkit.impact.quasi_static import ConvergenceError
 from toolkit.impact.scene import (
     BallSpec,
     ContactSpec,

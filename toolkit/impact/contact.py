@@ -256,7 +256,7 @@ class ContactStep:
         triangles' nodes), ``force`` distributed with the contact point's barycentric weights
         and reversed; ``force.sum(0) + master_force.sum(0) == 0`` to round-off.
     normal : (n_slave, 3) float or None
-        Unit contact normal of the active slaves (zero rows elsewhere); what an implicit
+        Unit contact normal of the active slaves (zero rows elsewhere); what a quasi-static
         solver linearises the penalty force with.
     corners : (n_slave, 3) int or None
         :class:`SurfaceContact` only: the master triangle's node ids of each active slave.
@@ -329,7 +329,7 @@ class _PenaltyContact:
 
     def restore(self, tangential_state: np.ndarray) -> None:
         """Set the stored friction force ``(n_slave, 3)`` N, e.g. back to a converged step's
-        :attr:`tangential_state` before an implicit solver evaluates another trial state."""
+        :attr:`tangential_state` before the quasi-static solver evaluates another trial state."""
         self._traction[:] = self._check_slave_points(tangential_state, "tangential_state")
 
     def _check_slave_points(self, a, name: str) -> np.ndarray:

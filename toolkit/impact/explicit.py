@@ -309,7 +309,7 @@ class _EnergyLedger(_WorkLedger):
             raise InstabilityError(f"kinetic energy {e.kinetic:.3g} mJ exceeds 100x the work done",
                                    t, None, None, "the time step is unstable: lower the time-step safety factor "
                                    "(Fidelity.safety; command line: --safety) or use the quasi-static integrator "
-                                   "(--integrator implicit)")
+                                   "(--integrator quasi-static)")
 
 
 def _frame(model: ExplicitModel, t: float, u: np.ndarray, internal: _InternalForces, energies: Energies,
@@ -376,14 +376,14 @@ def run_explicit(model: ExplicitModel, duration: float, n_frames: int, on_frame:
         if not np.isfinite(u_new).all():
             raise InstabilityError("displacements became NaN/inf", t, None, None,
                                    "lower the time-step safety factor (--safety) or the mass scaling (--mass-scaling), "
-                                   "or use the quasi-static integrator (--integrator implicit)")
+                                   "or use the quasi-static integrator (--integrator quasi-static)")
         try:
             internal_new = _internal_forces(model, u_new, internal.states)
         except _Inverted as exc:
             raise InstabilityError(f"{exc.body} element {exc.element} inverted (det F <= 0)", t, exc.body,
                                    exc.element, "lower the time-step safety factor (Fidelity.safety; command line: "
                                    "--safety), the ball velocity (--velocity) or the mass scaling (--mass-scaling); "
-                                   "or use the quasi-static integrator (--integrator implicit); or refine the mesh "
+                                   "or use the quasi-static integrator (--integrator quasi-static); or refine the mesh "
                                    "where it inverted") from None
         contact_new = _contact(model, u_new, v_new, t, dt)
         ledger.record(t, dt, du, v_new, internal, internal_new, contact_new)

@@ -66,7 +66,7 @@ class MaterialSpec:
 
 
 #: time integration of :class:`Fidelity`: explicit dynamics or quasi-static equilibrium
-INTEGRATORS = ("explicit", "implicit")
+INTEGRATORS = ("quasi-static", "explicit")
 
 #: how the face is held: ``band`` (the impact paper: only the lower band) or ``skull`` (also the bone-side surface)
 SUPPORTS = ("band", "skull")
@@ -212,13 +212,16 @@ class ContactSpec:
 class Fidelity:
     """Speed/accuracy options: element ``order`` (1 tet4, 2 tet10) and the ``integrator``.
 
-    ``"explicit"`` (central differences, :mod:`toolkit.impact.explicit`): ``mass_scaling``
-    factor on every density (>= 1), time-step ``safety`` factor on the critical step, or a fixed
-    ``dt`` (s), refused when above the stable limit unless ``allow_unstable_dt``.
-
-    ``"implicit"`` (quasi-static equilibrium per load step, :mod:`toolkit.impact.implicit`):
+    ``"quasi-static"`` (the default; equilibrium per load step, :mod:`toolkit.impact.quasi_static`):
     ``load_steps`` over the duration at the start (cut and regrown adaptively) and the Newton
-    ``tolerance`` (relative residual); no inertia, so mass scaling and ``dt`` do not apply.
+    ``tolerance`` (relative residual); no inertia, so a ``mass_scaling`` other than 1 or a ``dt``
+    is refused (:class:`SceneError`).
+
+    ``"explicit"`` (central differences, :mod:`toolkit.impact.explicit`; the impact paper's
+    integrator): ``mass_scaling`` factor on every density (>= 1), time-step ``safety`` factor on the
+    critical step, or a fixed ``dt`` (s), refused when above the stable limit unless
+    ``allow_unstable_dt``. Give it with its options in one call:
+    ``scene.with_fidelity(integrator="explicit", mass_scaling=100)``.
     """
 
     order: int = 2
@@ -226,7 +229,7 @@ class Fidelity:
     safety: float = 0.9
     dt: float | None = None
     allow_unstable_dt: bool = False  # run a too-large dt anyway (the blow-up detector then stops it)
-    integrator: str = "explicit"
+    integrator: str = "quasi-static"
     load_steps: int = 36
     tolerance: float = 3e-3
 
@@ -236,10 +239,16 @@ class Fidelity:
         if self.integrator not in INTEGRATORS:
             raise SceneError(f"integrator {self.integrator!r} is not one of {list(INTEGRATORS)}")
         if int(self.load_steps) < 1 or not 0 < self.tolerance < 1:
-            raise SceneError(f"implicit load_steps {self.load_steps} must be >= 1 and tolerance {self.tolerance} "
+            raise SceneError(f"quasi-static load_steps {self.load_steps} must be >= 1 and tolerance {self.tolerance} "
                              "in (0, 1)")
         if not self.mass_scaling >= 1.0:
             raise SceneError(f"mass_scaling must be >= 1, got {self.mass_scaling}")
+        if self.integrator != "explicit" and (self.mass_scaling != 1.0 or self.dt is not None):
+            given = ", ".join(f"{k}={v}" for k, v in (("mass_scaling", self.mass_scaling), ("dt", self.dt))
+                              if v not in (1.0, None))
+            raise SceneError(f"{given} applies to the explicit integrator only (the {self.integrator} one has no "
+                             f"inertia and no time step): give integrator='explicit' with it (command line: "
+                             f"--integrator explicit)")
         if not 0 < self.safety <= 1.0:
             raise SceneError(f"safety must be in (0, 1], got {self.safety}")
         if self.dt is not None and not 0 < self.dt < np.inf:

@@ -203,7 +203,7 @@ def _time_step(scene: Scene, dt_crit: float, dt_elem: tuple) -> float:
     or its ``safety`` times the stable step the contact penalty keeps."""
     fid, fraction = scene.fidelity, scene.contact.dt_fraction
     dt_stable = fraction * dt_crit  # the contact penalty keeps the step above this
-    if fid.dt is None or fid.integrator == "implicit":
+    if fid.dt is None or fid.integrator == "quasi-static":
         return fid.safety * dt_stable
     if fid.dt > dt_stable and not fid.allow_unstable_dt:
         raise UnstableTimeStepError(
@@ -216,7 +216,7 @@ def _time_step(scene: Scene, dt_crit: float, dt_elem: tuple) -> float:
 def _contact_pair(scene: Scene, face: Mesh, ball: Mesh | None, mass: np.ndarray, dt_crit: float):
     """Penalty contact of the skin against the rigid sphere or the deformable ball's surface,
     with Coulomb friction; the penalty keeps the stable step at ``dt_fraction`` of ``dt_crit``
-    (the implicit path uses the same penalty, so both paths solve the same contact problem)."""
+    (the quasi-static path uses the same penalty, so both paths solve the same contact problem)."""
     skin = face.node_set("skin")
     friction = CoulombFriction(scene.contact.friction) if scene.contact.friction > 0 else None
     # a penalty spring joins a skin node to the ball: its stable step depends on the lighter end.
@@ -408,12 +408,12 @@ def _run(scene: Scene, built: BuiltScene, on_frame, progress: bool, initial_gues
     """The scene's integrator over its duration: frames and statistics."""
     if scene.fidelity.integrator == "explicit":
         return run_explicit(built.model, scene.duration, scene.n_frames, on_frame=on_frame, progress=progress)
-    from toolkit.impact.implicit import ImplicitOptions, StepContact, run_quasistatic
+    from toolkit.impact.quasi_static import QuasiStaticOptions, StepContact, run_quasistatic
 
     fid = scene.fidelity
     contact = StepContact(built.contact_pair, built.model.points.shape[0], built.ball_centre,
                           scene.ball.velocity * np.asarray(scene.ball.direction, dtype=float))
-    options = ImplicitOptions(steps=fid.load_steps, tolerance=fid.tolerance)
+    options = QuasiStaticOptions(steps=fid.load_steps, tolerance=fid.tolerance)
     guess = None
     if initial_guess is not None:
         times, face_u = initial_guess
@@ -441,7 +441,7 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
     surrogate's prediction, where the quasi-static path's Newton iterations start (linear in
     time between the frames, from zero at t = 0; the ball from the previous step's increment),
     falling back to the previous step's increment where Newton fails from it
-    (:func:`~toolkit.impact.implicit.run_quasistatic`). An explicit scene has no iterations to
+    (:func:`~toolkit.impact.quasi_static.run_quasistatic`). An explicit scene has no iterations to
     start: ValueError.
 
     ``summary.json`` has ``"status"``: ``"finished"``, or, when the run raises or is interrupted
@@ -458,7 +458,7 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
     if initial_guess is not None:
         if scene.fidelity.integrator == "explicit":
             raise ValueError("initial_guess with integrator = 'explicit': an explicit run has no iterations to "
-                             "start; use scene.with_fidelity(integrator='implicit') or leave initial_guess out")
+                             "start; use scene.with_fidelity(integrator='quasi-static') or leave initial_guess out")
         initial_guess = tuple(np.asarray(a, dtype=float) for a in initial_guess)
     if out is not None:
         check_output_dir(out)

@@ -22,9 +22,9 @@ the velocity against the training range and the scene against the training scene
 the ball, the face, the material, the duration), and :func:`answer` runs the FE for such
 inputs whatever the estimate says.
 
-The FE that answers is the scene's quasi-static path (``Fidelity.integrator = "implicit"``),
+The FE that answers is the scene's quasi-static path (``Fidelity.integrator = "quasi-static"``),
 the cheaper of the two integrators: for a database built quasi-static
-(``toolkit impact dataset --integrator implicit``) it is the FE the model learned, and for a
+(``toolkit impact dataset --integrator quasi-static``) it is the FE the model learned, and for a
 database of explicit runs it differs from it by the integrators' difference, which
 ``benchmarks/impact_ladder.py`` measures.
 
@@ -59,7 +59,7 @@ SCALES = ("interpolation", "constant")
 #: mm added to the disagreement so that a scale is never zero
 SCALE_FLOOR_MM = 0.01
 #: the integrator of the FE fallback: quasi-static load steps
-FALLBACK_INTEGRATOR = "implicit"
+FALLBACK_INTEGRATOR = "quasi-static"
 
 
 def answer_error(predicted: np.ndarray, reference: np.ndarray) -> float:
@@ -277,7 +277,7 @@ class TrustedImpactAnswer:
     ood : :func:`out_of_distribution`
     seconds : ``surrogate``, ``estimate``, ``checks`` (the surrogate answer's, made only when it is
         within the tolerance and in distribution), ``fe`` (0 when not run), ``total``
-    fe_integrator : the FE's integrator (``implicit``: quasi-static)
+    fe_integrator : the FE's integrator (``quasi-static``)
 
     Construction checks a post-condition: :class:`~toolkit.common.errors.AnswerError` when the result's von Mises stress
     ``(F, N)`` MPa is negative or NaN anywhere (the surrogate clamps its stress at zero; the FE's
@@ -397,7 +397,8 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
             ans.write_summary(out)
         return ans
     t1 = time.perf_counter()
-    fe_scene = scene.with_fidelity(integrator=FALLBACK_INTEGRATOR)
+    # the explicit-only options (a database built explicit) do not apply to the quasi-static FE
+    fe_scene = scene.with_fidelity(integrator=FALLBACK_INTEGRATOR, mass_scaling=1.0, dt=None)
     fe = simulate(fe_scene, out=out, progress=progress, preview=preview)
     seconds["fe"] = time.perf_counter() - t1
     seconds["total"] = time.perf_counter() - t0

@@ -13,7 +13,7 @@ Which one (:func:`choose_method`; figures from ``benchmarks/static_solvers.py``,
 - ``"pardiso"``: Intel MKL PARDISO (:mod:`toolkit.common.fem.pardiso`; the ``pardiso``
   extra) on the same ordering: on the paper impact face (float32) factorization 1.1 s and
   back-solve 0.021 s against SuperLU's 1.7 s and 0.030 s. ``auto`` takes it where a caller
-  asks for it (``direct="pardiso"``, the implicit impact path) and MKL is installed.
+  asks for it (``direct="pardiso"``, the quasi-static impact path) and MKL is installed.
 - ``"amg"``: pyamg smoothed aggregation (rigid-body near-nullspace), a preconditioner for
   conjugate gradients.
 - ``"cholmod"``: scikit-sparse's CHOLMOD when it is installed (needs the system
@@ -43,7 +43,7 @@ __all__ = ["Factor", "Refactorizable", "SolverError", "SuperLUFactor", "CholmodF
 #: a few seconds; the paper phantom is ~4 M, the fine phantom ~2 G, a 26k-dof bulky tet mesh
 #: ~40 M (``benchmarks/static_solvers.py``)
 AUTO_DIRECT_MAX_ENTRIES = 30_000_000
-#: the same limit for a solver that reuses its factorization over many systems (the implicit
+#: the same limit for a solver that reuses its factorization over many systems (the quasi-static
 #: impact path's Newton iterations): on the paper face with the deformable ball (54k dofs,
 #: estimate 64 M, SuperLU L+U 58 M entries, 1.9 GB, 15 s) one factorization reused as a CG
 #: preconditioner runs a 2-step probe in 55 s against 176 s for AMG-CG, whose hierarchy the

@@ -1,4 +1,4 @@
-"""The quasi-static (implicit) impact path and the shared pieces it stands on: the material
+"""The quasi-static impact path and the shared pieces it stands on: the material
 tangent, the fixed-pattern assembly and the contact tangent (Hertz contact solved by Newton is
 in test_explicit.py, beside the explicit Hertz test whose model it shares).
 
@@ -20,8 +20,8 @@ from toolkit.common.fem.jit import HAVE_NUMBA
 from toolkit.common.fem.tangent import algorithmic_tangent
 from toolkit.common.materials import isotropic_tangent
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact
-from toolkit.impact.implicit import ImplicitOptions, StepContact
 from toolkit.impact.plasticity import FACE_TABLE, HardeningTable, J2Plasticity
+from toolkit.impact.quasi_static import QuasiStaticOptions, StepContact
 from toolkit.impact.scene import Fidelity, Scene
 
 EYE = np.eye(3)
@@ -279,22 +279,22 @@ def test_a_nearly_stuck_slave_converges_when_a_reversed_slip_is_linearized_on_th
 
 
 def test_the_integrator_is_a_fidelity_option():
-    scene = Scene().with_fidelity(integrator="implicit", load_steps=20)
+    scene = Scene().with_fidelity(integrator="quasi-static", load_steps=20)
     assert Scene.from_dict(scene.to_dict()).fidelity == scene.fidelity
     with pytest.raises(ValueError, match="integrator 'newmark'"):
         Fidelity(integrator="newmark")
     with pytest.raises(ValueError, match="load_steps 0"):
-        Fidelity(integrator="implicit", load_steps=0)
+        Fidelity(integrator="quasi-static", load_steps=0)
     with pytest.raises(ValueError, match="min_step"):
-        ImplicitOptions(min_step=0.0)
+        QuasiStaticOptions(min_step=0.0)
     with pytest.raises(ValueError, match="linear_tolerance 2"):
-        ImplicitOptions(linear_tolerance=2)
+        QuasiStaticOptions(linear_tolerance=2)
     with pytest.raises(ValueError, match=r"linear_target -0.1 must lie in \[0, 1\)"):
-        ImplicitOptions(linear_target=-0.1)
+        QuasiStaticOptions(linear_target=-0.1)
     with pytest.raises(ValueError, match="line_search 'wolfe' must be one of"):
-        ImplicitOptions(line_search="wolfe")
+        QuasiStaticOptions(line_search="wolfe")
     with pytest.raises(ValueError, match=r"correction_threshold 1.5 must lie in \[0, 1\)"):
-        ImplicitOptions(correction_threshold=1.5)
+        QuasiStaticOptions(correction_threshold=1.5)
 
 
 def test_a_rigid_sphere_needs_its_motion():
@@ -319,7 +319,7 @@ def test_the_work_ledger_balances_from_the_first_frame_with_a_deformable_ball():
     from toolkit.impact import default_scene, simulate
 
     scene = default_scene().with_face(resolution="coarse").with_ball(rigid=False)
-    scene = replace(scene.with_fidelity(order=2, integrator="implicit", load_steps=12), duration=0.1, n_frames=1)
+    scene = replace(scene.with_fidelity(order=2, integrator="quasi-static", load_steps=12), duration=0.1, n_frames=1)
     result = simulate(scene, preview=False)
     summary = result.summary()
     assert result.stats["cuts"] == 0 and summary["max_displacement_mm"] > 1.0  # the ball pressed in
@@ -339,7 +339,7 @@ def test_a_warm_start_from_the_answer_is_the_answer_and_a_bad_one_falls_back():
 
     from .conftest import tiny_scene
 
-    scene = tiny_scene().with_ball(velocity=30.0).with_fidelity(integrator="implicit")
+    scene = tiny_scene().with_ball(velocity=30.0).with_fidelity(integrator="quasi-static", mass_scaling=1.0)
     cold = simulate(scene, preview=False)
     warm = simulate(scene, preview=False, initial_guess=(cold.times, cold.displacement))
     np.testing.assert_array_equal(warm.displacement, cold.displacement)

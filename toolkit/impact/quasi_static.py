@@ -1,4 +1,4 @@
-"""Quasi-static (implicit) impact: equilibrium at every load step, Newton's method, no inertia.
+"""Quasi-static impact: equilibrium at every load step, Newton's method, no inertia.
 
 Why: the impact paper's ball moves at 20-50 mm/s, about 1 % of the tissue's shear-wave speed
 (~2,200 mm/s), so the face is in equilibrium with the ball at every instant and inertia is
@@ -95,11 +95,11 @@ from toolkit.impact.explicit import (
     _WorkLedger,
 )
 
-__all__ = ["ImplicitOptions", "StepContact", "ContactLinearization", "ConvergenceError", "run_quasistatic"]
+__all__ = ["QuasiStaticOptions", "StepContact", "ContactLinearization", "ConvergenceError", "run_quasistatic"]
 
 log = logging.getLogger(__name__)
 
-#: the loosest relative residual of a correction's linear solve (ImplicitOptions.linear_target)
+#: the loosest relative residual of a correction's linear solve (QuasiStaticOptions.linear_target)
 MAX_LINEAR_TOLERANCE = 0.1
 
 #: line searches of the Newton iterations (:mod:`toolkit.common.fem.newton`)
@@ -107,7 +107,7 @@ LINE_SEARCHES = {"secant": SecantOnDirection, "residual": ResidualDecrease}
 
 
 @dataclass(frozen=True)
-class ImplicitOptions:
+class QuasiStaticOptions:
     """Load stepping and Newton controls of :func:`run_quasistatic`. Figures: the paper face
     with the deformable ball, 1.8 s at 30 mm/s, one core of a 2-core AMD EPYC.
 
@@ -177,22 +177,24 @@ class ImplicitOptions:
 
     def __post_init__(self):
         if int(self.steps) < 1 or not 0 < self.tolerance < 1 or int(self.max_iterations) < 1:
-            raise ValueError(f"implicit options: steps {self.steps} must be >= 1, tolerance {self.tolerance} in "
+            raise ValueError(f"quasi-static options: steps {self.steps} must be >= 1, tolerance {self.tolerance} in "
                              f"(0, 1), max_iterations {self.max_iterations} >= 1")
         if self.line_search not in LINE_SEARCHES:
-            raise ValueError(f"implicit options: line_search {self.line_search!r} must be one of "
+            raise ValueError(f"quasi-static options: line_search {self.line_search!r} must be one of "
                              f"{sorted(LINE_SEARCHES)}")
         if int(self.factorize_ahead) < 0 or int(self.factorize_ahead_above) < 0:
-            raise ValueError(f"implicit options: factorize_ahead {self.factorize_ahead} and factorize_ahead_above "
+            raise ValueError(f"quasi-static options: factorize_ahead {self.factorize_ahead} and factorize_ahead_above "
                              f"{self.factorize_ahead_above} must be >= 0")
         if not 0 < self.linear_tolerance < 1:
-            raise ValueError(f"implicit options: linear_tolerance {self.linear_tolerance} must lie in (0, 1)")
+            raise ValueError(f"quasi-static options: linear_tolerance {self.linear_tolerance} must lie in (0, 1)")
         if not 0 <= self.linear_target < 1:
-            raise ValueError(f"implicit options: linear_target {self.linear_target} must lie in [0, 1)")
+            raise ValueError(f"quasi-static options: linear_target {self.linear_target} must lie in [0, 1)")
         if not 0 <= self.correction_threshold < 1:
-            raise ValueError(f"implicit options: correction_threshold {self.correction_threshold} must lie in [0, 1)")
+            raise ValueError(f"quasi-static options: correction_threshold {self.correction_threshold} must lie in "
+                             "[0, 1)")
         if not self.growth > 1 or not self.min_step > 0:
-            raise ValueError(f"implicit options: growth {self.growth} must be > 1 and min_step {self.min_step} s > 0")
+            raise ValueError(f"quasi-static options: growth {self.growth} must be > 1 and min_step {self.min_step} "
+                             "s > 0")
 
 
 @dataclass(frozen=True, eq=False)
@@ -357,7 +359,7 @@ class _Newton:
     """The pieces every Newton iteration of a run shares: prescribed dofs, the sparse pattern
     and the linear solver (whose factorization later systems reuse as a preconditioner)."""
 
-    def __init__(self, model: ExplicitModel, contact: StepContact | None, options: ImplicitOptions):
+    def __init__(self, model: ExplicitModel, contact: StepContact | None, options: QuasiStaticOptions):
         self.model, self.contact, self.options = model, contact, options
         n = model.points.shape[0]
         self.prescribed, self.rates = _prescribed(model)
@@ -467,7 +469,7 @@ class _Newton:
                     rhs = rhs + np.where(self.free, contact.force_shift, 0.0)
             K, symmetric, local = self.tangent(trial.x, states, contact, trial.data[0].updates)
             rtol, norm = None, float(np.linalg.norm(rhs))
-            if opt.linear_target > 0 and norm > 0:  # the forcing term (ImplicitOptions.linear_target)
+            if opt.linear_target > 0 and norm > 0:  # the forcing term (QuasiStaticOptions.linear_target)
                 target = opt.linear_target * opt.tolerance * self.force_scale(*trial.data[:2])
                 rtol = min(MAX_LINEAR_TOLERANCE, max(opt.linear_tolerance, target / norm))
             try:
@@ -494,7 +496,7 @@ class _Newton:
 
 
 def run_quasistatic(model: ExplicitModel, contact: StepContact | None, duration: float, n_frames: int,
-                    options: ImplicitOptions = ImplicitOptions(), on_frame: Callable | None = None,
+                    options: QuasiStaticOptions = QuasiStaticOptions(), on_frame: Callable | None = None,
                     progress: bool = False, initial_guess: Callable | None = None) -> tuple[list, dict]:
     """Quasi-static equilibrium path of ``model`` over ``duration`` s with ``n_frames`` frames
     (t > 0), the same :class:`~toolkit.impact.explicit.Frame` output as
