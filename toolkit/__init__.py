@@ -4,8 +4,8 @@ Two workflows on one core of meshes, materials and metrics:
 
 - :mod:`toolkit.static`: incremental FEM of the face after orthognathic surgery
   (and its PointNet++ surrogate);
-- :mod:`toolkit.impact`: explicit elastoplastic ball-impact simulation (and its LSTM
-  surrogate);
+- :mod:`toolkit.impact`: elastoplastic ball-impact simulation, quasi-static or explicit (and its
+  LSTM surrogate);
 - :mod:`toolkit.common`: meshes, phantoms, I/O, metrics and plotting.
 
 Units everywhere: mm, s, tonne, N, MPa.

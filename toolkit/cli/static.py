@@ -24,13 +24,14 @@ from toolkit.cli._common import (
     two_points,
     uninterruptible,
 )
+from toolkit.common.defaults import STATIC_SIMULATION
 
 HELP = "orthognathic-surgery workflow (the lip-sliding paper)"
 DESCRIPTION = "Static workflow: incremental FEM of the face after orthognathic surgery."
 MATERIALS = ["linear", "neo-hookean"]
 SLIDINGS = ["none", "mucosa", "mucosa+lip"]
-#: simulate's fidelity options when neither given nor chosen by --tolerance
-SIMULATE_DEFAULTS = {"resolution": "coarse", "increments": 3, "material": "linear", "sliding": "mucosa+lip"}
+#: simulate's fidelity options when neither given nor chosen by --tolerance (those of Python)
+SIMULATE_DEFAULTS = dict(STATIC_SIMULATION)
 
 
 def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:

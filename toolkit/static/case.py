@@ -19,6 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from toolkit.common.defaults import STATIC_SIMULATION
 from toolkit.common.mesh import Mesh
 from toolkit.common.phantom import FacePhantom, FaceShape
 from toolkit.static.plan import SurgicalPlan
@@ -102,7 +103,7 @@ class StaticCase:
 def load_case(
     mesh: str | Path | Mesh | None = None,
     *,
-    resolution: str | tuple[int, int, int] = "paper",
+    resolution: str | tuple[int, int, int] = STATIC_SIMULATION["resolution"],
     plan: str | Path | SurgicalPlan | None = None,
     bones: Mapping[str, str | Path | Mesh] | None = None,
     shape: FaceShape | None = None,
@@ -116,7 +117,8 @@ def load_case(
     ----------
     mesh : volume mesh file (``.inp``, ``.vtu``, ``.xdmf``; mm; node set ``fixed`` required)
         or a Mesh, or None for the built-in phantom
-    resolution : phantom resolution (``coarse``, ``paper``, ``fine`` or ``(n_u, n_v, n_w)``);
+    resolution : phantom resolution (``coarse``, ``paper``, ``fine`` or ``(n_u, n_v, n_w)``;
+        default ``coarse``, as on the command line: :data:`toolkit.common.defaults.STATIC_SIMULATION`);
         ignored with ``mesh``
     plan : plan file (``.toml``/``.json``), a SurgicalPlan, or None for the packaged
         bimaxillary plan (phantom only). A plan file read for the phantom takes the

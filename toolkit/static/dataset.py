@@ -64,6 +64,7 @@ from toolkit.common.database import (
     read_index,
     run_jobs,
 )
+from toolkit.common.defaults import STATIC_SIMULATION
 from toolkit.common.papers import TISSUE_NU
 from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES
 
@@ -111,7 +112,7 @@ class DatasetConfig:
         converted to the toolkit's on reading
     """
 
-    resolution: str = "coarse"
+    resolution: str = STATIC_SIMULATION["resolution"]
     subjects: int = 1
     plans: int = 10
     mode: str = "sagittal"

@@ -77,6 +77,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit import __version__
+from toolkit.common.defaults import STATIC_SIMULATION
 from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.fem.solvers import SolverError, require_method
@@ -789,9 +790,9 @@ def _report(k: int, diags: list, failed: int, model: _Model, u: np.ndarray) -> I
 def simulate(
     face: Mesh | FacePhantom,
     plan: SurgicalPlan,
-    increments: int = 3,
-    material: str | MaterialAssignment = "linear",
-    sliding: str = "mucosa+lip",
+    increments: int = STATIC_SIMULATION["increments"],
+    material: str | MaterialAssignment = STATIC_SIMULATION["material"],
+    sliding: str = STATIC_SIMULATION["sliding"],
     *,
     segments: Mapping | None = None,
     options: SimulationOptions | None = None,
