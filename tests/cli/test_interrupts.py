@@ -102,6 +102,20 @@ def test_impact_simulate_mid_run(tmp_path):
     assert summary["status"] == "interrupted" and summary["frames_written"] == 2
 
 
+def test_mesh_while_its_image_renders(tmp_path):
+    """Interrupted as the labels image starts to render, the mesh made: nothing written (the image
+    renders before the files, which are written together)."""
+    from toolkit.common import face_hex
+    from toolkit.mesh.phantom import phantom_surfaces, write_surfaces
+
+    files = write_surfaces(tmp_path / "surfaces", phantom_surfaces(face_hex("coarse")))
+    bones = [f"--bone={name}={files[name]}" for name in ("lefort", "distal", "proximal_left", "proximal_right")]
+    args = ["mesh", "--tissue", files["tissue"], *bones, "--size", "12", "--order", "1", "--out", "out/face.vtu"]
+    (tmp_path / "out").mkdir()
+    assert_interrupted(*interrupted(args, tmp_path, AT_IMPORT.replace("{module}", "toolkit.common.plotting")))
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == []
+
+
 @pytest.mark.long
 @pytest.mark.parametrize("command", [
     ["static", "predict", "--model", "{R}/smodel", "--no-preview", "--out", "o"],

@@ -83,3 +83,32 @@ def test_gmsh_refuses_an_open_surface_before_meshing():
     points, triangles = _cube()
     with pytest.raises(MeshingError, match=r"needs a closed surface: 3 edges .*open: 3.*backend='ftetwild'"):
         tetrahedralize(points, triangles[1:], 5.0, backend="gmsh")
+
+
+@pytest.mark.parametrize("during", [False, True], ids=["after", "during"])
+def test_ctrl_c_reaches_python_after_and_during_meshing(during, monkeypatch):
+    """fTetWild replaces the SIGINT handler with the default one, which would end the process
+    silently. After a meshing a Ctrl-C is Python's ``KeyboardInterrupt``; one arriving during it
+    (here raised from inside the mesher call, deterministically) is held until the mesher returns
+    and then raised."""
+    import signal
+
+    from toolkit.mesh import backends
+
+    if not available()["ftetwild"]:
+        pytest.skip("pytetwild is not installed")
+    if during:
+        mesher = backends._RUNNERS["ftetwild"]
+
+        def interrupted_mesher(*args):
+            out = mesher(*args)
+            signal.raise_signal(signal.SIGINT)  # pending: SIGINT is blocked in the mesher call
+            return out
+
+        monkeypatch.setitem(backends._RUNNERS, "ftetwild", interrupted_mesher)
+        with pytest.raises(KeyboardInterrupt):
+            tetrahedralize(*_cube(), 5.0, backend="ftetwild")
+    else:
+        tetrahedralize(*_cube(), 5.0, backend="ftetwild")
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)

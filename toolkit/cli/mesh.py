@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import shutil
+import tempfile
 from pathlib import Path
 
-from toolkit.cli._common import Command, add_axes, positive_float, two_points
+from toolkit.cli._common import Command, add_axes, positive_float, two_points, uninterruptible
 
 FORMATS = (".vtu", ".inp")
 
@@ -50,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from toolkit.cli.static import bones
     from toolkit.common.outputs import OutputError, check_output_file
-    from toolkit.mesh.face import mesh_face
+    from toolkit.mesh.face import mesh_face, render_labels
 
     if args.out.suffix.lower() not in FORMATS:
         raise OutputError(f"--out {str(args.out)!r}: expected a mesh file name ending in {' or '.join(FORMATS)}")
@@ -65,7 +67,12 @@ def run(args: argparse.Namespace) -> int:
                      backend=args.backend, rules=args.rules, units=args.units, axes=args.axes,
                      max_hole_edges=args.max_hole_edges, threads=1 if args.threads is None else args.threads,
                      memory_gib=args.memory)
-    written = face.write(args.out, image=not args.no_preview)
+    with tempfile.TemporaryDirectory() as tmp:  # the image first: a Ctrl-C while it renders leaves nothing
+        image = None if args.no_preview else render_labels(face, Path(tmp) / "labels.png")
+        with uninterruptible():  # then the files, all or none
+            written = face.write(args.out, image=False)
+            if image is not None:
+                written["image"] = Path(shutil.move(image, args.out.with_name("labels.png")))
     r = face.report
     print(face.summary())
     print("seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in r["seconds"].items()))

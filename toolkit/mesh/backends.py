@@ -26,7 +26,9 @@ the toolkit's convention) on compacted points (every point belongs to a tetrahed
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -114,7 +116,7 @@ def tetrahedralize(points, triangles, size_mm: float, backend: str = DEFAULT, *,
                            f"{spec.licence}), which is not installed ({exc}); install it with "
                            f"{spec.install}, or choose another backend: {_others(backend)}") from None
     try:
-        with _scratch_directory():
+        with _scratch_directory(), _python_keeps_ctrl_c():
             out_p, out_t = _RUNNERS[backend](module, p, t, size, threads)
     except MeshingError:
         raise
@@ -218,6 +220,29 @@ def _scratch_directory():
             yield
         finally:
             os.chdir(previous)
+
+
+@contextmanager
+def _python_keeps_ctrl_c():
+    """Keep Python's Ctrl-C handling across a mesher call.
+
+    fTetWild's runtime replaces the process's SIGINT handler with the default one (a SIGINT after a
+    pytetwild call ended the process silently instead of raising ``KeyboardInterrupt``). Inside the
+    block SIGINT is blocked (a Ctrl-C waits, pending, until the mesher returns: its C++ code cannot
+    be stopped midway anyway); on leaving, Python's handler is installed again and then SIGINT is
+    unblocked, so a pending Ctrl-C reaches Python. Outside the main thread, or without POSIX
+    signal masks, it does nothing."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    handler = signal.getsignal(signal.SIGINT)
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        if handler is not None:
+            signal.signal(signal.SIGINT, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 @contextmanager
