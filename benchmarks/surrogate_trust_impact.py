@@ -160,7 +160,7 @@ def main(args, argv=None):
 
     from toolkit.common.runtime import set_threads
     from toolkit.common.training.conformal import min_calibration_cases
-    from toolkit.impact.trust import SCALES, answer_error, calibrate_impact, estimate, out_of_distribution
+    from toolkit.impact.trust import SCALES, answer_error, calibrate_surrogate, estimate, out_of_distribution
 
     set_threads(1)
     sc = scene(args)
@@ -172,7 +172,7 @@ def main(args, argv=None):
     model = stage_model(args, train.path)
     calibrations = {}
     for scale in SCALES:
-        calibrations[scale] = calibrate_impact(model, cal_db, training=train, scale=scale, coverage=COVERAGES[0])
+        calibrations[scale] = calibrate_surrogate(model, cal_db, training=train, scale=scale, coverage=COVERAGES[0])
         print(f"calibration {scale}: {calibrations[scale].bound.n} velocities, factor "
               f"{calibrations[scale].bound.factor:.3g}", flush=True)
     quarter = max(1, args.cases // 4)

@@ -22,7 +22,7 @@ from toolkit.impact.surrogate import (  # noqa: E402
     ImpactSurrogate,
     item_features,
 )
-from toolkit.impact.trust import TrustedImpactAnswer  # noqa: E402
+from toolkit.impact.trust import TrustedAnswer  # noqa: E402
 
 TRAIN_VELOCITIES = (20.0, 50.0)  # mm/s
 
@@ -97,7 +97,7 @@ def test_an_answer_with_a_negative_stress_is_refused():
     u = np.zeros((2, 3, 3))
 
     def make(vm):
-        return TrustedImpactAnswer(SimpleNamespace(displacement=u, von_mises=np.asarray(vm)), "surrogate", "test",
+        return TrustedAnswer(SimpleNamespace(displacement=u, von_mises=np.asarray(vm)), "surrogate", "test",
                                    1.0, {}, {}, {})
 
     assert make([[0.0, 0.1, 0.2], [0.0, 0.0, 0.3]]).displacement is u

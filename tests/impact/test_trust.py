@@ -49,7 +49,7 @@ def model_dir(tiny_db_path, tmp_path_factory):
 @pytest.fixture(scope="module")
 def calibrated(model_dir, calibration_db, tiny_db_path):
     model = ImpactSurrogate.load(model_dir)
-    cal = trust.calibrate_impact(model, calibration_db, training=tiny_db_path, progress=False)
+    cal = trust.calibrate_surrogate(model, calibration_db, training=tiny_db_path, progress=False)
     cal.save(model_dir)
     return model, cal
 
@@ -73,7 +73,7 @@ def test_calibration_is_the_conformal_rank_of_unseen_velocities(calibrated, cali
         np.testing.assert_allclose(cal.interpolate(v), tiny_db.displacement[j], atol=1e-6)
     mid = cal.interpolate(23.0)
     np.testing.assert_allclose(mid, 0.5 * (cal.interpolate(20.0) + cal.interpolate(26.0)), atol=1e-5)
-    back = trust.ImpactCalibration.load(model.directory)
+    back = trust.Calibration.load(model.directory)
     assert back.bound == cal.bound and back.cases == cal.cases
     np.testing.assert_array_equal(back.fields, cal.fields)
     assert back.at(0.8).bound.factor <= cal.bound.factor
@@ -84,9 +84,9 @@ def test_too_few_unseen_velocities_are_refused(model_dir, tiny_db_path):
     and the error says how to build a calibration database."""
     model = ImpactSurrogate.load(model_dir)
     with pytest.raises(ValueError, match=r"holds 1 simulation.*at least 9.*toolkit impact dataset --velocities"):
-        trust.calibrate_impact(model, tiny_db_path, progress=False)
+        trust.calibrate_surrogate(model, tiny_db_path, progress=False)
     with pytest.raises(ValueError, match="scale"):
-        trust.calibrate_impact(model, tiny_db_path, scale="ensemble", progress=False)
+        trust.calibrate_surrogate(model, tiny_db_path, scale="ensemble", progress=False)
 
 
 def test_in_range_velocity_is_answered_by_the_surrogate_within_a_loose_tolerance(calibrated):

@@ -276,10 +276,10 @@ def predict(args: argparse.Namespace) -> int:
 def _predict_within(args: argparse.Namespace) -> int:
     from toolkit.impact.scene import Scene
     from toolkit.impact.surrogate import ImpactSurrogate
-    from toolkit.impact.trust import ImpactCalibration, answer
+    from toolkit.impact.trust import Calibration, answer
 
     model = ImpactSurrogate.load(args.model)
-    calibration = ImpactCalibration.load(args.model)
+    calibration = Calibration.load(args.model)
     if args.coverage is not None:
         calibration = calibration.at(args.coverage)
     scene = Scene.from_dict(model.bundle.data["scene"]).with_ball(velocity=args.velocity)
@@ -319,10 +319,10 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
 def calibrate(args: argparse.Namespace) -> int:
     torch_threads(args)
     from toolkit.impact.surrogate import ImpactSurrogate
-    from toolkit.impact.trust import calibrate_impact
+    from toolkit.impact.trust import calibrate_surrogate
 
     model = ImpactSurrogate.load(args.model)
-    cal = calibrate_impact(model, args.data, coverage=args.coverage, scale=args.scale, training=args.train_data)
+    cal = calibrate_surrogate(model, args.data, coverage=args.coverage, scale=args.scale, training=args.train_data)
     with uninterruptible():
         cal.save(args.model)
     errors = sorted(c["error_mm"] for c in cal.cases)

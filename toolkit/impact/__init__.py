@@ -5,7 +5,8 @@
 dynamics (``"explicit"``); the pieces (scene, elements, plasticity, contact, integrators) are
 importable. The surrogate side: ``build_database``
 (one simulation per velocity, HDF5), ``train_surrogate`` (the impact paper's LSTM, a stronger one,
-an MLP baseline), ``evaluate_surrogate`` and ``predict_scene``. Imports nothing from
+an MLP baseline), ``evaluate_surrogate``, ``predict_scene``, and the answer within a tolerance:
+``calibrate_surrogate``, ``Calibration``, ``answer`` (the LSTM's or the FE's, a ``TrustedAnswer``). Imports nothing from
 :mod:`toolkit.static`.
 """
 
@@ -27,6 +28,7 @@ from toolkit.impact.scene import (
 )
 from toolkit.impact.simulate import ImpactResult, SceneGeometryWarning, UnstableTimeStepError, build_model, simulate
 from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, SurrogateConfig, predict_scene, train_surrogate
+from toolkit.impact.trust import Calibration, TrustedAnswer, answer, calibrate_surrogate
 
 __all__ = [
     "Scene",
@@ -55,4 +57,8 @@ __all__ = [
     "CONFIGS",
     "evaluate_surrogate",
     "predict_scene",
+    "Calibration",
+    "calibrate_surrogate",
+    "answer",
+    "TrustedAnswer",
 ]

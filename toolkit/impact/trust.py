@@ -4,7 +4,7 @@ elements when either says the surrogate may miss.
 
 An answer's error is the 95th percentile, over all nodes and all frames, of its nodal
 displacement error (mm) against the FE of the same scene at the same velocity.
-:func:`calibrate_impact` measures, on whole simulations at velocities the model never trained
+:func:`calibrate_surrogate` measures, on whole simulations at velocities the model never trained
 on, the ratio of that error to a *scale* the model computes without the FE:
 
 - ``interpolation`` (default): the distance, per node and frame, between the network's
@@ -49,10 +49,11 @@ from toolkit.common.training.conformal import (
     min_calibration_cases,
     save_calibration,
 )
+from toolkit.common.training.decision import check_tolerance, decide
 from toolkit.impact.checks import answer_checks
 
-__all__ = ["SCALES", "ImpactCalibration", "calibrate_impact", "estimate", "out_of_distribution", "answer",
-           "answer_error", "TrustedImpactAnswer"]
+__all__ = ["SCALES", "Calibration", "calibrate_surrogate", "estimate", "out_of_distribution", "answer",
+           "answer_error", "TrustedAnswer"]
 
 #: how the error estimate's scale is computed (see the module)
 SCALES = ("interpolation", "constant")
@@ -74,7 +75,7 @@ def _case_scale(node_scale: np.ndarray) -> float:
 
 
 @dataclass(frozen=True, eq=False)
-class ImpactCalibration:
+class Calibration:
     """An impact surrogate's calibrated error estimate and what it was calibrated on.
 
     scale : one of :data:`SCALES`
@@ -104,7 +105,7 @@ class ImpactCalibration:
         return save_calibration(directory, meta, arrays)
 
     @classmethod
-    def load(cls, directory) -> ImpactCalibration:
+    def load(cls, directory) -> Calibration:
         """Read the calibration of a model directory (FileNotFoundError naming the command that
         makes one)."""
         meta, arrays = load_calibration(directory, "toolkit impact calibrate")
@@ -113,7 +114,7 @@ class ImpactCalibration:
         return cls(meta["scale"], ConformalBound.from_dict(meta["bound"]), arrays["train_velocities"],
                    arrays.get("fields"), meta["cases"], meta["source"])
 
-    def at(self, coverage: float) -> ImpactCalibration:
+    def at(self, coverage: float) -> Calibration:
         """The same calibration with its bound at another coverage."""
         return replace(self, bound=self.bound.at(coverage))
 
@@ -129,7 +130,7 @@ class ImpactCalibration:
         return (1.0 - w) * self.fields[i].astype(np.float64) + w * self.fields[i + 1].astype(np.float64)
 
 
-def _scale_field(calibration: ImpactCalibration, displacement: np.ndarray, velocity: float) -> np.ndarray:
+def _scale_field(calibration: Calibration, displacement: np.ndarray, velocity: float) -> np.ndarray:
     """Per node and frame scale ``(F, N)`` mm of a predicted displacement ``(F, N, 3)``."""
     if calibration.scale == "constant":
         return np.ones(displacement.shape[:2])
@@ -148,8 +149,8 @@ def _seen(velocities: np.ndarray, train: np.ndarray) -> np.ndarray:
     return np.isclose(velocities[:, None], train[None, :], rtol=0, atol=1e-9).any(axis=1)
 
 
-def calibrate_impact(model, database, *, coverage: float = 0.9, scale: str = "interpolation", training=None,
-                     progress: bool = True) -> ImpactCalibration:
+def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = "interpolation", training=None,
+                     progress: bool = True) -> Calibration:
     """Calibrate ``model``'s error estimate on the simulations of ``database`` at velocities the
     model never trained on.
 
@@ -169,7 +170,7 @@ def calibrate_impact(model, database, *, coverage: float = 0.9, scale: str = "in
 
     Returns
     -------
-    ImpactCalibration (not saved: ``.save(model_directory)``)
+    Calibration (not saved: ``.save(model_directory)``)
     """
     from tqdm import tqdm
 
@@ -199,7 +200,7 @@ def calibrate_impact(model, database, *, coverage: float = 0.9, scale: str = "in
                              "the database the model was trained on (command line: --train-data DB.h5)")
         rows = [int(np.flatnonzero(np.isclose(train_db.velocities, v, rtol=0, atol=1e-9))[0]) for v in train_v]
         fields = np.asarray(train_db.displacement[rows], dtype=np.float32)
-    partial = ImpactCalibration(scale, ConformalBound(coverage, 1.0, (1.0,)), train_v, fields)
+    partial = Calibration(scale, ConformalBound(coverage, 1.0, (1.0,)), train_v, fields)
     fe_s = db.index["wall_time_s"].to_numpy(float) if "wall_time_s" in db.index else np.full(db.velocities.size, np.nan)
     cases = []
     for i in tqdm(cases_i, desc="calibration velocities", disable=not progress):
@@ -217,7 +218,7 @@ def calibrate_impact(model, database, *, coverage: float = 0.9, scale: str = "in
                            "training_database": str(Path(train_db.path).resolve())})
 
 
-def estimate(calibration: ImpactCalibration, displacement: np.ndarray, velocity: float) -> dict:
+def estimate(calibration: Calibration, displacement: np.ndarray, velocity: float) -> dict:
     """The calibrated error estimate of a predicted displacement ``(F, N, 3)`` mm at ``velocity``.
 
     Returns ``{"bound_mm", "coverage", "scale", "scale_mm", "node_mm"}``: ``bound_mm`` bounds
@@ -265,7 +266,7 @@ def out_of_distribution(model, scene) -> dict:
 
 
 @dataclass(frozen=True, eq=False)
-class TrustedImpactAnswer:
+class TrustedAnswer:
     """An impact answer within a tolerance: the surrogate's prediction or the FE's result.
 
     result : :class:`~toolkit.impact.surrogate.Prediction` (``answered_by == "surrogate"``) or
@@ -322,7 +323,7 @@ class TrustedImpactAnswer:
 
 def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, calibration=None,
            coverage: float | None = None, out=None, progress: bool = False, preview: bool = True
-           ) -> TrustedImpactAnswer:
+           ) -> TrustedAnswer:
     """The surrogate's answer when its calibrated estimate is within ``tolerance_mm``, the
     inputs are like its training data and the answer passes its checks
     (:func:`toolkit.impact.checks.answer_checks`: no inverted element, held nodes held, no
@@ -336,7 +337,7 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
         nodes and frames) accepted
     scene : the scene to answer (default the training database's at ``velocity``); it must be on
         the training face; another aim, ball or duration is out of distribution
-    calibration : default :meth:`ImpactCalibration.load` of the model's directory
+    calibration : default :meth:`Calibration.load` of the model's directory
     coverage : the estimate's coverage (default the calibration's)
     out : folder to write the answer into (``face.xdmf`` with ``error_estimate`` per frame when
         the surrogate answers; ``toolkit impact simulate``'s files when the FE does; both with
@@ -350,10 +351,8 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
     from toolkit.impact.simulate import face_mesh, simulate
     from toolkit.impact.surrogate import Prediction
 
-    if isinstance(tolerance_mm, bool) or not (isinstance(tolerance_mm, (int, float)) and np.isfinite(tolerance_mm)
-                                              and tolerance_mm > 0):
-        raise ValueError(f"tolerance = {tolerance_mm!r} mm; expected a positive number of mm (e.g. 1)")
-    calibration = calibration or ImpactCalibration.load(model.directory)
+    tolerance_mm = check_tolerance(tolerance_mm, 1)
+    calibration = calibration or Calibration.load(model.directory)
     if coverage is not None:
         calibration = calibration.at(coverage)
     sig = model.bundle.data
@@ -378,20 +377,16 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
         est = estimate(calibration, u, velocity)
         seconds["estimate"] = time.perf_counter() - t1
         pred = Prediction(scene, face, times, u, vm, seconds["surrogate"], model.config.name, ood["velocity"])
-    if ood["outside"]:
-        reason = "out of distribution: " + "; ".join(ood["reasons"])
-    elif not est:
-        reason = "another face than the model's"
-    elif est["bound_mm"] > tolerance_mm:
-        reason = (f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) is above the tolerance "
-                  f"{tolerance_mm:g} mm")
-    elif not (pred := _checked(pred, inputs, seconds)).checks["passed"]:  # checked only when it would answer
-        reason = "the surrogate's answer failed its checks: " + "; ".join(pred.checks["problems"])
-    else:
+
+    def checks():  # made only for an answer that would otherwise be given
+        nonlocal pred
+        pred = _checked(pred, inputs, seconds)
+        return pred.checks
+
+    decision = decide(tolerance_mm, ood, est, checks, no_estimate="another face than the model's")
+    if decision.surrogate:
         seconds["total"] = time.perf_counter() - t0
-        ans = TrustedImpactAnswer(pred, "surrogate", f"estimated error {est['bound_mm']:.2f} mm (at "
-                                  f"{est['coverage']:.0%}) is within the tolerance {tolerance_mm:g} mm",
-                                  float(tolerance_mm), est, ood, seconds)
+        ans = TrustedAnswer(pred, "surrogate", decision.reason, tolerance_mm, est, ood, seconds)
         if out is not None:
             pred.write(out, preview=preview, point_data={"error_estimate": est["node_mm"]})
             ans.write_summary(out)
@@ -402,7 +397,7 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
     fe = simulate(fe_scene, out=out, progress=progress, preview=preview)
     seconds["fe"] = time.perf_counter() - t1
     seconds["total"] = time.perf_counter() - t0
-    ans = TrustedImpactAnswer(fe, "fe", reason, float(tolerance_mm), est, ood, seconds)
+    ans = TrustedAnswer(fe, "fe", decision.reason, tolerance_mm, est, ood, seconds)
     if out is not None:
         ans.write_summary(out)
     return ans

@@ -2,7 +2,9 @@
 
 ``simulate(phantom, plan)`` runs the increments with mucosa and lip sliding; the pieces
 (plan, boundary types, assembly, constraints, solvers, Newton/contact) are importable
-for finer control. Imports nothing from :mod:`toolkit.impact`.
+for finer control. The answer within a tolerance, as in :mod:`toolkit.impact`:
+``calibrate_surrogate``, ``Calibration``, ``answer`` (the surrogate's or the FE's, a
+``TrustedAnswer``). Imports nothing from :mod:`toolkit.impact`.
 """
 
 from toolkit.common.fem.solvers import SolverError
@@ -28,6 +30,7 @@ from toolkit.static.simulate import (
     simulate,
 )
 from toolkit.static.stiffness import MaterialAssignment
+from toolkit.static.trust import Calibration, TrustedAnswer, answer, calibrate_surrogate
 
 __all__ = [
     "simulate",
@@ -55,4 +58,8 @@ __all__ = [
     "solve_with_lip_contact",
     "ConvergenceError",
     "SolverError",
+    "Calibration",
+    "calibrate_surrogate",
+    "answer",
+    "TrustedAnswer",
 ]

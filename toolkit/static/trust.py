@@ -58,6 +58,7 @@ from toolkit.common.training.conformal import (
     min_calibration_cases,
     save_calibration,
 )
+from toolkit.common.training.decision import check_tolerance, decide
 
 __all__ = ["SCALES", "ANSWERERS", "BASELINE", "Calibration", "calibrate_surrogate", "baseline_prediction", "estimate",
            "out_of_distribution", "answer", "TrustedAnswer"]
@@ -560,8 +561,7 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
     from toolkit.static.dataset import DatasetConfig
     from toolkit.static.simulate import face_mesh_and_segments, simulate
 
-    if not (isinstance(tolerance_mm, (int, float)) and np.isfinite(tolerance_mm) and tolerance_mm > 0):
-        raise ValueError(f"tolerance = {tolerance_mm!r} mm; expected a positive number of mm (e.g. 0.5)")
+    tolerance_mm = check_tolerance(tolerance_mm, 0.5)
     calibration = calibration or Calibration.load(model.directory)
     if coverage is not None:
         calibration = calibration.at(coverage)
@@ -584,20 +584,13 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
         t1 = time.perf_counter()
         est = estimate(calibration, network, base)
         seconds["estimate"] = time.perf_counter() - t1
-    if ood["outside"]:
-        reason = "out of distribution: " + "; ".join(ood["reasons"])
-    elif not est:
-        reason = "no error estimate for this face"
-    elif est["bound_mm"] > tolerance_mm:
-        reason = (f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) is above the tolerance "
-                  f"{tolerance_mm:g} mm")
-    elif not given.checks["answer"]["passed"]:
-        reason = "the answer failed its checks: " + "; ".join(given.checks["answer"]["problems"])
-    else:
+    decision = decide(tolerance_mm, ood, est, lambda: given.checks["answer"], no_estimate="no error estimate for "
+                      "this face")
+    if decision.surrogate:
         who = "surrogate" if calibration.answerer == "network" else "baseline"
         seconds["total"] = time.perf_counter() - t0
-        return TrustedAnswer(given, who, f"estimated error {est['bound_mm']:.2f} mm (at {est['coverage']:.0%}) "
-                             f"is within the tolerance {tolerance_mm:g} mm", float(tolerance_mm), est, ood, seconds)
+        return TrustedAnswer(given, who, decision.reason, tolerance_mm, est, ood, seconds)
+    reason = decision.reason
     t1 = time.perf_counter()
     fe = simulate(face, plan, data.increments, material or data.material, data.sliding, segments=segments,
                   **({"options": options} if options is not None else {}))
