@@ -10,9 +10,10 @@ which its command line reads from the scene.
 from __future__ import annotations
 
 from types import MappingProxyType
+from typing import Any
 
 __all__ = ["STATIC_SIMULATION"]
 
 #: phantom resolution, load increments, tissue material and sliding of a static simulation
-STATIC_SIMULATION = MappingProxyType(
+STATIC_SIMULATION: MappingProxyType[str, Any] = MappingProxyType(
     {"resolution": "coarse", "increments": 3, "material": "linear", "sliding": "mucosa+lip"})

@@ -167,8 +167,8 @@ def write(path: str | os.PathLike, mesh: Mesh) -> Path:
     m = _encode_sets(mesh)
     if fmt == "xdmf":
         # XDMF is two files (.xdmf + .h5); write both in a scratch folder, then move
-        with tempfile.TemporaryDirectory(dir=path.parent if path.parent.exists() else None) as tmp:
-            scratch = Path(tmp) / path.name
+        with tempfile.TemporaryDirectory(dir=path.parent if path.parent.exists() else None) as scratch_dir:
+            scratch = Path(scratch_dir) / path.name
             meshio.write(scratch, m, file_format="xdmf")
             _move_xdmf(scratch, path)
         return path
@@ -298,9 +298,9 @@ def _read_meshio(path: Path, fmt: str) -> Mesh:
 
 def _parse_failure(path: Path, fmt: str, exc: Exception, lines: list[str] | None) -> str:
     expected = _FORMAT_NAMES[fmt]
-    cause = exc
-    while str(cause) in ("", type(cause).__name__) and (cause.__cause__ or cause.__context__) is not None:
-        cause = cause.__cause__ or cause.__context__  # meshio's ReadError() wraps the parser's message
+    cause: BaseException = exc
+    while str(cause) in ("", type(cause).__name__) and (inner := cause.__cause__ or cause.__context__) is not None:
+        cause = inner  # meshio's ReadError() wraps the parser's message
     reason = f"{type(cause).__name__}: {cause}" if str(cause) else type(cause).__name__
     if fmt == "xdmf" and isinstance(cause, FileNotFoundError):
         return (f"{path.name} keeps its data in {path.with_suffix('.h5').name}, which cannot be opened"
@@ -365,7 +365,7 @@ def _check_abaqus_node_ids(path: Path, lines: list[str]) -> None:
             where.append(k)
     if len(set(ids)) == len(ids):
         return
-    seen = {}
+    seen: dict[str, int] = {}
     for node, k in zip(ids, where):
         if node in seen:
             raise MeshError(f"{path.name}, line {k}: node id {node} is defined twice (first on line {seen[node]});"

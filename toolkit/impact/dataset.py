@@ -32,6 +32,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -47,6 +48,9 @@ from toolkit.common.database import (
     run_jobs,
 )
 from toolkit.impact.scene import Scene, yielding_scene
+
+if TYPE_CHECKING:  # pragma: no cover
+    import pandas as pd
 
 __all__ = ["DATABASE_KIND", "DATABASE_VERSION", "PAPER_VELOCITIES", "default_held_out", "build_database",
            "ImpactDatabase", "load_database", "SimulationWorker", "velocity_key", "mesh_checksum", "SceneInputs"]
@@ -233,7 +237,7 @@ class ImpactDatabase:
     held_out: np.ndarray
     displacement: np.ndarray
     von_mises: np.ndarray
-    index: object
+    index: pd.DataFrame
 
     @property
     def n_nodes(self) -> int:

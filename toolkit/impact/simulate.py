@@ -22,6 +22,7 @@ import time
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -37,6 +38,9 @@ from toolkit.impact.elements import critical_time_step, tet_kinematics
 from toolkit.impact.explicit import Body, ContactResponse, ExplicitModel, moving_sphere_contact, run_explicit
 from toolkit.impact.plasticity import HardeningTable, J2Plasticity
 from toolkit.impact.scene import MESH_ORDERS, MaterialSpec, Scene, SceneError, mesh_order
+
+if TYPE_CHECKING:  # pragma: no cover
+    import pandas as pd
 
 __all__ = ["simulate", "ImpactResult", "build_model", "UnstableTimeStepError", "SceneGeometryWarning", "sweep_travel",
            "face_mesh", "fixed_nodes", "ball_start", "travel_limit", "check_travel", "write_preview", "write_summary",
@@ -72,7 +76,7 @@ class BuiltScene:
     dt_element: tuple
     added_mass_fraction: float
     fixed_clearance_mm: float = float("inf")  # travel left between the ball's path and the fixed nodes
-    contact_pair: object = None  # the RigidSphereContact or SurfaceContact behind model.contact
+    contact_pair: RigidSphereContact | SurfaceContact | None = None  # the contact behind model.contact
 
 
 def build_model(scene: Scene) -> BuiltScene:
@@ -294,6 +298,7 @@ def _face_file(scene: Scene) -> Mesh:
     from toolkit.common.io import read
 
     spec = scene.face
+    assert spec.mesh is not None  # called for a scene whose face is a mesh file
     needed = list(dict.fromkeys([spec.fixed_set, "skin"] + (["bone"] if spec.support == "skull" else [])))
     face = mesh_to_toolkit(read(spec.mesh, units=spec.units), spec.axes)
     missing = [n for n in needed if n not in face.node_sets]
@@ -364,7 +369,7 @@ class ImpactResult:
     displacement: np.ndarray
     von_mises: np.ndarray
     equivalent_plastic_strain: np.ndarray
-    energies: object
+    energies: pd.DataFrame
     contact_force: np.ndarray
     stats: dict
     plastic_volume_fraction: np.ndarray | None = None
@@ -455,17 +460,18 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
     from toolkit.common.io import TimeSeriesWriter
     from toolkit.common.outputs import check_output_dir
 
+    guess: tuple[np.ndarray, ...] | None = None
     if initial_guess is not None:
         if scene.fidelity.integrator == "explicit":
             raise ValueError("initial_guess with integrator = 'explicit': an explicit run has no iterations to "
                              "start; use scene.with_fidelity(integrator='quasi-static') or leave initial_guess out")
-        initial_guess = tuple(np.asarray(a, dtype=float) for a in initial_guess)
+        guess = tuple(np.asarray(a, dtype=float) for a in initial_guess)
     if out is not None:
         check_output_dir(out)
     t0 = time.perf_counter()
     built = build_model(scene)
-    if initial_guess is not None:  # the face's node count is known now; nothing has run yet
-        g_times, g_u = initial_guess
+    if guess is not None:  # the face's node count is known now; nothing has run yet
+        g_times, g_u = guess
         if g_times.ndim != 1 or g_u.shape != (len(g_times), built.face.n_points, 3) or not g_times.size \
                 or not np.all(np.diff(g_times) > 0) or g_times[0] <= 0:
             raise ValueError(f"initial_guess: times {g_times.shape} and displacement {g_u.shape}; expected "
@@ -486,7 +492,7 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
         count_finished("frame")
 
     try:
-        frames, stats = _run(scene, built, on_frame, progress, initial_guess)
+        frames, stats = _run(scene, built, on_frame, progress, guess)
     except BaseException as exc:
         for w in writers:
             w.close()
@@ -506,15 +512,15 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
                           np.stack([f.contact_force for f in frames]), stats,
                           np.array([f.plastic_volume_fraction for f in frames]),
                           None if fidelity is None else fidelity.record())
-    result = replace(result, checks=answer_checks(built.face, result.displacement, result.von_mises,
-                                                  fixed_nodes(scene, built.face)))
-    if not result.checks["passed"]:
-        exc = AnswerError("the impact answer failed its checks: " + "; ".join(result.checks["problems"])
-                          + _crushed_remedy(scene, result.times, result.checks), result.checks)
+    checks = answer_checks(built.face, result.displacement, result.von_mises, fixed_nodes(scene, built.face))
+    result = replace(result, checks=checks)
+    if not checks["passed"]:
+        error = AnswerError("the impact answer failed its checks: " + "; ".join(checks["problems"])
+                            + _crushed_remedy(scene, result.times, checks), checks)
         if out is not None:
             _write_history(out / "history.h5", frames)
-            write_summary(out / "summary.json", {"status": "failed", "error": str(exc), **result.summary()})
-        raise exc
+            write_summary(out / "summary.json", {"status": "failed", "error": str(error), **result.summary()})
+        raise error
     if out is not None:
         _write_history(out / "history.h5", frames)
         write_summary(out / "summary.json", {"status": "finished", **result.summary()})
@@ -578,6 +584,7 @@ def _write_partial(out: Path, scene: Scene, frames: list, exc: BaseException, wa
     """The ``summary.json`` (and ``history.h5`` of the ``frames`` finished) of a run stopped by
     ``exc``: status ``interrupted`` for a ``KeyboardInterrupt``, else ``failed``."""
     interrupted = isinstance(exc, KeyboardInterrupt)
+    stopped_at = getattr(exc, "time", None)
     summary = {
         "status": "interrupted" if interrupted else "failed",
         "reason": "interrupted (KeyboardInterrupt)" if interrupted else str(exc),
@@ -587,7 +594,7 @@ def _write_partial(out: Path, scene: Scene, frames: list, exc: BaseException, wa
         "frames_written": len(frames),
         "frames_planned": int(scene.n_frames),
         "last_frame_time_s": float(frames[-1].time) if frames else None,
-        "stopped_at_time_s": None if getattr(exc, "time", None) is None else float(exc.time),
+        "stopped_at_time_s": None if stopped_at is None else float(stopped_at),
         "wall_time_s": wall_time_s,
         **({} if fidelity is None else {"fidelity": fidelity.record()}),
     }

@@ -43,6 +43,7 @@ import time
 import warnings
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -59,6 +60,12 @@ from toolkit.common.training import (
 )
 from toolkit.impact.checks import answer_checks
 from toolkit.impact.dataset import ImpactDatabase, load_database
+
+if TYPE_CHECKING:  # pragma: no cover
+    from types import FrameType
+
+    from toolkit.common.mesh import Mesh
+    from toolkit.impact.scene import Scene
 
 __all__ = ["SurrogateConfig", "CONFIGS", "FEATURES", "INPUTS", "OUTPUTS", "MODEL_KIND", "SPLITS", "item_features",
            "item_targets", "split_items", "train_surrogate", "ImpactSurrogate", "ExtrapolationWarning", "Prediction",
@@ -417,8 +424,8 @@ class Prediction:
     must not be given as it is; also in the summary).
     """
 
-    scene: object
-    face: object
+    scene: Scene
+    face: Mesh
     times: np.ndarray
     displacement: np.ndarray
     von_mises: np.ndarray
@@ -499,7 +506,8 @@ def _outside_toolkit() -> int:
     import sys
 
     root = str(Path(__file__).resolve().parents[1])
-    frame, level = sys._getframe(1), 1
+    frame: FrameType | None = sys._getframe(1)
+    level = 1
     while frame is not None and str(Path(frame.f_code.co_filename).resolve()).startswith(root):
         frame, level = frame.f_back, level + 1
     return level

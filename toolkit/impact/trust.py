@@ -37,6 +37,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -51,6 +52,10 @@ from toolkit.common.training.conformal import (
 )
 from toolkit.common.training.decision import check_tolerance, decide
 from toolkit.impact.checks import answer_checks
+
+if TYPE_CHECKING:  # pragma: no cover
+    from toolkit.impact.simulate import ImpactResult
+    from toolkit.impact.surrogate import Prediction
 
 __all__ = ["SCALES", "Calibration", "calibrate_surrogate", "estimate", "out_of_distribution", "answer",
            "answer_error", "TrustedAnswer"]
@@ -285,7 +290,7 @@ class TrustedAnswer:
     is a square root averaged with positive weights).
     """
 
-    result: object
+    result: Prediction | ImpactResult
     answered_by: str
     reason: str
     tolerance_mm: float
@@ -385,6 +390,7 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
 
     decision = decide(tolerance_mm, ood, est, checks, no_estimate="another face than the model's")
     if decision.surrogate:
+        assert pred is not None  # an answer given has been predicted
         seconds["total"] = time.perf_counter() - t0
         ans = TrustedAnswer(pred, "surrogate", decision.reason, tolerance_mm, est, ood, seconds)
         if out is not None:

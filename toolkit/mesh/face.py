@@ -347,7 +347,8 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
     times["mesh"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    slit, mouth = None, {"status": "closed mouth: no lip sliding (give the commissures to cut the lips)"}
+    slit = None
+    mouth: dict[str, object] = {"status": "closed mouth: no lip sliding (give the commissures to cut the lips)"}
     if commissures is not None:
         from toolkit.mesh.mouth import cut_mouth
 

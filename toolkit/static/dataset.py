@@ -50,6 +50,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from functools import lru_cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -67,6 +68,9 @@ from toolkit.common.database import (
 from toolkit.common.defaults import STATIC_SIMULATION
 from toolkit.common.papers import TISSUE_NU
 from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES
+
+if TYPE_CHECKING:  # pragma: no cover
+    import pandas as pd
 
 __all__ = ["DatasetConfig", "generate", "StaticDatabase", "read_samples", "subject_phantom", "database_subject",
            "subject_mesh", "bone_increment", "plan_features",
@@ -112,7 +116,7 @@ class DatasetConfig:
         converted to the toolkit's on reading
     """
 
-    resolution: str = STATIC_SIMULATION["resolution"]
+    resolution: str | None = STATIC_SIMULATION["resolution"]
     subjects: int = 1
     plans: int = 10
     mode: str = "sagittal"
@@ -202,6 +206,7 @@ def database_subject(config: DatasetConfig, subject: int):
     or the meshed face's :class:`~toolkit.static.anatomy.FaceAnatomy` (both have ``mesh`` and
     ``segments``)."""
     if config.mesh is None:
+        assert config.resolution is not None  # a phantom database has one (DatasetConfig checks it)
         return subject_phantom(config.resolution, subject)
     from toolkit.common.axes import check_mesh_axes, mesh_to_toolkit, to_toolkit
     from toolkit.common.io import read
@@ -306,6 +311,7 @@ def simulate_job(params: dict) -> Record:
              "jaw_closing_mm": jaw_closing(plan, dental_arch(phantom)),
              "poisson": TISSUE_NU if params.get("poisson") is None else float(params["poisson"]),
              "max_input_displacement_mm": float(np.linalg.norm(bone[:, moving], axis=-1).max(initial=0.0))}
+    assert result.release_width is not None  # simulate() reports the release band it used
     attrs["release_width_mm"] = float(result.release_width)
     attrs["freed_cut_nodes"] = int(np.size(result.freed_cut))
     return Record({"displacements": U.astype(np.float32), "bone": bone.astype(np.float32),
@@ -364,6 +370,7 @@ def subject_mesh(path: str | os.PathLike, subject: int = 0):
 
     config = DatasetConfig(**json.loads(Database.open_attrs(Path(path)).get("config", "{}")))
     if config.mesh is None:
+        assert config.resolution is not None  # a phantom database has one (DatasetConfig checks it)
         return subject_phantom(config.resolution, subject).mesh
     with h5py.File(path, "r") as f:
         sh = f["shared"]
@@ -548,7 +555,7 @@ class StaticDatabase:
 
     path: Path
     config: DatasetConfig
-    samples: object
+    samples: pd.DataFrame
     points: dict
     types: dict
     segment: dict

@@ -46,6 +46,7 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from toolkit.common import papers
 from toolkit.common.errors import ToolkitError
@@ -155,9 +156,11 @@ def _hamilton(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.concatenate([[w1 * w2 - v1 @ v2], w1 * v2 + w2 * v1 + np.cross(v1, v2)])
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, init=False)
 class RigidMotion:
     """A rigid motion about a pivot: ``x' = R (x - pivot) + pivot + translation``.
+
+    Constructed from any array-likes of the right length (defaults: the identity about the origin).
 
     Attributes
     ----------
@@ -168,12 +171,13 @@ class RigidMotion:
     pivot : (3,) float, mm
     """
 
-    rotation: np.ndarray = (1.0, 0.0, 0.0, 0.0)
-    translation: np.ndarray = (0.0, 0.0, 0.0)
-    pivot: np.ndarray = (0.0, 0.0, 0.0)
+    rotation: np.ndarray
+    translation: np.ndarray
+    pivot: np.ndarray
 
-    def __post_init__(self):
-        q = np.array(_vector(self.rotation, 4, "rotation quaternion (w, x, y, z)"))
+    def __init__(self, rotation: ArrayLike = (1.0, 0.0, 0.0, 0.0), translation: ArrayLike = (0.0, 0.0, 0.0),
+                 pivot: ArrayLike = (0.0, 0.0, 0.0)) -> None:
+        q = np.array(_vector(rotation, 4, "rotation quaternion (w, x, y, z)"))
         norm = float(np.linalg.norm(q))
         if norm == 0.0:
             raise PlanError(f"rotation quaternion {q.tolist()} has zero norm; expected a unit quaternion (w, x, y, z)")
@@ -182,8 +186,8 @@ class RigidMotion:
             q = -q
         q.flags.writeable = False
         object.__setattr__(self, "rotation", q)
-        object.__setattr__(self, "translation", _vector(self.translation, 3, "translation (mm)"))
-        object.__setattr__(self, "pivot", _vector(self.pivot, 3, "pivot (mm)"))
+        object.__setattr__(self, "translation", _vector(translation, 3, "translation (mm)"))
+        object.__setattr__(self, "pivot", _vector(pivot, 3, "pivot (mm)"))
 
     # ----------------------------------------------------------- constructors
     @classmethod
@@ -382,7 +386,8 @@ def _following(distal: RigidMotion, condyle, points) -> RigidMotion:
     return RigidMotion.from_matrix(_rotation_about(c, p, distal.apply(p)), pivot=c)
 
 
-def proximal_reference_points(phantom: FacePhantom, fraction: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+def proximal_reference_points(phantom: FacePhantom | FaceAnatomy,
+                              fraction: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
     """Reference points of the proximal segments for following the distal one.
 
     The ``fraction`` of each proximal surface's vertices nearest to the distal
@@ -816,8 +821,8 @@ def sample_plans(n: int, seed: int | np.random.Generator, mode: str = "sagittal"
                     else _directions(r, 1, mode)[0]
                 angle = r.uniform(*rg.rotation_deg)
                 motions[name] = RigidMotion.from_rotation_vector(angle * axis, t, phantom.segments[name].pivot)
-            plan = SurgicalPlan.for_phantom(phantom, **motions)
-            if arch is None or jaw_closing(plan, arch) <= max_jaw_closing_mm:
+            plan = SurgicalPlan.for_phantom(phantom, lefort=motions["lefort"], distal=motions["distal"])
+            if arch is None or max_jaw_closing_mm is None or jaw_closing(plan, arch) <= max_jaw_closing_mm:
                 break
         else:
             raise PlanError(f"no plan in 1000 draws closes the jaws by at most {max_jaw_closing_mm} mm; "

@@ -37,6 +37,7 @@ import time
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -56,6 +57,13 @@ from toolkit.static.features import FeatureSpec, channel_names, encode
 from toolkit.static.plan import SEGMENTS, PlanRangeWarning
 from toolkit.static.simulate import SimulationResult
 
+if TYPE_CHECKING:  # pragma: no cover
+    import torch
+
+    from toolkit.static.dataset import StaticDatabase
+    from toolkit.static.pointnet2 import PointHierarchy, PointNet2
+    from toolkit.static.pointnet2_inference import HierarchyArrays, PointNet2Inference
+
 __all__ = ["SurrogateConfig", "FEATURE_PRESETS", "Surrogate", "train_surrogate", "evaluate_surrogate", "network_config",
            "linear_prior", "MODEL_KIND", "NETWORK_PRESETS", "PLAN_PARAMETERS", "PlanPrediction",
            "plan_extrapolation", "MUST_MATCH"]
@@ -63,7 +71,7 @@ __all__ = ["SurrogateConfig", "FEATURE_PRESETS", "Surrogate", "train_surrogate",
 MODEL_KIND = "toolkit.static.pointnet2"
 #: network sizes: ``paper`` (the PointNet++ paper's widths), ``small`` (a quarter of the widths; the
 #: speed goal), ``tiny`` (tests on the coarse face)
-NETWORK_PRESETS = {
+NETWORK_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {},
     "small": {"sa_widths": ((16, 16, 32), (32, 32, 64), (64, 64, 128), (128, 128, 256)),
               "fp_widths": ((128, 128), (128, 128), (128, 64), (64, 64, 64)), "head_width": 64,
@@ -318,8 +326,16 @@ class _ArrayFace:
     (:class:`~toolkit.static.pointnet2_inference.PointNet2Inference`) and the training subjects'
     hierarchies (:class:`~toolkit.static.pointnet2_inference.HierarchyArrays`)."""
 
-    net: object
-    hierarchies: dict
+    net: PointNet2Inference
+    hierarchies: dict[int, HierarchyArrays]
+
+
+class _TorchFace(Protocol):
+    """What :class:`Surrogate` uses of the torch ``FaceSurrogate`` of :func:`_face_module`: the
+    network and the training subjects' hierarchies."""
+
+    net: PointNet2
+    hierarchies: dict[int, PointHierarchy]
 
 
 def _numpy_engine(device) -> bool:
@@ -343,8 +359,8 @@ class Surrogate:
 
     config: SurrogateConfig
     bundle: ModelBundle
-    module: object
-    device: object
+    module: _TorchFace | _ArrayFace
+    device: str | torch.device
     directory: Path | None = None
     _hierarchy_cache: dict = field(default_factory=dict, repr=False)
     _prior_cache: dict = field(default_factory=dict, repr=False)
@@ -372,9 +388,9 @@ class Surrogate:
         from toolkit.static.pointnet2 import PointHierarchy
 
         dev = resolve_device(device)
-        hierarchies = {int(k): PointHierarchy.from_state_dict(v, device=dev)
-                       for k, v in bundle.state_dict["hierarchies"].items()}
-        module = _face_module()(network_config(config), hierarchies)
+        torch_hierarchies = {int(k): PointHierarchy.from_state_dict(v, device=dev)
+                             for k, v in bundle.state_dict["hierarchies"].items()}
+        module = _face_module()(network_config(config), torch_hierarchies)
         module.net.load_state_dict(bundle.state_dict["net"])
         module.to(dev).eval()
         module.net = module.net.fold_batch_norm()  # inference only: the batch norms become part of the weights
@@ -401,6 +417,7 @@ class Surrogate:
         if key not in self._hierarchy_cache:
             from toolkit.static.pointnet2 import PointHierarchy
 
+            built: HierarchyArrays | PointHierarchy
             if isinstance(self.module, _ArrayFace):
                 from toolkit.static.pointnet2_inference import HierarchyArrays
 
@@ -452,10 +469,10 @@ class Surrogate:
     def _network(self, features: np.ndarray, values: np.ndarray, mask: np.ndarray, hierarchy) -> np.ndarray:
         """The network's output ``(B, n, 3)`` in its unit for scaled ``features``, with the
         prescribed ``values`` (its unit) exact where ``mask`` is set when it has hard boundaries."""
-        net = self.module.net
-        hard = net.config.hard_boundary
-        if isinstance(self.module, _ArrayFace):
-            return net(features, hierarchy, mask if hard else None, values if hard else None)
+        module = self.module
+        hard = module.net.config.hard_boundary
+        if isinstance(module, _ArrayFace):
+            return module.net(features, hierarchy, mask if hard else None, values if hard else None)
         import torch
 
         from toolkit.static.pointnet2 import BoundaryTargets
@@ -463,7 +480,7 @@ class Surrogate:
         as_tensor = lambda a, dtype: torch.as_tensor(a, dtype=dtype, device=self.device)  # noqa: E731
         with torch.no_grad():
             boundary = BoundaryTargets(as_tensor(mask, torch.bool), as_tensor(values, torch.float32)) if hard else None
-            return net(as_tensor(features, torch.float32), hierarchy, boundary).double().cpu().numpy()
+            return module.net(as_tensor(features, torch.float32), hierarchy, boundary).double().cpu().numpy()
 
     def predict_plan(self, face, plan, *, segments=None, any_mesh: bool = False):
         """Run ``plan`` on a face like :func:`~toolkit.static.simulate.simulate`, increment by
@@ -507,25 +524,25 @@ class Surrogate:
         side = jaw_side(bc.segment, sets, X.shape[0], tuple(bc.segment_names))
         mask = np.isin(bc.types, (1, 2))
         im = self.prior(mesh, bc.types) if self.config.features.linear_prior else None
-        U, previous, quality, given = [np.zeros_like(X)], None, [], []
+        reached, previous, quality, given = [np.zeros_like(X)], None, [], []
         with warnings.catch_warnings():  # the plan warned of its range where it was built
             warnings.simplefilter("ignore", PlanRangeWarning)
             steps = plan.increments(data.increments)
         for p in steps:
-            x = X + U[-1]
+            x = X + reached[-1]
             bone = bone_increment(x, bc, p, previous)
             prescribed = np.where((bc.types == 1)[:, None], bone, 0.0)
             given.append(prescribed)
             prior = im.predict(prescribed) if im is not None else None
             feats = encode(self.config.features, x, bc.types, prescribed, bone, side, TISSUE_NU, prior)
-            U.append(U[-1] + self.predict(feats[None], prescribed[None], mask[None], h,
-                                          None if prior is None else prior[None])[0])
-            quality.append(mesh.with_points(X + U[-1]).scaled_jacobian())
+            reached.append(reached[-1] + self.predict(feats[None], prescribed[None], mask[None], h,
+                                                      None if prior is None else prior[None])[0])
+            quality.append(mesh.with_points(X + reached[-1]).scaled_jacobian())
             previous = p
         wall = time.perf_counter() - t0
         reports = [IncrementReport(k, wall / len(quality), 0.0, 0, 0, 0, float(q.min()), int(np.argmin(q)),
                                    0.0, 0.0, 0.0, 0) for k, q in enumerate(quality, start=1)]
-        U = with_exact_attachment(np.stack(U), X, bc, plan)
+        U = with_exact_attachment(np.stack(reached), X, bc, plan)
         return with_answer_checks(
             PlanPrediction(mesh, U, bc, reports, wall, f"surrogate ({self.config.features.variant})", data.sliding,
                            extrapolation=self.extrapolation(plan, mesh), prescribed=np.stack(given)), plan)
@@ -572,7 +589,7 @@ def _encode_database(db, spec: FeatureSpec, priors: dict | None = None) -> _Data
     feats, pres, mask, target, subject, types, keys, prior = [], [], [], [], [], [], [], []
     for i in range(len(db)):
         s = db.sample(i)
-        p = priors[int(s["subject"])].predict(s["s"]) if spec.linear_prior else None
+        p = priors[int(s["subject"])].predict(s["s"]) if spec.linear_prior and priors is not None else None
         feats.append(encode(spec, s["x"], s["types"], s["s"], s["bone"], s["side"], s["poisson"], p))
         prior.append(p)
         pres.append(s["s"])
@@ -589,7 +606,8 @@ def _encode_database(db, spec: FeatureSpec, priors: dict | None = None) -> _Data
 def _split(data: _Data, config: SurrogateConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     seed = config.seed if config.split_seed is None else config.split_seed
     if config.split == "plans":
-        return split_groups(data.keys, (0.7, 0.1, 0.2), seed)
+        train, validation, test = split_groups(data.keys, (0.7, 0.1, 0.2), seed)
+        return train, validation, test
     test = np.flatnonzero(np.isin(data.subject, config.test_subjects))
     rest = np.flatnonzero(~np.isin(data.subject, config.test_subjects))
     if not test.size or not rest.size:
@@ -838,7 +856,7 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
 class _Subset:
     """A view of some rows of a StaticDatabase (for encoding)."""
 
-    db: object
+    db: StaticDatabase
     rows: np.ndarray
 
     def __len__(self):

@@ -47,6 +47,7 @@ import time
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -59,6 +60,10 @@ from toolkit.common.training.conformal import (
     save_calibration,
 )
 from toolkit.common.training.decision import check_tolerance, decide
+
+if TYPE_CHECKING:  # pragma: no cover
+    from toolkit.static.baselines import LinearPlusPOD
+    from toolkit.static.simulate import SimulationResult
 
 __all__ = ["SCALES", "ANSWERERS", "BASELINE", "Calibration", "calibrate_surrogate", "baseline_prediction", "estimate",
            "out_of_distribution", "answer", "TrustedAnswer"]
@@ -118,7 +123,7 @@ class Calibration:
 
     scale: str
     bound: ConformalBound
-    residual: object | None
+    residual: LinearPlusPOD | None
     train_plans: np.ndarray
     plan_ranges: dict
     subjects: np.ndarray
@@ -467,7 +472,7 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
     ex["nearest_plan_distance"] = float(np.min(np.linalg.norm((calibration.train_plans - values) / span, axis=1)))
     if ex["outside"]:
         reasons.append("plan: " + describe_extrapolation(ex))
-    shape = {"training_spread_mm": calibration.shape_spread_mm}
+    shape: dict[str, float | None] = {"training_spread_mm": calibration.shape_spread_mm}
     if not same_shape:
         shape.update(rms_to_nearest_subject_mm=None, outside_envelope_mm=None)
         reasons.append("face: a mesh of another topology than the training subjects")
@@ -511,7 +516,7 @@ class TrustedAnswer:
     seconds : ``surrogate``, ``estimate``, ``fe`` (0 when not run), ``total``
     """
 
-    result: object
+    result: SimulationResult
     answered_by: str
     reason: str
     tolerance_mm: float
@@ -584,9 +589,14 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
         t1 = time.perf_counter()
         est = estimate(calibration, network, base)
         seconds["estimate"] = time.perf_counter() - t1
-    decision = decide(tolerance_mm, ood, est, lambda: given.checks["answer"], no_estimate="no error estimate for "
-                      "this face")
+
+    def checks():  # called only with an estimate, made with the answer
+        assert given is not None
+        return given.checks["answer"]
+
+    decision = decide(tolerance_mm, ood, est, checks, no_estimate="no error estimate for this face")
     if decision.surrogate:
+        assert given is not None  # an answer given has been predicted
         who = "surrogate" if calibration.answerer == "network" else "baseline"
         seconds["total"] = time.perf_counter() - t0
         return TrustedAnswer(given, who, decision.reason, tolerance_mm, est, ood, seconds)

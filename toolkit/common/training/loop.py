@@ -19,12 +19,16 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from toolkit.common.config_diff import jsonable, require_same
 from toolkit.common.training.device import resolve_device
 from toolkit.common.training.seeding import check_seed, generators
+
+if TYPE_CHECKING:  # pragma: no cover
+    import pandas as pd
 
 __all__ = ["TrainConfig", "TrainResult", "train", "learning_rate", "stop_reason", "CHECKPOINT_FORMAT", "LR_SCHEDULES"]
 
@@ -105,7 +109,7 @@ class TrainResult:
     resumed_from : the epoch a resumed run started after, or None
     """
 
-    history: object
+    history: pd.DataFrame
     best_epoch: int
     best_val_loss: float
     seconds: float
