@@ -91,12 +91,12 @@ def stage_database(args, db_path: Path) -> pd.DataFrame:
 def _train_eval(db, cfg, split, out: Path, seed: int) -> dict:
     from toolkit.common.config_diff import IncompatibleError
     from toolkit.impact.evaluation import evaluate_surrogate, write_evaluation
-    from toolkit.impact.surrogate import ImpactSurrogate, train_surrogate
+    from toolkit.impact.surrogate import Surrogate, train_surrogate
 
     model = None
     if (out / "config.json").exists():
         try:
-            model = ImpactSurrogate.load(out, config=cfg)
+            model = Surrogate.load(out, config=cfg)
         except IncompatibleError as exc:  # the configuration changed since: train afresh
             print(f"{out}: {exc}; retraining")
             shutil.rmtree(out)

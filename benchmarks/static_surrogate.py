@@ -60,7 +60,7 @@ SUBJECT_VARIANTS = {"explicit+extra": dict(variant="explicit", extra_channels=Tr
 
 
 def stage_database(args) -> dict:
-    from toolkit.static.dataset import DatasetConfig, generate, read_samples
+    from toolkit.static.dataset import DatasetConfig, build_database, read_samples
 
     out = {}
     for name, cfg in (("one", DatasetConfig(args.resolution, 1, args.plans, args.mode, seed=args.seed)),
@@ -70,7 +70,7 @@ def stage_database(args) -> dict:
             continue
         path = WORK / f"static_{args.resolution}{'' if name == 'one' else '_subjects'}{args.suffix}.h5"
         t0 = time.perf_counter()
-        report = generate(path, cfg, workers=args.workers)
+        report = build_database(path, cfg, workers=args.workers)
         samples = read_samples(path)
         ok = samples[samples.status == "ok"]
         print(f"database {path.name}: {len(report.done)} simulated now ({time.perf_counter() - t0:.0f} s), "
@@ -104,7 +104,7 @@ def _pointnet(db_path, name, config, out: Path, subject: int = 0) -> dict:
             print(f"{out}: stopped at its budget ({model.bundle.extra['stopped']}); continuing with the larger one")
             model = None
     if model is None:
-        model = train_surrogate(db_path, out, config, resume=(out / "checkpoint.pt").exists())
+        model = train_surrogate(db_path, config, out=out, resume=(out / "checkpoint.pt").exists())
     result = evaluate_surrogate(model, db_path)
     mesh = subject_phantom(StaticDatabase.open(db_path).config.resolution, subject).mesh
     write_evaluation(result, out / "evaluation", mesh)

@@ -50,11 +50,12 @@ def add_training_arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def stage_database(args) -> Path:
-    from toolkit.static.dataset import DatasetConfig, generate
+    from toolkit.static.dataset import DatasetConfig, build_database
 
     WORK.mkdir(parents=True, exist_ok=True)
     path = WORK / f"static_paper_subjects{args.suffix}.h5"
-    generate(path, DatasetConfig("paper", args.subjects, args.plans, "sagittal", seed=args.seed), workers=args.workers)
+    build_database(path, DatasetConfig("paper", args.subjects, args.plans, "sagittal", seed=args.seed),
+                   workers=args.workers)
     return path
 
 
@@ -65,7 +66,7 @@ def stage_model(args, db_path: Path):
     if (out / "model.pt").exists():
         return Surrogate.load(out)
     config = SurrogateConfig(max_seconds=60 * args.max_minutes, seed=args.seed)
-    return train_surrogate(db_path, out, config, resume=(out / "checkpoint.pt").exists())
+    return train_surrogate(db_path, config, out=out, resume=(out / "checkpoint.pt").exists())
 
 
 def stage_face(args, phantom) -> tuple[Path, dict]:
@@ -92,17 +93,18 @@ def face_database_path(args) -> Path:
 def stage_face_model(args, face_file: Path, bones: dict, phantom):
     """A database of ``--face-plans`` plans on the remeshed face itself (the phantom's condyles, which
     lie outside its tissue) and the default PointNet++ trained on it within ``--face-minutes``."""
-    from toolkit.static.dataset import DatasetConfig, generate
+    from toolkit.static.dataset import DatasetConfig, build_database
     from toolkit.static.surrogate import Surrogate, SurrogateConfig, train_surrogate
 
     db = face_database_path(args)
-    generate(db, DatasetConfig.for_mesh(face_file, bones, phantom.condyles, plans=args.face_plans, mode="sagittal",
-                                        seed=args.seed), workers=args.workers)
+    config = DatasetConfig.for_mesh(face_file, bones, phantom.condyles, plans=args.face_plans, mode="sagittal",
+                                    seed=args.seed)
+    build_database(db, config, workers=args.workers)
     out = WORK / f"remeshed_face_model{args.suffix}"
     if (out / "model.pt").exists():
         return Surrogate.load(out)
     config = SurrogateConfig(max_seconds=60 * args.face_minutes, seed=args.seed)
-    return train_surrogate(db, out, config, resume=(out / "checkpoint.pt").exists())
+    return train_surrogate(db, config, out=out, resume=(out / "checkpoint.pt").exists())
 
 
 def prior_only(model, mesh, segments, plan, increments: int, sliding: str) -> tuple[np.ndarray, float, float]:

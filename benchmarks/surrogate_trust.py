@@ -83,8 +83,8 @@ def stage_members(args, db_path: Path, model) -> list:
         if (out / "model.pt").exists():
             member = Surrogate.load(out)
         else:
-            member = train_surrogate(db_path, out, replace(model.config, seed=model.config.seed + k, split_seed=split),
-                                     resume=(out / "checkpoint.pt").exists())
+            member = train_surrogate(db_path, replace(model.config, seed=model.config.seed + k, split_seed=split),
+                                     out=out, resume=(out / "checkpoint.pt").exists())
         if sorted(member.bundle.extra["test_keys"]) != sorted(model.bundle.extra["test_keys"]):
             raise RuntimeError(f"{out} holds out other test plans than the model: delete it and rerun")
         members.append(member)

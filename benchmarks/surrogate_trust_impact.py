@@ -85,11 +85,11 @@ def database(path: Path, vs, held, sc):
 
 
 def stage_model(args, train_path: Path):
-    from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, train_surrogate
+    from toolkit.impact.surrogate import CONFIGS, Surrogate, train_surrogate
 
     out = WORK / f"trust_impact_model_{args.resolution}{args.suffix}"
     if (out / "config.json").exists():
-        return ImpactSurrogate.load(out)
+        return Surrogate.load(out)
     cfg = CONFIGS["strong"].with_(max_seconds=args.max_minutes * 60.0)
     return train_surrogate(train_path, cfg, "velocity", out=out, seed=0, resume=(out / "checkpoint.pt").exists())
 

@@ -234,7 +234,7 @@ def test_an_unwritable_output_is_refused_before_any_computation(command, tmp_pat
 
     for module, name in [("static.simulate", "simulate"), ("impact.simulate", "simulate"),
                          ("static.surrogate", "train_surrogate"), ("impact.surrogate", "train_surrogate"),
-                         ("static.dataset", "generate"), ("impact.dataset", "build_database")]:
+                         ("static.dataset", "build_database"), ("impact.dataset", "build_database")]:
         monkeypatch.setattr(importlib.import_module(f"toolkit.{module}"), name, ran)
     existing = tmp_path / "face.inp"
     existing.write_text("results of an earlier run")
@@ -260,7 +260,7 @@ def test_the_library_refuses_an_unwritable_out_before_computing(tmp_path):
     with pytest.raises(OutputError, match="model directory '/proc/x'"):
         train_impact(tmp_path / "missing.h5", out="/proc/x")
     with pytest.raises(OutputError, match="model directory '/proc/x'"):
-        train_static(tmp_path / "missing.h5", "/proc/x")
+        train_static(tmp_path / "missing.h5", out="/proc/x")
 
 
 def _big_plan(path):

@@ -12,18 +12,18 @@ def models(tmp_path_factory):
     from dataclasses import replace
 
     from toolkit.impact import yielding_scene
-    from toolkit.impact.dataset import build_database
+    from toolkit.impact.dataset import build_database as build_impact_database
     from toolkit.impact.surrogate import CONFIGS
     from toolkit.impact.surrogate import train_surrogate as train_impact
-    from toolkit.static.dataset import DatasetConfig, generate
+    from toolkit.static.dataset import DatasetConfig, build_database
     from toolkit.static.surrogate import SurrogateConfig, train_surrogate
 
     root = tmp_path_factory.mktemp("interrupts")
-    generate(root / "static.h5", DatasetConfig(resolution="coarse", plans=3), workers=0, progress=False)
-    train_surrogate(root / "static.h5", root / "smodel",
-                    SurrogateConfig(network="tiny", coarse_radii=True, epochs=1), progress=False)
+    build_database(root / "static.h5", DatasetConfig(resolution="coarse", plans=3), workers=0, progress=False)
+    train_surrogate(root / "static.h5", SurrogateConfig(network="tiny", coarse_radii=True, epochs=1),
+                    out=root / "smodel", progress=False)
     scene = yielding_scene().with_face(resolution="coarse").with_ball(rigid=True)
     scene = replace(scene.with_fidelity(order=1, integrator="explicit", mass_scaling=100.0), n_frames=6)
-    build_database(root / "impact.h5", (30.0, 40.0), (35.0,), scene, workers=0, progress=False)
+    build_impact_database(root / "impact.h5", (30.0, 40.0), (35.0,), scene, workers=0, progress=False)
     train_impact(root / "impact.h5", CONFIGS["paper"].with_(epochs=1), out=root / "imodel", progress=False)
     return root

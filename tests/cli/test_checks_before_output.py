@@ -15,7 +15,7 @@ def test_static_training_refuses_absent_test_subjects_before_making_the_model_fo
 
     config = SurrogateConfig(network="tiny", coarse_radii=True, epochs=1, split="subjects", test_subjects=(7,))
     with pytest.raises(ValueError, match=r"test_subjects \[7\] are not in the database.*holds subjects \[0\]"):
-        train_surrogate(models / "static.h5", tmp_path / "m", config, progress=False)
+        train_surrogate(models / "static.h5", config, out=tmp_path / "m", progress=False)
     assert not (tmp_path / "m").exists()
 
 
@@ -24,7 +24,7 @@ def test_static_training_refuses_holding_out_every_subject(models, tmp_path):
 
     config = SurrogateConfig(network="tiny", coarse_radii=True, epochs=1, split="subjects", test_subjects=(0,))
     with pytest.raises(ValueError, match="every subject"):
-        train_surrogate(models / "static.h5", tmp_path / "m", config, progress=False)
+        train_surrogate(models / "static.h5", config, out=tmp_path / "m", progress=False)
     assert not (tmp_path / "m").exists()
 
 
@@ -68,9 +68,9 @@ def test_impact_evaluate_checks_its_figure_options_before_writing(option, value,
 def test_impact_evaluation_writes_nothing_for_a_node_that_is_not_a_test_item(models, tmp_path):
     from toolkit.impact.dataset import load_database
     from toolkit.impact.evaluation import evaluate_surrogate, write_evaluation
-    from toolkit.impact.surrogate import ImpactSurrogate
+    from toolkit.impact.surrogate import Surrogate
 
-    model, db = ImpactSurrogate.load(models / "imodel"), load_database(models / "impact.h5")
+    model, db = Surrogate.load(models / "imodel"), load_database(models / "impact.h5")
     ev = evaluate_surrogate(model, db)
     sims = np.unique(ev.items // db.n_nodes)
     sim = int(sims[np.argmax(db.velocities[sims])])  # the figures show the fastest simulation with test items

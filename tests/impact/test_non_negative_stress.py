@@ -19,7 +19,7 @@ from toolkit.impact.surrogate import (  # noqa: E402
     CONFIGS,
     MODEL_KIND,
     OUTPUTS,
-    ImpactSurrogate,
+    Surrogate,
     item_features,
 )
 from toolkit.impact.trust import TrustedAnswer  # noqa: E402
@@ -47,7 +47,7 @@ def _stress_bias(net) -> torch.Tensor:
     return head.bias[3:4]
 
 
-def _negative_half_model(name: str, inputs: SceneInputs) -> ImpactSurrogate:
+def _negative_half_model(name: str, inputs: SceneInputs) -> Surrogate:
     """The configuration ``name``'s network at random weights, its stress bias shifted so that
     the scaled stress it outputs at 41 mm/s is below 0 (below the training minimum, 0 MPa) at
     half the node-frames."""
@@ -62,10 +62,10 @@ def _negative_half_model(name: str, inputs: SceneInputs) -> ImpactSurrogate:
         _stress_bias(net).sub_(net(xs)[..., 3].median())
     bundle = ModelBundle(MODEL_KIND, asdict(cfg), {}, {"inputs": x_scaler, "outputs": y_scaler},
                          net.state_dict(), {"split": {"train_velocities": list(TRAIN_VELOCITIES)}})
-    return ImpactSurrogate(bundle, net)
+    return Surrogate(bundle, net)
 
 
-def _decoded_stress(model: ImpactSurrogate, inputs: SceneInputs, velocity: float) -> np.ndarray:
+def _decoded_stress(model: Surrogate, inputs: SceneInputs, velocity: float) -> np.ndarray:
     """The network's stress unscaled (times the ball's travel for ``per_travel``), ``(F, N)`` MPa."""
     x = item_features(inputs, [velocity], model.config.features)
     xs = torch.from_numpy(model.bundle.scalers["inputs"].transform(x).astype(np.float32))

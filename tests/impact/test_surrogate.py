@@ -17,7 +17,7 @@ from toolkit.common.config_diff import IncompatibleError  # noqa: E402
 from toolkit.impact import Scene  # noqa: E402
 from toolkit.impact.dataset import build_database, load_database  # noqa: E402
 from toolkit.impact.evaluation import evaluate_surrogate, field_metrics  # noqa: E402
-from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, split_items, train_surrogate  # noqa: E402
+from toolkit.impact.surrogate import CONFIGS, Surrogate, split_items, train_surrogate  # noqa: E402
 
 from .conftest import tiny_scene  # noqa: E402
 
@@ -127,14 +127,14 @@ def test_every_configuration_trains_saves_and_reloads(tiny_db, tmp_path):
     for name in ("paper", "strong", "baseline"):
         model = train_surrogate(tiny_db, CONFIGS[name].with_(epochs=2), "random", out=tmp_path / name,
                                 progress=False)
-        back = ImpactSurrogate.load(tmp_path / name, config=name)
+        back = Surrogate.load(tmp_path / name, config=name)
         u1, v1 = model.predict(30.0, tiny_db.inputs)
         u2, v2 = back.predict(30.0, tiny_db.inputs)
         np.testing.assert_array_equal(u1, u2)
         np.testing.assert_array_equal(v1, v2)
         assert u1.shape == (tiny_db.times.size, tiny_db.n_nodes, 3)
         assert np.all(u1[:, tiny_db.fixed] == 0.0)
-    paper_net = ImpactSurrogate.load(tmp_path / "paper").network
+    paper_net = Surrogate.load(tmp_path / "paper").network
     assert len(paper_net.lstms) == 4 and all(lstm.hidden_size == 5 for lstm in paper_net.lstms)
     assert all(head.out_features == 1 for head in paper_net.heads)
 
@@ -147,15 +147,15 @@ def test_models_refuse_what_they_were_not_built_for(tiny_db, tmp_path):
 
     train_surrogate(tiny_db, CONFIGS["paper"].with_(epochs=1), "random", out=tmp_path / "m", progress=False)
     with pytest.raises(IncompatibleError, match=r"hidden: stored 5, asked 32"):
-        ImpactSurrogate.load(tmp_path / "m", config="strong")
-    model = ImpactSurrogate.load(tmp_path / "m")
+        Surrogate.load(tmp_path / "m", config="strong")
+    model = Surrogate.load(tmp_path / "m")
     other = tmp_path / "other.h5"
     build_database(other, [30.0], [], replace(tiny_scene(), n_frames=6), workers=0, progress=False)
     with pytest.raises(IncompatibleError, match=r"times_s"):
         evaluate_surrogate(model, load_database(other))
     (tmp_path / "m" / "model.pt").unlink()
     with pytest.raises(FileNotFoundError, match="model.pt is missing"):
-        ImpactSurrogate.load(tmp_path / "m")
+        Surrogate.load(tmp_path / "m")
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="sees no CUDA GPU"):
             train_surrogate(tiny_db, CONFIGS["paper"].with_(epochs=1), device="cuda", progress=False)

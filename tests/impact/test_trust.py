@@ -16,7 +16,7 @@ from toolkit.common.training.conformal import conformal_rank  # noqa: E402
 from toolkit.impact import trust  # noqa: E402
 from toolkit.impact.dataset import build_database, load_database  # noqa: E402
 from toolkit.impact.simulate import simulate  # noqa: E402
-from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, train_surrogate  # noqa: E402
+from toolkit.impact.surrogate import CONFIGS, Surrogate, train_surrogate  # noqa: E402
 
 from .conftest import TINY_HELD_OUT, TINY_VELOCITIES, tiny_scene  # noqa: E402
 
@@ -48,7 +48,7 @@ def model_dir(tiny_db_path, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def calibrated(model_dir, calibration_db, tiny_db_path):
-    model = ImpactSurrogate.load(model_dir)
+    model = Surrogate.load(model_dir)
     cal = trust.calibrate_surrogate(model, calibration_db, training=tiny_db_path, progress=False)
     cal.save(model_dir)
     return model, cal
@@ -82,7 +82,7 @@ def test_calibration_is_the_conformal_rank_of_unseen_velocities(calibrated, cali
 def test_too_few_unseen_velocities_are_refused(model_dir, tiny_db_path):
     """The training database holds one velocity the model did not see: a 90 % bound needs 9,
     and the error says how to build a calibration database."""
-    model = ImpactSurrogate.load(model_dir)
+    model = Surrogate.load(model_dir)
     with pytest.raises(ValueError, match=r"holds 1 simulation.*at least 9.*toolkit impact dataset --velocities"):
         trust.calibrate_surrogate(model, tiny_db_path, progress=False)
     with pytest.raises(ValueError, match="scale"):

@@ -2,7 +2,7 @@
 
 import pytest
 
-from toolkit.static.dataset import DatasetConfig, generate
+from toolkit.static.dataset import DatasetConfig, build_database
 from toolkit.static.features import FeatureSpec
 from toolkit.static.surrogate import SurrogateConfig, train_surrogate
 
@@ -11,7 +11,7 @@ from toolkit.static.surrogate import SurrogateConfig, train_surrogate
 def db6(tmp_path_factory):
     """6 sagittal plans on the coarse face: 18 samples (~2 s)."""
     path = tmp_path_factory.mktemp("db6") / "db6.h5"
-    generate(path, DatasetConfig(resolution="coarse", plans=6), workers=0, progress=False)
+    build_database(path, DatasetConfig(resolution="coarse", plans=6), workers=0, progress=False)
     return path
 
 
@@ -20,14 +20,14 @@ def quick_model(db6, tmp_path_factory):
     """A tiny hard-boundary model trained for 2 epochs on ``db6``: for what holds whatever the
     model's accuracy (~1 s)."""
     config = SurrogateConfig(FeatureSpec("hard"), network="tiny", coarse_radii=True, epochs=2)
-    return train_surrogate(db6, tmp_path_factory.mktemp("model") / "quick", config, progress=False)
+    return train_surrogate(db6, config, out=tmp_path_factory.mktemp("model") / "quick", progress=False)
 
 
 @pytest.fixture(scope="session")
 def db100(tmp_path_factory):
     """34 sagittal plans on the coarse face: 102 samples (~15 s)."""
     path = tmp_path_factory.mktemp("surrogate") / "db.h5"
-    generate(path, DatasetConfig(resolution="coarse", plans=34), workers=0, progress=False)
+    build_database(path, DatasetConfig(resolution="coarse", plans=34), workers=0, progress=False)
     return path
 
 
@@ -38,4 +38,4 @@ def hard_model(db100, tmp_path_factory):
     the same model (it stops at epoch 68, ~40 s on an Intel Xeon)."""
     out = tmp_path_factory.mktemp("model") / "hard"
     config = SurrogateConfig(FeatureSpec("hard"), network="tiny", coarse_radii=True, epochs=200, lr=3e-3)
-    return train_surrogate(db100, out, config, progress=False)
+    return train_surrogate(db100, config, out=out, progress=False)

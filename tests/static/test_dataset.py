@@ -13,7 +13,7 @@ import pandas.testing as pd_testing
 import pytest
 
 from toolkit.common.database import DatabaseError, IncompleteDatabaseWarning
-from toolkit.static.dataset import DatasetConfig, StaticDatabase, generate, read_samples
+from toolkit.static.dataset import DatasetConfig, StaticDatabase, build_database, read_samples
 
 dataset_module = importlib.import_module("toolkit.static.dataset")
 CONFIG = DatasetConfig(resolution="coarse", subjects=2, plans=2, seed=3)
@@ -22,7 +22,7 @@ CONFIG = DatasetConfig(resolution="coarse", subjects=2, plans=2, seed=3)
 @pytest.fixture(scope="module")
 def small_db(tmp_path_factory):
     path = tmp_path_factory.mktemp("db") / "db.h5"
-    report = generate(path, CONFIG, workers=0, progress=False)
+    report = build_database(path, CONFIG, workers=0, progress=False)
     assert len(report.done) == 4 and not report.failed
     return path
 
@@ -90,7 +90,7 @@ def test_rerun_resumes_and_an_interrupted_run_gives_the_same_database(small_db, 
     samples and a warning "interrupted database ...: 2 of 4 simulations done; rerun ..."); the
     rerun does the other two, and the database then equals the uninterrupted one (every array
     identical) and opens without a warning."""
-    again = generate(small_db, CONFIG, workers=0, progress=False)
+    again = build_database(small_db, CONFIG, workers=0, progress=False)
     assert not again.done and len(again.skipped) == 4
 
     class Interrupting:
@@ -107,7 +107,7 @@ def test_rerun_resumes_and_an_interrupted_run_gives_the_same_database(small_db, 
 
     path = tmp_path / "cut.h5"
     with pytest.raises(KeyboardInterrupt):
-        generate(path, CONFIG, executor=Interrupting(), progress=False)
+        build_database(path, CONFIG, executor=Interrupting(), progress=False)
     from toolkit.common.database import Database
 
     assert len(Database(path, dataset_module.DATABASE_KIND, dataset_module.DATABASE_VERSION, CONFIG.to_dict())
@@ -119,7 +119,7 @@ def test_rerun_resumes_and_an_interrupted_run_gives_the_same_database(small_db, 
                                                        r"rerun `toolkit static dataset` with the same options"):
         partial = StaticDatabase.open(copy)
     assert len(partial) == 6
-    report = generate(path, CONFIG, workers=0, progress=False)
+    report = build_database(path, CONFIG, workers=0, progress=False)
     assert len(report.done) == 2 and len(report.skipped) == 2
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -138,7 +138,7 @@ def test_an_interrupt_before_any_simulation_leaves_a_database_that_says_so(tmp_p
     monkeypatch.setattr(dataset_module, "simulate_job", interrupted)
     path = tmp_path / "empty.h5"
     with pytest.raises(KeyboardInterrupt):
-        generate(path, DatasetConfig(resolution="coarse", plans=2), workers=0, progress=False)
+        build_database(path, DatasetConfig(resolution="coarse", plans=2), workers=0, progress=False)
     with pytest.raises(DatabaseError, match=r"interrupted database .*empty\.h5: 0 of 2 simulations done; rerun"):
         StaticDatabase.open(path)
 
@@ -151,7 +151,7 @@ def test_more_plans_and_subjects_grow_the_database_with_the_same_first_ones(smal
     grown = tmp_path / "grown.h5"
     shutil.copyfile(small_db, grown)
     bigger = DatasetConfig(resolution="coarse", subjects=2, plans=3, seed=3)
-    report = generate(grown, bigger, workers=0, progress=False)
+    report = build_database(grown, bigger, workers=0, progress=False)
     assert sorted(report.done) == ["s000-p00002", "s001-p00002"] and len(report.skipped) == 4
     a, b = StaticDatabase.open(small_db), StaticDatabase.open(grown)
     assert b.config == bigger and len(b) == 18
@@ -162,11 +162,11 @@ def test_more_plans_and_subjects_grow_the_database_with_the_same_first_ones(smal
         for key, motions in fresh.items():
             assert json.loads(f["records"][key].attrs["params"])["motions"] == motions
     # a smaller run afterwards keeps everything and the record of 3 plans
-    assert len(generate(grown, CONFIG, workers=0, progress=False).skipped) == 4
+    assert len(build_database(grown, CONFIG, workers=0, progress=False).skipped) == 4
     assert StaticDatabase.open(grown).config.plans == 3
     # a third subject: its face and its 3 plans are added, the rest kept
     more = DatasetConfig(resolution="coarse", subjects=3, plans=3, seed=3)
-    report = generate(grown, more, workers=0, progress=False)
+    report = build_database(grown, more, workers=0, progress=False)
     assert sorted(report.done) == [f"s002-p{p:05d}" for p in range(3)] and len(report.skipped) == 6
     c = StaticDatabase.open(grown)
     assert c.config == more and len(c) == 27 and sorted(c.points) == [0, 1, 2]
@@ -206,13 +206,13 @@ def test_failures_are_recorded_and_foreign_files_refused(tmp_path, monkeypatch):
     monkeypatch.setattr(dataset_module, "simulate_job", flaky)
     cfg = DatasetConfig(resolution="coarse", plans=2)
     path = tmp_path / "f.h5"
-    report = generate(path, cfg, workers=0, progress=False)
+    report = build_database(path, cfg, workers=0, progress=False)
     assert list(report.failed) == ["s000-p00001"] and "inverted elements (test)" in report.failed["s000-p00001"]
     table = read_samples(path)
     assert table.status.str.startswith("failed").sum() == 1
-    assert len(generate(path, cfg, workers=0, progress=False).skipped) == 2
+    assert len(build_database(path, cfg, workers=0, progress=False).skipped) == 2
     with pytest.raises(ValueError, match="increments: stored 3, asked 2"):
-        generate(path, DatasetConfig(resolution="coarse", plans=2, increments=2), workers=0, progress=False)
+        build_database(path, DatasetConfig(resolution="coarse", plans=2, increments=2), workers=0, progress=False)
     (tmp_path / "junk.h5").write_bytes(b"not hdf5 at all")
     with pytest.raises(DatabaseError, match="cannot read"):
         StaticDatabase.open(tmp_path / "junk.h5")
@@ -230,7 +230,7 @@ def test_dask_local_cluster_fills_the_same_database(small_db, tmp_path):
     path = tmp_path / "dask.h5"
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cl, \
             distributed.Client(cl) as client:
-        report = generate(path, CONFIG, executor=client, progress=False)
+        report = build_database(path, CONFIG, executor=client, progress=False)
     assert len(report.done) == 4
     a, b = StaticDatabase.open(small_db), StaticDatabase.open(path)
     for key in a.samples.key.unique():

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from toolkit.common.config_diff import IncompatibleError
-from toolkit.static.dataset import DatasetConfig, StaticDatabase, generate
+from toolkit.static.dataset import DatasetConfig, StaticDatabase, build_database
 from toolkit.static.features import FeatureSpec
 from toolkit.static.surrogate import Surrogate, SurrogateConfig, evaluate_surrogate, train_surrogate
 
@@ -66,7 +66,7 @@ def test_a_linear_prior_model_learns_what_the_influence_matrix_misses(db100, tmp
 
     config = SurrogateConfig(FeatureSpec("hard", linear_prior=True), network="tiny", coarse_radii=True, epochs=54,
                              lr=3e-3)
-    model = train_surrogate(db100, tmp_path / "prior", config, progress=False)
+    model = train_surrogate(db100, config, out=tmp_path / "prior", progress=False)
     db = StaticDatabase.open(db100)
     result = evaluate_surrogate(model, db)
     im = linear_prior(face_hex("coarse").mesh, db.types[0])
@@ -143,7 +143,7 @@ def test_a_model_refuses_what_it_was_not_built_for(db6, quick_model, tmp_path):
     that name the difference."""
     hard_model = quick_model
     paper = tmp_path / "paper.h5"
-    generate(paper, DatasetConfig(resolution="paper", plans=1), workers=0, progress=False)
+    build_database(paper, DatasetConfig(resolution="paper", plans=1), workers=0, progress=False)
     with pytest.raises(IncompatibleError, match="resolution: stored 'coarse', asked 'paper'.*--resolution coarse"):
         evaluate_surrogate(hard_model, paper)
     from toolkit.common import face_hex
@@ -155,7 +155,7 @@ def test_a_model_refuses_what_it_was_not_built_for(db6, quick_model, tmp_path):
     with pytest.raises(IncompatibleError, match="toolkit.impact"):
         _load_as(hard_model, tmp_path, "toolkit.impact.surrogate")
     with pytest.raises(ValueError, match="Poisson"):
-        train_surrogate(db6, tmp_path / "m", SurrogateConfig(FeatureSpec("explicit", material_channels=True)))
+        train_surrogate(db6, SurrogateConfig(FeatureSpec("explicit", material_channels=True)), out=tmp_path / "m")
     with pytest.raises(ValueError, match="lr_schedule = 'step'"):
         SurrogateConfig(lr_schedule="step")
     with pytest.raises(ValueError, match="split_seed = 1.5"):
@@ -218,11 +218,9 @@ def test_training_resumes_with_a_larger_budget_and_refuses_other_settings(db6, t
     budget is not part of what the model is), and refuses to resume with another learning rate."""
     config = SurrogateConfig(FeatureSpec("hard"), network="tiny", coarse_radii=True, epochs=1, lr=3e-3)
     out = tmp_path / "m"
-    first = train_surrogate(db6, out, config, progress=False)
+    first = train_surrogate(db6, config, out=out, progress=False)
     assert first.bundle.extra["history"]["epoch"] == [1]
-    longer = train_surrogate(db6, out, replace(config, epochs=2), resume=True,
-                             progress=False)
+    longer = train_surrogate(db6, replace(config, epochs=2), out=out, resume=True, progress=False)
     assert longer.bundle.extra["history"]["epoch"] == [1, 2]
     with pytest.raises(IncompatibleError, match="lr"):
-        train_surrogate(db6, out, replace(config, epochs=3, lr=1e-3), resume=True,
-                        progress=False)
+        train_surrogate(db6, replace(config, epochs=3, lr=1e-3), out=out, resume=True, progress=False)

@@ -203,9 +203,9 @@ def evaluate(args: argparse.Namespace) -> int:
     torch_threads(args)
     from toolkit.impact.dataset import load_database
     from toolkit.impact.evaluation import check_figure_choices, evaluate_surrogate, write_evaluation
-    from toolkit.impact.surrogate import ImpactSurrogate
+    from toolkit.impact.surrogate import Surrogate
 
-    model = ImpactSurrogate.load(args.model)
+    model = Surrogate.load(args.model)
     db = load_database(args.data)
     model.check_database(db)
     check_figure_choices(db, args.nodes, args.frames)
@@ -247,14 +247,14 @@ def predict(args: argparse.Namespace) -> int:
 
     check_output_dir(args.out)
     torch_threads(args)
-    from toolkit.impact.surrogate import ImpactSurrogate, predict_scene
+    from toolkit.impact.surrogate import Surrogate, predict_scene
 
     if args.tolerance is None:
         if args.coverage is not None or args.target is not None:
             raise ValueError("--coverage and --target go with --tolerance (an answer within a tolerance)")
     else:
         return _predict_within(args)
-    pred = predict_scene(ImpactSurrogate.load(args.model), args.velocity)
+    pred = predict_scene(Surrogate.load(args.model), args.velocity)
     with uninterruptible():
         pred.write(args.out, preview=not args.no_preview)
     s = pred.summary()
@@ -275,10 +275,10 @@ def predict(args: argparse.Namespace) -> int:
 
 def _predict_within(args: argparse.Namespace) -> int:
     from toolkit.impact.scene import Scene
-    from toolkit.impact.surrogate import ImpactSurrogate
+    from toolkit.impact.surrogate import Surrogate
     from toolkit.impact.trust import Calibration, answer
 
-    model = ImpactSurrogate.load(args.model)
+    model = Surrogate.load(args.model)
     calibration = Calibration.load(args.model)
     if args.coverage is not None:
         calibration = calibration.at(args.coverage)
@@ -318,10 +318,10 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
 
 def calibrate(args: argparse.Namespace) -> int:
     torch_threads(args)
-    from toolkit.impact.surrogate import ImpactSurrogate
+    from toolkit.impact.surrogate import Surrogate
     from toolkit.impact.trust import calibrate_surrogate
 
-    model = ImpactSurrogate.load(args.model)
+    model = Surrogate.load(args.model)
     cal = calibrate_surrogate(model, args.data, coverage=args.coverage, scale=args.scale, training=args.train_data)
     with uninterruptible():
         cal.save(args.model)

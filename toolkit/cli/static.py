@@ -143,7 +143,7 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
 
 def dataset(args: argparse.Namespace) -> int:
     from toolkit.common.outputs import check_output_file
-    from toolkit.static.dataset import DatasetConfig, generate
+    from toolkit.static.dataset import DatasetConfig, build_database
 
     check_output_file(args.out, what="database file")
     settings = dict(subjects=args.subjects, plans=args.plans, mode=args.mode, increments=args.increments,
@@ -161,7 +161,7 @@ def dataset(args: argparse.Namespace) -> int:
         config = DatasetConfig.for_mesh(args.mesh, bones(args.bone), args.condyles, args.units, args.axes, **settings)
         database_subject(config, 0)  # reads the mesh and places the plans: its errors before any output
     with dask_client(args.dask, args.workers) as client:
-        report = generate(args.out, config, executor=client, workers=args.workers, retry_failed=args.retry_failed)
+        report = build_database(args.out, config, executor=client, workers=args.workers, retry_failed=args.retry_failed)
     print(f"{len(report.done)} simulations done, {len(report.skipped)} already there, {len(report.failed)} failed "
           f"in {report.seconds:.1f} s -> {args.out}")
     for key, reason in list(report.failed.items())[:10]:
@@ -209,7 +209,7 @@ def train(args: argparse.Namespace) -> int:
         split="subjects" if args.test_subjects else "plans", test_subjects=tuple(args.test_subjects or ()),
         epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
         max_seconds=None if args.max_minutes is None else 60 * args.max_minutes, lr_schedule=args.lr_schedule)
-    model = train_surrogate(args.data, args.out, config, resume=args.resume)
+    model = train_surrogate(args.data, config, out=args.out, resume=args.resume)
     x = model.bundle.extra
     print(f"trained {config.features.variant} PointNet++ ({x['parameters']:,} parameters) on {x['split']['train']} "
           f"samples in {x['train_seconds']:.0f} s: best epoch {x['best_epoch']} ({x['stop_reason']}) -> {args.out}")

@@ -27,7 +27,7 @@ from toolkit.impact.scene import (
     yielding_scene,
 )
 from toolkit.impact.simulate import ImpactResult, SceneGeometryWarning, UnstableTimeStepError, build_model, simulate
-from toolkit.impact.surrogate import CONFIGS, ImpactSurrogate, SurrogateConfig, predict_scene, train_surrogate
+from toolkit.impact.surrogate import CONFIGS, Surrogate, SurrogateConfig, predict_scene, train_surrogate
 from toolkit.impact.trust import Calibration, TrustedAnswer, answer, calibrate_surrogate
 
 __all__ = [
@@ -52,7 +52,7 @@ __all__ = [
     "load_database",
     "ImpactDatabase",
     "train_surrogate",
-    "ImpactSurrogate",
+    "Surrogate",
     "SurrogateConfig",
     "CONFIGS",
     "evaluate_surrogate",

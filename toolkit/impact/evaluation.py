@@ -24,7 +24,7 @@ import numpy as np
 
 from toolkit.common import metrics
 from toolkit.impact.dataset import ImpactDatabase, load_database
-from toolkit.impact.surrogate import ImpactSurrogate, item_features, item_targets, split_items
+from toolkit.impact.surrogate import Surrogate, item_features, item_targets, split_items
 
 __all__ = ["Evaluation", "evaluate_surrogate", "plot_time_series", "plot_fields", "write_evaluation",
            "check_figure_choices"]
@@ -69,7 +69,7 @@ def field_metrics(predicted: np.ndarray, truth: np.ndarray) -> dict:
     }
 
 
-def evaluate_surrogate(surrogate: ImpactSurrogate, db: ImpactDatabase | str | os.PathLike,
+def evaluate_surrogate(surrogate: Surrogate, db: ImpactDatabase | str | os.PathLike,
                        split: str | None = None) -> Evaluation:
     """Score ``surrogate`` on the test items of ``split`` (default: the split it was trained
     with, rebuilt from its seed) of ``db``, which must be the database it was trained on (same
@@ -177,7 +177,7 @@ def plot_time_series(db: ImpactDatabase, ev: Evaluation, path, nodes=None):
     return fig
 
 
-def plot_fields(db: ImpactDatabase, surrogate: ImpactSurrogate, path, sim: int | None = None, frames=None):
+def plot_fields(db: ImpactDatabase, surrogate: Surrogate, path, sim: int | None = None, frames=None):
     """Front-view maps (x-z, mm) of FE, predicted and |error| displacement magnitude and von Mises
     stress of the whole face at ``frames`` (default: the middle and the last) of simulation
     ``sim`` (default: the fastest held-out one, else the fastest); each panel is titled with that
@@ -214,7 +214,7 @@ def plot_fields(db: ImpactDatabase, surrogate: ImpactSurrogate, path, sim: int |
     return fig
 
 
-def write_evaluation(ev: Evaluation, db: ImpactDatabase, surrogate: ImpactSurrogate, out: str | os.PathLike,
+def write_evaluation(ev: Evaluation, db: ImpactDatabase, surrogate: Surrogate, out: str | os.PathLike,
                      nodes=None, frames=None) -> Path:
     """Write ``metrics.json``, ``timeseries.png`` and ``fields.png`` to ``out``; both figures show
     the fastest simulation with test items of ``ev`` (one of ``test_velocities_mm_s``). ``nodes``

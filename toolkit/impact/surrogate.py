@@ -68,7 +68,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from toolkit.impact.scene import Scene
 
 __all__ = ["SurrogateConfig", "CONFIGS", "FEATURES", "INPUTS", "OUTPUTS", "MODEL_KIND", "SPLITS", "item_features",
-           "item_targets", "split_items", "train_surrogate", "ImpactSurrogate", "ExtrapolationWarning", "Prediction",
+           "item_targets", "split_items", "train_surrogate", "Surrogate", "ExtrapolationWarning", "Prediction",
            "predict_scene"]
 
 log = logging.getLogger(__name__)
@@ -249,7 +249,7 @@ def _loss(name: str):
 
 def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateConfig | str = "strong",
                     split: str = "random", *, out: str | os.PathLike | None = None, seed: int = 0,
-                    device: str = "cpu", resume: bool = False, progress: bool = True) -> ImpactSurrogate:
+                    device: str = "cpu", resume: bool = False, progress: bool = True) -> Surrogate:
     """Train a surrogate on an impact database.
 
     Parameters
@@ -265,7 +265,7 @@ def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateCon
 
     Returns
     -------
-    ImpactSurrogate (its ``bundle.extra`` holds ``train_seconds``, ``history``, ``split``)
+    Surrogate (its ``bundle.extra`` holds ``train_seconds``, ``history``, ``split``)
     """
     import torch
 
@@ -312,13 +312,13 @@ def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateCon
     bundle = ModelBundle(MODEL_KIND, asdict(cfg), db.signature(),
                          {"inputs": x_scaler, "outputs": y_scaler},
                          {k: v.detach().clone() for k, v in net.state_dict().items()}, extra)
-    surrogate = ImpactSurrogate(bundle, net, out)
+    surrogate = Surrogate(bundle, net, out)
     if out is not None:
         bundle.save(out)
     return surrogate
 
 
-class ImpactSurrogate:
+class Surrogate:
     """A trained impact surrogate: predicts displacement and von Mises time series of every node.
 
     Build with :func:`train_surrogate` or :meth:`load`; ``bundle`` holds config, scalers and the
@@ -333,7 +333,7 @@ class ImpactSurrogate:
         self.network.eval()
 
     @classmethod
-    def load(cls, directory: str | os.PathLike, config: str | SurrogateConfig | None = None) -> ImpactSurrogate:
+    def load(cls, directory: str | os.PathLike, config: str | SurrogateConfig | None = None) -> Surrogate:
         """Read a model directory. ``config`` (a name or SurrogateConfig), if given, must be the
         one the model was trained with; a mismatch is refused naming the differing settings."""
         from toolkit.impact.networks import build_network
@@ -419,7 +419,7 @@ class Prediction:
 
     Attributes: ``scene`` (the Scene predicted for), ``face`` (Mesh), ``times`` (F,) s,
     ``displacement`` (F, N, 3) mm, ``von_mises`` (F, N) MPa, ``wall_time_s``, ``extrapolation``
-    (:meth:`ImpactSurrogate.extrapolation` of the velocity; also in the summary), ``checks`` (the
+    (:meth:`Surrogate.extrapolation` of the velocity; also in the summary), ``checks`` (the
     values of :func:`toolkit.impact.checks.answer_checks`, ``passed`` False for an answer that
     must not be given as it is; also in the summary).
     """
@@ -477,7 +477,7 @@ class Prediction:
         return out
 
 
-def predict_scene(surrogate: ImpactSurrogate, velocity: float) -> Prediction:
+def predict_scene(surrogate: Surrogate, velocity: float) -> Prediction:
     """Predict the training database's scene at ``velocity`` mm/s on its face (rebuilt from the
     scene, and refused if it is not the face the model was trained on), with the answer's checks
     (:func:`toolkit.impact.checks.answer_checks`; the prediction's ``checks``)."""

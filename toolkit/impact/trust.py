@@ -161,7 +161,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
 
     Parameters
     ----------
-    model : :class:`~toolkit.impact.surrogate.ImpactSurrogate`
+    model : :class:`~toolkit.impact.surrogate.Surrogate`
     database : path of an impact database or an ImpactDatabase of the model's scene and face: its
         simulations at velocities outside the model's training velocities are the calibration
         cases (the held-out velocities of the training database, or a database built for it)
@@ -336,7 +336,7 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
 
     Parameters
     ----------
-    model : ImpactSurrogate (its directory must hold a calibration, or pass ``calibration``)
+    model : Surrogate (its directory must hold a calibration, or pass ``calibration``)
     velocity : ball velocity, mm/s (None: ``scene``'s)
     tolerance_mm : mm, > 0: the largest answer error (95th percentile of the nodal error over
         nodes and frames) accepted

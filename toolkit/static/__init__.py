@@ -2,7 +2,9 @@
 
 ``simulate(phantom, plan)`` runs the increments with mucosa and lip sliding; the pieces
 (plan, boundary types, assembly, constraints, solvers, Newton/contact) are importable
-for finer control. The answer within a tolerance, as in :mod:`toolkit.impact`:
+for finer control. The surrogate side, named as in :mod:`toolkit.impact`: ``build_database``
+(``DatasetConfig``) and ``load_database``, ``train_surrogate`` (PointNet++, ``SurrogateConfig``),
+``Surrogate.load``, ``evaluate_surrogate``, and the answer within a tolerance:
 ``calibrate_surrogate``, ``Calibration``, ``answer`` (the surrogate's or the FE's, a
 ``TrustedAnswer``). Imports nothing from :mod:`toolkit.impact`.
 """
@@ -11,6 +13,7 @@ from toolkit.common.fem.solvers import SolverError
 from toolkit.static.boundary import BoundaryConditions, BoundaryError, NodeType, knn_labels
 from toolkit.static.case import StaticCase, load_case
 from toolkit.static.constraints import Constraints
+from toolkit.static.dataset import DatasetConfig, StaticDatabase, build_database, load_database
 from toolkit.static.plan import (
     PHYSIOLOGICAL_RANGES,
     SEGMENTS,
@@ -30,6 +33,7 @@ from toolkit.static.simulate import (
     simulate,
 )
 from toolkit.static.stiffness import MaterialAssignment
+from toolkit.static.surrogate import Surrogate, SurrogateConfig, evaluate_surrogate, train_surrogate
 from toolkit.static.trust import Calibration, TrustedAnswer, answer, calibrate_surrogate
 
 __all__ = [
@@ -58,6 +62,14 @@ __all__ = [
     "solve_with_lip_contact",
     "ConvergenceError",
     "SolverError",
+    "DatasetConfig",
+    "build_database",
+    "load_database",
+    "StaticDatabase",
+    "train_surrogate",
+    "Surrogate",
+    "SurrogateConfig",
+    "evaluate_surrogate",
     "Calibration",
     "calibrate_surrogate",
     "answer",

@@ -32,7 +32,7 @@ parameters, largest input displacement, solver diagnostics), both read as DataFr
 Generation runs on any ``concurrent.futures``-style executor (local processes by default,
 a ``dask.distributed.Client`` for a cluster); CLI ``toolkit static dataset``.
 
-Resuming and growing: rerunning :func:`generate` on an existing file skips the finished
+Resuming and growing: rerunning :func:`build_database` on an existing file skips the finished
 simulations; after an interrupt the file already holds every finished one (and its
 ``/samples``), and :meth:`StaticDatabase.open` warns "interrupted database FILE: N of M
 simulations done". A larger ``plans`` grows the database: plan ``p`` of subject ``k`` depends
@@ -72,7 +72,8 @@ from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
 
-__all__ = ["DatasetConfig", "generate", "StaticDatabase", "read_samples", "subject_phantom", "database_subject",
+__all__ = ["DatasetConfig", "build_database", "load_database", "StaticDatabase", "read_samples", "subject_phantom",
+           "database_subject",
            "subject_mesh", "bone_increment", "plan_features",
            "jaw_side", "material_for", "simulate_job",
            "DATABASE_KIND", "DATABASE_VERSION", "PLAN_FEATURES"]
@@ -400,8 +401,8 @@ def _add_subjects(path: Path, config: DatasetConfig, first_subject: int) -> None
 _SHAPE_FIELDS = ("face_width", "face_height", "tissue_thickness", "lip_protrusion", "mouth_open", "nose_height")
 
 
-def generate(path: str | os.PathLike, config: DatasetConfig, *, executor=None, workers: int = 1,
-             retry_failed: bool = False, progress: bool = True) -> RunReport:
+def build_database(path: str | os.PathLike, config: DatasetConfig, *, executor=None, workers: int = 1,
+                   retry_failed: bool = False, progress: bool = True) -> RunReport:
     """Create or complete the database at ``path`` (resumes: finished simulations are skipped).
 
     Parameters
@@ -537,6 +538,12 @@ def read_samples(path: str | os.PathLike):
     return table
 
 
+def load_database(path: str | os.PathLike) -> StaticDatabase:
+    """The finished database at ``path`` in memory (:meth:`StaticDatabase.open`; the impact
+    workflow's :func:`toolkit.impact.load_database` alike)."""
+    return StaticDatabase.open(path)
+
+
 @dataclass(eq=False)
 class StaticDatabase:
     """A finished static database in memory, sample by sample.
@@ -569,7 +576,7 @@ class StaticDatabase:
 
     @classmethod
     def open(cls, path: str | os.PathLike) -> StaticDatabase:
-        """Read a database written by :func:`generate` (refuses other files, naming what is wrong)."""
+        """Read a database written by :func:`build_database` (refuses other files, naming what is wrong)."""
         import h5py
 
         path = Path(path)

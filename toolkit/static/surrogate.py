@@ -637,16 +637,17 @@ def _check_training_inputs(db, config: SurrogateConfig) -> None:
                          f"this one uses {TISSUE_NU} throughout")
 
 
-def train_surrogate(database, out, config: SurrogateConfig = SurrogateConfig(), *, resume: bool = False,
+def train_surrogate(database, config: SurrogateConfig = SurrogateConfig(), *, out, resume: bool = False,
                     progress: bool = True) -> Surrogate:
-    """Train a surrogate on a database and save it to the directory ``out``.
+    """Train a surrogate on a database and save it to the directory ``out`` (the impact
+    workflow's :func:`toolkit.impact.train_surrogate` takes the same first arguments).
 
     Parameters
     ----------
     database : path of a static database, or a StaticDatabase
-    out : model directory (``model.pt``, ``config.json``; ``checkpoint.pt`` while training)
     config : SurrogateConfig (default: hard boundary values with the linear prior, the most
         accurate measured; ``SurrogateConfig(features="paper")`` for the PointNet++ paper's inputs)
+    out : model directory (``model.pt``, ``config.json``; ``checkpoint.pt`` while training)
     resume : continue an interrupted training from ``out/checkpoint.pt``
 
     Returns
