@@ -488,7 +488,7 @@ LONG = {
 def finished(command: str, cwd: Path) -> tuple[int, int | None]:
     """(finished simulations or epochs on disk, the planned count when the file records it)."""
     if command.endswith("dataset"):
-        from toolkit.common.database import database_status
+        from toolkit.common.training.database import database_status
 
         db = cwd / "db.h5"
         if not db.exists():

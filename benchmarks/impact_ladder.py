@@ -114,7 +114,7 @@ def _mirror(resolution: str) -> np.ndarray | None:
     """Index of each sampled skin node's mirror image across x = 0 (the skin order of
     :func:`run_one`; the lips of the mouth slit, which share positions, kept apart), or None
     when the skin is not mirror-symmetric to 1e-6 mm."""
-    from toolkit.common.symmetry import mirror_index
+    from toolkit.common.analysis.symmetry import mirror_index
     from toolkit.impact import default_scene
     from toolkit.impact.simulate import face_mesh
 
@@ -141,7 +141,7 @@ def _agreement(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 
 def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
-    from toolkit.common.symmetry import mirrored
+    from toolkit.common.analysis.symmetry import mirrored
 
     df = df.copy()
     for c in ("reference", "d_max_displacement_mm", "d_max_von_mises_mpa", "rmse_displacement_mm",

@@ -67,8 +67,8 @@ def _scene(args):
 
 
 def stage_database(args, db_path: Path) -> pd.DataFrame:
-    from toolkit.common.database import read_failures, read_index
     from toolkit.common.papers import BALL_VELOCITIES
+    from toolkit.common.training.database import read_failures, read_index
     from toolkit.impact.dataset import build_database
 
     t0 = time.perf_counter()
@@ -168,7 +168,7 @@ def stage_models(args, db) -> pd.DataFrame:
 def _plot(table: pd.DataFrame, path: Path) -> None:
     from matplotlib.figure import Figure
 
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     panels = [("displacement_rmse_mm", "displacement RMSE (mm)"), ("displacement_pearson", "displacement Pearson"),
               ("von_mises_rmse_mpa", "von Mises RMSE (MPa)"), ("von_mises_pearson", "von Mises Pearson"),

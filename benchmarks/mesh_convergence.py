@@ -46,10 +46,10 @@ def run_one(size: float, order: int, resolution: str, folder: Path) -> None:
     """Mesh and simulate one size; write its fields and figures to ``folder``."""
     from own_face import skin_difference
 
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.analysis.surface_distance import closest_points, interpolate_on_surface
+    from toolkit.common.meshes.topology import boundary_faces
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.common.runtime import set_threads
-    from toolkit.common.surface_distance import closest_points, interpolate_on_surface
-    from toolkit.common.topology import boundary_faces
     from toolkit.mesh import mesh_face
     from toolkit.mesh.phantom import phantom_surfaces
     from toolkit.static import load_case

@@ -47,10 +47,10 @@ def main(argv=None):
 
     import h5py
 
-    from toolkit.common.database import read_failures
-    from toolkit.common.io import read, write
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.meshes.io import read, write
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.common.runtime import set_threads
+    from toolkit.common.training.database import read_failures
     from toolkit.mesh import mesh_face
     from toolkit.mesh.phantom import phantom_surfaces, write_surfaces
     from toolkit.static.dataset import DatasetConfig, build_database

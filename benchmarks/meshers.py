@@ -169,8 +169,8 @@ def closed_manifold(faces: np.ndarray) -> bool:
 
 
 def metrics(points, tets, ref_points, ref_triangles) -> dict:
-    from toolkit.common.quality import scaled_jacobian
-    from toolkit.common.surface_distance import closest_points
+    from toolkit.common.analysis.surface_distance import closest_points
+    from toolkit.common.meshes.quality import scaled_jacobian
     from toolkit.mesh.face import dihedral_angles
 
     sj = scaled_jacobian("tet4", points[tets])

@@ -22,11 +22,11 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, write_result
 
-from toolkit.common.materials import LinearElastic
-from toolkit.common.mesh import Mesh
-from toolkit.common.mixed_bar import mixed_bar
-from toolkit.common.phantom import block
-from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
+from toolkit.common.fem.materials import LinearElastic
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.topology import triangulated_boundary, wedges_from_hexes
+from toolkit.common.phantoms.mixed_bar import mixed_bar
+from toolkit.common.phantoms.phantom import block
 from toolkit.static.constraints import Constraints
 from toolkit.static.problem import StaticProblem
 from toolkit.static.stiffness import MaterialAssignment

@@ -1,7 +1,7 @@
 """The static simulation on a face whose mucosa lies off its bone, as segmented faces come.
 
 The paper phantom with its bone surfaces moved away from the tissue
-(:func:`toolkit.common.off_bone.off_bone`: mucosa 2.3 mm median, 4.3 mm at most off its bone)
+(:func:`toolkit.common.phantoms.off_bone.off_bone`: mucosa 2.3 mm median, 4.3 mm at most off its bone)
 runs a 5 mm mandibular advance, then plans drawn by :func:`toolkit.static.plan.sample_plans`
 in both modes (the lip-sliding paper's ranges), 3 increments, mucosa and lip sliding. Per plan:
 status, time, minimum corner scaled Jacobian over the increments, the release band used, and
@@ -34,7 +34,7 @@ from _provenance import RESULTS, write_result
 def _distances(face, plan, nodes, bc, x):
     """Distance of ``nodes`` at ``x`` to their bone surface moved by ``plan`` (extended beyond its
     rim), mm."""
-    from toolkit.common.surface_distance import beyond_rim_onto_plane, closest_points
+    from toolkit.common.analysis.surface_distance import beyond_rim_onto_plane, closest_points
 
     d = np.zeros(nodes.size)
     for s, name in enumerate(bc.segment_names):
@@ -98,8 +98,8 @@ def main(argv=None):
 
     from tqdm import tqdm
 
-    from toolkit.common.off_bone import off_bone
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.phantoms.off_bone import off_bone
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.common.runtime import set_threads
     from toolkit.static.plan import SurgicalPlan, sample_plans
 

@@ -45,7 +45,7 @@ SETS = ("bone", "skin", "fixed", "maxilla", "mandible", "mucosa_sliding", "lip_s
 def label_agreement(face_mesh, phantom_mesh) -> list[dict]:
     from scipy.spatial import cKDTree
 
-    from toolkit.common.topology import boundary_faces
+    from toolkit.common.meshes.topology import boundary_faces
 
     rows = []
     boundary = np.unique(boundary_faces("tet4", face_mesh.volume_cells[:, :4]))
@@ -78,7 +78,7 @@ def phantom_labels(face_mesh, phantom_mesh):
     ends it holds, as ``toolkit mesh`` extends its own sets."""
     from scipy.spatial import cKDTree
 
-    from toolkit.common.topology import boundary_faces
+    from toolkit.common.meshes.topology import boundary_faces
 
     ours, theirs = (np.unique(boundary_faces(m.volume_type, m.volume_cells)) for m in (face_mesh, phantom_mesh))
     nearest = theirs[cKDTree(phantom_mesh.points[theirs]).query(face_mesh.points[ours])[1]]
@@ -101,7 +101,7 @@ def _with_mid_edge_nodes(mesh, ids: np.ndarray) -> np.ndarray:
     """``ids`` (corner nodes) and, on a tet10 mesh, the mid-edge nodes of the boundary edges whose
     two ends are in ``ids``."""
     from toolkit.common.fem.reference import REFERENCE_ELEMENTS
-    from toolkit.common.topology import boundary_faces, unique_edges
+    from toolkit.common.meshes.topology import boundary_faces, unique_edges
     from toolkit.mesh.face import mid_edge_lookup
 
     if mesh.volume_type != "tet10":
@@ -114,8 +114,8 @@ def _with_mid_edge_nodes(mesh, ids: np.ndarray) -> np.ndarray:
 
 
 def skin_difference(face_mesh, u_face, phantom_mesh, u_phantom) -> dict:
-    from toolkit.common.surface_distance import closest_points, interpolate_on_surface
-    from toolkit.common.topology import boundary_faces
+    from toolkit.common.analysis.surface_distance import closest_points, interpolate_on_surface
+    from toolkit.common.meshes.topology import boundary_faces
 
     faces = boundary_faces("tet4", face_mesh.volume_cells[:, :4])
     skin = np.zeros(face_mesh.n_points, bool)
@@ -153,7 +153,7 @@ def main(argv=None):
                     help="keep the rows of --out (and its labels table) for the sizes, orders and labels not run now")
     args = ap.parse_args(argv)
 
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.common.runtime import set_threads
     from toolkit.mesh import DEFAULT, mesh_face
     from toolkit.mesh.phantom import phantom_surfaces

@@ -59,7 +59,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     from toolkit.common import write
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.common.runtime import set_threads
     from toolkit.impact import meshed_scene, yielding_scene
     from toolkit.mesh import mesh_face

@@ -2,7 +2,7 @@
 
 One problem for every code: a face meshed by ``toolkit mesh`` (:func:`toolkit.mesh.mesh_face`) in
 quadratic tetrahedra (tet10, straight edges), one homogeneous isotropic material (the toolkit's
-tissue, :class:`~toolkit.common.materials.LinearElastic`: E 0.003 MPa, nu 0.47, in every element:
+tissue, :class:`~toolkit.common.fem.materials.LinearElastic`: E 0.003 MPa, nu 0.47, in every element:
 ``material_assignment("linear", mesh)`` would make the lip muscle transversely isotropic), the face's FIXED
 nodes held and its MOVING (bone) nodes carried by the first of 3 increments of a plan's rigid
 motions, every other node free: a pure Dirichlet problem, no sliding constraints, no ties. Sizes:
@@ -58,7 +58,7 @@ each took 6 to 7 GiB and 6 min on a 2-core Intel Xeon, and its fill grows faster
 
 The ``neo-hookean`` problem (on ``--neo-hookean-sizes``) is one load step of the toolkit's
 compressible Neo-Hookean solid, ``W = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2``
-(:class:`~toolkit.common.materials.NeoHookean`, the same E and nu), on the same mesh and
+(:class:`~toolkit.common.fem.materials.NeoHookean`, the same E and nu), on the same mesh and
 prescribed displacements: ``StaticProblem.solve`` (Newton with an energy line search, AMG-CG
 solves) beside NGSolve's ``Variation`` of the same energy density and its ``solvers.Newton``
 (sparse Cholesky), each Newton started from the linear response (the tangent at rest). Only
@@ -117,7 +117,7 @@ TET10_EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
 def _phantom_face(size_mm: float):
     """The paper phantom's surfaces meshed by ``toolkit mesh`` at ``size_mm`` (tet10) and the first
     of 3 increments of the phantom's default plan on its bony segments."""
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.mesh import mesh_face
     from toolkit.mesh.phantom import phantom_surfaces
     from toolkit.static import load_case
@@ -235,7 +235,7 @@ def _rigid_modes(points: np.ndarray) -> np.ndarray:
 
 
 def _lame(E: float, nu: float) -> tuple[float, float]:
-    """``(lam, mu)`` MPa, as :func:`toolkit.common.materials.lame`."""
+    """``(lam, mu)`` MPa, as :func:`toolkit.common.fem.materials.lame`."""
     return E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
 
 
@@ -276,9 +276,9 @@ def _timed(fun, clock: _Stopwatch, stage: str):
 # ------------------------------------------------------------------ the codes
 def _toolkit(data: dict, method: str, problem: str, E: float, nu: float) -> tuple[np.ndarray, dict]:
     from toolkit.common.fem.coarse import reduced_coarse_space
+    from toolkit.common.fem.materials import LinearElastic, NeoHookean
     from toolkit.common.fem.solvers import LinearSolver
-    from toolkit.common.materials import LinearElastic, NeoHookean
-    from toolkit.common.mesh import Mesh
+    from toolkit.common.meshes.mesh import Mesh
     from toolkit.static import Constraints, StaticProblem
     from toolkit.static.problem import reduced_matrix
     from toolkit.static.stiffness import MaterialAssignment
@@ -723,7 +723,7 @@ def main(argv=None) -> pd.DataFrame:
         print(json.dumps(worker(problem, size, code, method, float(E), float(nu))), flush=True)
         return None
 
-    from toolkit.common.materials import LinearElastic
+    from toolkit.common.fem.materials import LinearElastic
 
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a terminated run stops its worker too
     tissue = LinearElastic()

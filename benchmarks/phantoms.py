@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, write_result
 
-from toolkit.common.phantom import ball, face_hex, face_tet
+from toolkit.common.phantoms.phantom import ball, face_hex, face_tet
 
 CASES = [
     *[("face_hex", r, lambda r=r: face_hex(r).mesh) for r in ("coarse", "paper", "fine")],

@@ -40,7 +40,7 @@ def _run(path: str, size: float, velocity: float):
         case = load_case(resolution="paper")
         return case.simulate
     if path == "static-meshed":
-        from toolkit.common.phantom import face_hex
+        from toolkit.common.phantoms.phantom import face_hex
         from toolkit.mesh import mesh_face
         from toolkit.mesh.phantom import phantom_surfaces
         from toolkit.static import load_case

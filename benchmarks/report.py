@@ -1155,7 +1155,7 @@ BLOCKS = {b.name: b for b in (
           "drawn over 20-50 mm/s, slower (10-15) and faster (55-70) balls, and the ball aimed 20 mm lower.",
           (SOURCES["surrogate_trust_impact"], SOURCES["surrogate_trust_impact_paper"]), _surrogate_trust_impact),
     Block("off_bone", "Mucosa off the bone",
-          "The paper phantom with its bone surfaces moved away from the tissue (`toolkit.common.off_bone`, "
+          "The paper phantom with its bone surfaces moved away from the tissue (`toolkit.common.phantoms.off_bone`, "
           "mucosa 2.3 mm median and 4.3 mm at most off its bone): a 5 mm mandibular advance and plans drawn by "
           "`sample_plans` in both modes, 3 increments, mucosa and lip sliding. The offset drift is the largest "
           "change of a sliding mucosa node's distance to its moved bone over the increments. Then, on the coarse "

@@ -52,7 +52,7 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=RESULTS / "segmentation_damage.csv")
     args = ap.parse_args(argv)
 
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.common.runtime import set_threads
     from toolkit.mesh import mesh_face
     from toolkit.mesh.damage import damaged

@@ -56,9 +56,9 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=RESULTS / "silent_cases.csv")
     args = ap.parse_args(argv)
 
-    from toolkit.common.io import read, write
-    from toolkit.common.mesh import Mesh
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.meshes.io import read, write
+    from toolkit.common.meshes.mesh import Mesh
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.mesh.phantom import PhantomSurfaces, phantom_surfaces, write_surfaces
 
     rows = []

@@ -29,7 +29,7 @@ from _provenance import RESULTS, write_result
 
 def skin_triangles(mesh):
     """Outward skin triangles ``(t, 3)`` of a phantom (boundary faces whose nodes are all skin)."""
-    from toolkit.common.topology import triangulated_boundary
+    from toolkit.common.meshes.topology import triangulated_boundary
 
     tris = triangulated_boundary(mesh.cells)
     skin = np.zeros(mesh.n_points, dtype=bool)
@@ -43,9 +43,9 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=RESULTS / "static_convergence.csv")
     args = ap.parse_args(argv)
 
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.analysis.surface_distance import interpolate_on_surface
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.common.runtime import set_threads
-    from toolkit.common.surface_distance import interpolate_on_surface
     from toolkit.static import default_plan, simulate
 
     set_threads(1)

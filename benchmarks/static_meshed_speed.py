@@ -42,7 +42,7 @@ HERE = Path(__file__).resolve().parent
 def prepare(face: str, size: float, order: int) -> Path:
     """Mesh ``face`` once (kept under ``WORK``); the folder holding ``face.vtu``, the bone
     surfaces and ``plan.json``."""
-    from toolkit.common.io import write
+    from toolkit.common.meshes.io import write
     from toolkit.mesh import mesh_face
 
     folder = WORK / f"{face}_{size:g}mm_order{order}"
@@ -58,7 +58,7 @@ def prepare(face: str, size: float, order: int) -> Path:
         marks = surfaces.report["landmarks_mm"]
         condyles = np.array([marks["condyle_left"], marks["condyle_right"]])
     else:
-        from toolkit.common.phantom import face_hex
+        from toolkit.common.phantoms.phantom import face_hex
         from toolkit.mesh.phantom import phantom_surfaces
         from toolkit.static import load_case
 
@@ -131,7 +131,7 @@ def main(argv=None):
     if args.worker:
         return worker(*args.worker)
     folder = prepare(args.face, args.size, args.order)
-    from toolkit.common.io import read
+    from toolkit.common.meshes.io import read
 
     skin = read(folder / "face.vtu").node_sets["skin"]
     rows = []

@@ -76,7 +76,7 @@ def main(argv=None):
 
     from tqdm import tqdm
 
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.common.runtime import set_threads
     from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH
     from toolkit.static.plan import dental_arch, jaw_closing, sample_plans

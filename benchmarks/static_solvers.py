@@ -52,7 +52,7 @@ def _meshed_face(name: str):
     if path.exists():
         mesh, bones = pickle.loads(path.read_bytes())
     else:
-        from toolkit.common.phantom import face_hex
+        from toolkit.common.phantoms.phantom import face_hex
         from toolkit.mesh import mesh_face
         from toolkit.mesh.phantom import phantom_surfaces
 
@@ -87,8 +87,8 @@ def dirichlet(mesh, bc, plan) -> tuple[np.ndarray, np.ndarray]:
 def _system(name: str):
     """Problem, reduction, reduced matrix and right-hand side, and 20 tie pairs for ``name``."""
     from toolkit.common import face_hex
-    from toolkit.common.face_variants import remeshed
-    from toolkit.common.phantom import block
+    from toolkit.common.phantoms.face_variants import remeshed
+    from toolkit.common.phantoms.phantom import block
     from toolkit.static import Constraints, StaticProblem, default_plan, material_assignment
     from toolkit.static.boundary import BoundaryConditions, NodeType
 
@@ -179,7 +179,7 @@ def main(argv=None) -> pd.DataFrame:
     from toolkit.common.runtime import set_threads
 
     set_threads(1)  # one thread is fastest on the 2-core AMD EPYC; worker processes inherit it
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.phantoms.phantom import face_hex
 
     rows = []
     with ProcessPoolExecutor(max_workers=1, max_tasks_per_child=1) as pool:

@@ -115,7 +115,7 @@ def _baselines(db, test_rows, train_rows) -> dict:
     """Influence matrix, POD regression, linear + POD residual regression, the sliding response and
     the sliding response + POD residual, fit on ``train_rows`` of ``db`` and scored on
     ``test_rows`` (the influence matrix and sliding response of each sample's own face)."""
-    from toolkit.common.metrics import nodal_errors
+    from toolkit.common.analysis.metrics import nodal_errors
     from toolkit.static.baselines import LinearPlusPOD, PODRegression
     from toolkit.static.dataset import PLAN_FEATURES, subject_phantom
     from toolkit.static.sliding_response import SlidingResponse
@@ -181,7 +181,7 @@ def _baselines(db, test_rows, train_rows) -> dict:
 
 
 def stage_models(args, paths: dict) -> pd.DataFrame:
-    from toolkit.common.metrics import wilcoxon_paired
+    from toolkit.common.analysis.metrics import wilcoxon_paired
     from toolkit.static.dataset import StaticDatabase
     from toolkit.static.features import FeatureSpec
     from toolkit.static.surrogate import SurrogateConfig
@@ -253,7 +253,7 @@ def stage_models(args, paths: dict) -> pd.DataFrame:
 def _plot(table: pd.DataFrame, path: Path) -> None:
     from matplotlib.figure import Figure
 
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     fig = Figure(figsize=(7, 4.5), layout="constrained")
     ax = fig.subplots()

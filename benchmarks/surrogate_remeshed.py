@@ -144,7 +144,7 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=RESULTS / "surrogate_remeshed.csv")
     args = ap.parse_args(argv)
 
-    from toolkit.common.phantom import FaceShape, face_hex
+    from toolkit.common.phantoms.phantom import FaceShape, face_hex
     from toolkit.common.runtime import set_threads
     from toolkit.static import load_case
     from toolkit.static.plan import sample_plans
@@ -156,7 +156,7 @@ def main(argv=None):
     face_file, bones = stage_face(args, phantom)
     face_model = stage_face_model(args, face_file, bones, phantom) if args.face_plans else None
     if face_model is not None:
-        from toolkit.common.database import read_index
+        from toolkit.common.training.database import read_index
 
         completed = len(read_index(face_database_path(args), "index"))
         face_method = f"PointNet++ trained on this face ({completed} of {args.face_plans} plans completed)"

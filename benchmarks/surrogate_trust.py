@@ -117,7 +117,7 @@ def auroc(flag: np.ndarray, score: np.ndarray) -> float:
 
 def extreme_shape(subjects: list[int]):
     """A FaceShape beyond every training subject in width, height and tissue thickness."""
-    from toolkit.common.phantom import FaceShape
+    from toolkit.common.phantoms.phantom import FaceShape
 
     shapes = [FaceShape() if s == 0 else FaceShape.sample(s) for s in subjects]
     values = {}
@@ -138,7 +138,7 @@ def beyond_ranges(factor_lo: float, factor_hi: float):
 
 
 def make_cases(args, subjects: list[int]) -> list[dict]:
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.static.dataset import subject_phantom
     from toolkit.static.plan import PHYSIOLOGICAL_RANGES, sample_plans
 
@@ -167,7 +167,7 @@ def make_cases(args, subjects: list[int]) -> list[dict]:
 
 
 def case_face(case):
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.static.dataset import subject_phantom
 
     return face_hex("paper", case["shape"]) if case["shape"] is not None else subject_phantom("paper", case["subject"])

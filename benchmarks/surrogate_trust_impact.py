@@ -181,7 +181,7 @@ def main(args, argv=None):
     cases_db = database(WORK / f"trust_impact_cases_{tag}.h5", case_v["in"] + case_v["slow"] + case_v["fast"], [], sc)
     aim_scene = sc.with_ball(target_offset=(0.0, 0.0, OTHER_AIM_MM))
     aim_db = database(WORK / f"trust_impact_aim_{tag}.h5", case_v["aim"], [], aim_scene)
-    from toolkit.common.database import read_failures
+    from toolkit.common.training.database import read_failures
     from toolkit.impact.dataset import velocity_key
 
     rows, warmed = [], {}

@@ -11,7 +11,7 @@ import pytest
 
 from toolkit.cli import build_parser, main
 from toolkit.cli._common import Parser
-from toolkit.common import io
+from toolkit.common.meshes import io
 
 
 def test_demo_writes_validated_phantoms(tmp_path):
@@ -317,7 +317,7 @@ def test_axes_option_reads_a_mesh_in_lps(tmp_path, monkeypatch, capsys):
     """A face written in LPS (y posterior, as DICOM) is refused before simulating with a remedy
     naming --axes LPS, and read back to the phantom's points with it."""
     from toolkit.common import face_hex
-    from toolkit.common.axes import mesh_to_toolkit
+    from toolkit.common.meshes.axes import mesh_to_toolkit
     from toolkit.static import default_plan
 
     ph = face_hex("coarse")

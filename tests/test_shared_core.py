@@ -30,10 +30,10 @@ from toolkit.common.fem import TET_EDGES
 from toolkit.common.fem.assembly import SparsePattern, add_local, element_tangent
 from toolkit.common.fem.jit import HAVE_NUMBA
 from toolkit.common.fem.kinematics import deformation_gradient, internal_force, kinematics
-from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic, isotropic_tangent
-from toolkit.common.mesh import Mesh
-from toolkit.common.phantom import block, face_tet
-from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
+from toolkit.common.fem.materials import LinearElastic, NeoHookean, TransverselyIsotropic, isotropic_tangent
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.topology import triangulated_boundary, wedges_from_hexes
+from toolkit.common.phantoms.phantom import block, face_tet
 from toolkit.impact.elements import _element_stiffness, tet_kinematics
 from toolkit.impact.plasticity import FACE_TABLE, J2Plasticity
 from toolkit.static.constraints import Constraints

@@ -1,9 +1,9 @@
-"""toolkit.common.symmetry: mirror images of a node set (the expected maps are written out)."""
+"""toolkit.common.analysis.symmetry: mirror images of a node set (the expected maps are written out)."""
 
 import numpy as np
 import pytest
 
-from toolkit.common.symmetry import mirror_index, mirrored
+from toolkit.common.analysis.symmetry import mirror_index, mirrored
 
 
 def test_mirror_index_pairs_points_and_tells_coincident_ones_apart_by_label():

@@ -126,7 +126,7 @@ def ladder() -> list[Path]:
 
 def own_face() -> list[Path]:
     """``toolkit mesh`` on the paper phantom's surfaces: its labels.png."""
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.mesh import mesh_face
     from toolkit.mesh.face import render_labels
     from toolkit.mesh.phantom import phantom_surfaces

@@ -76,7 +76,7 @@ def test_a_database_run_on_worker_processes(tmp_path):
     """Interrupted once its first simulation is stored (the Ctrl-C reaches the worker process
     too): the worker stops without a traceback or a leaked semaphore, and the database holds the
     simulations finished by then and says it is not complete."""
-    from toolkit.common.database import database_status
+    from toolkit.common.training.database import database_status
 
     args = ["static", "dataset", "--resolution", "coarse", "--plans", "8", "--workers", "1", "--out", "db.h5"]
     assert_interrupted(*interrupted(args, tmp_path, AFTER_FIRST_JOB))

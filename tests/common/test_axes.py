@@ -5,8 +5,9 @@ the conversion that fits; LPS and RAS convert back exactly, with cells that stay
 import numpy as np
 import pytest
 
-from toolkit.common import face_hex, face_tet, io
-from toolkit.common.axes import (
+from toolkit.common import face_hex, face_tet
+from toolkit.common.meshes import io
+from toolkit.common.meshes.axes import (
     AXES,
     AxesError,
     check_anatomical_axes,
@@ -14,8 +15,8 @@ from toolkit.common.axes import (
     mesh_to_toolkit,
     to_toolkit,
 )
-from toolkit.common.mixed_bar import mixed_bar
-from toolkit.common.phantom import FaceShape
+from toolkit.common.phantoms.mixed_bar import mixed_bar
+from toolkit.common.phantoms.phantom import FaceShape
 from toolkit.mesh.phantom import phantom_surfaces
 
 #: file coordinates -> the toolkit's, for a file that is: mirrored front to back (LPS), upside

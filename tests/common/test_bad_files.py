@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from toolkit.common import io
 from toolkit.common.errors import ToolkitError
-from toolkit.common.mesh import Mesh, MeshError
+from toolkit.common.meshes import io
+from toolkit.common.meshes.mesh import Mesh, MeshError
 from toolkit.impact.scene import Scene, SceneError
 from toolkit.static.plan import PlanError, SurgicalPlan
 
@@ -235,7 +235,7 @@ def test_bad_scene_files_name_file_table_key_and_expectation(tmp_path, case):
 def test_missing_set_is_a_toolkit_error_and_a_key_error(inp):
     """A node set the caller needs and the file lacks: the message lists the sets it has, unquoted,
     and the error is caught as a ToolkitError, a ValueError or (for lookups) a KeyError."""
-    from toolkit.common.mesh import MissingSetError
+    from toolkit.common.meshes.mesh import MissingSetError
 
     with pytest.raises(MissingSetError) as info:
         io.read(inp(INP), require_node_sets=["skin"])

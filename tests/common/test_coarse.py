@@ -8,9 +8,9 @@ import scipy.sparse as sp
 
 from toolkit.common.fem.coarse import corner_interpolation, reduced_coarse_space
 from toolkit.common.fem.factors import amg_hierarchy
-from toolkit.common.materials import LinearElastic
-from toolkit.common.phantom import face_tet
-from toolkit.common.topology import tet10_from_tet4
+from toolkit.common.fem.materials import LinearElastic
+from toolkit.common.meshes.topology import tet10_from_tet4
+from toolkit.common.phantoms.phantom import face_tet
 from toolkit.static.constraints import Constraints
 from toolkit.static.problem import StaticProblem, reduced_matrix
 from toolkit.static.stiffness import MaterialAssignment

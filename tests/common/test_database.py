@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 
 from toolkit.common.config_diff import IncompatibleError
-from toolkit.common.database import (
+from toolkit.common.training.database import (
     Database,
     DatabaseError,
     IncompleteDatabaseWarning,
@@ -276,7 +276,8 @@ def test_a_second_run_on_the_same_database_is_refused_while_the_first_runs(tmp_p
             import subprocess
             import sys
 
-            code = ("import sys; from toolkit.common.database import Database, Job, Record, database_status, run_jobs\n"
+            code = ("import sys\n"
+                    "from toolkit.common.training.database import Database, Job, Record, database_status, run_jobs\n"
                     f"db = Database({str(db.path)!r}, {KIND!r}, 1, {{'grid': 2}})\n"
                     "print(database_status(db.path).message())\n"
                     "try:\n    run_jobs(db, [Job('x9', {'x': 9})], print, workers=0, progress=False)\n"

@@ -9,17 +9,17 @@ import pytest
 
 import toolkit
 import toolkit.common
-from toolkit.common.axes import AxesError
 from toolkit.common.config_diff import IncompatibleError
-from toolkit.common.database import DatabaseError
 from toolkit.common.errors import AnswerError, ConvergenceError, ToolkitError
 from toolkit.common.fem.pardiso import PardisoError
 from toolkit.common.fem.solvers import SolverError
 from toolkit.common.fidelity import FidelityError
-from toolkit.common.io import UnitsError
-from toolkit.common.mesh import DegenerateElementError, InvertedElementError, Mesh, MeshError, MissingSetError
-from toolkit.common.mixed_bar import mixed_bar
+from toolkit.common.meshes.axes import AxesError
+from toolkit.common.meshes.io import UnitsError
+from toolkit.common.meshes.mesh import DegenerateElementError, InvertedElementError, Mesh, MeshError, MissingSetError
 from toolkit.common.outputs import OutputError
+from toolkit.common.phantoms.mixed_bar import mixed_bar
+from toolkit.common.training.database import DatabaseError
 from toolkit.impact.explicit import InstabilityError
 from toolkit.impact.plasticity import InvertedPointError
 from toolkit.impact.scene import BallSpec, SceneError

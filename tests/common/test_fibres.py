@@ -1,4 +1,4 @@
-"""The lip muscle's fibres on meshes that carry none (``toolkit.common.fibres``)."""
+"""The lip muscle's fibres on meshes that carry none (``toolkit.common.fem.fibres``)."""
 
 import warnings
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from toolkit.common import face_hex
-from toolkit.common.fibres import superior_fibres, with_lip_fibres
-from toolkit.common.mesh import Mesh
+from toolkit.common.fem.fibres import superior_fibres, with_lip_fibres
+from toolkit.common.meshes.mesh import Mesh
 
 
 def _tet(skin):

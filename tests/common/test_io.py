@@ -4,10 +4,10 @@ import meshio
 import numpy as np
 import pytest
 
-from toolkit.common import convert, io
-from toolkit.common.convert import skfem_node_map
-from toolkit.common.mixed_bar import mixed_bar
-from toolkit.common.phantom import ball, face_hex, face_tet
+from toolkit.common.meshes import convert, io
+from toolkit.common.meshes.convert import skfem_node_map
+from toolkit.common.phantoms.mixed_bar import mixed_bar
+from toolkit.common.phantoms.phantom import ball, face_hex, face_tet
 
 
 def _mixed():
@@ -137,7 +137,7 @@ def test_time_series_of_a_mixed_mesh_reads_back_with_meshio_and_toolkit(tmp_path
     """A hex8 + wedge6 + tet4 mesh is one XDMF Mixed topology: meshio reads the same points,
     cells (block by block) and point data as read_time_series; the node and element sets come
     back too."""
-    from toolkit.common import mixed_bar
+    from toolkit.common.phantoms.mixed_bar import mixed_bar
 
     mesh = mixed_bar()
     assert list(mesh.cells) == ["hex8", "wedge6", "tet4"]

@@ -5,7 +5,7 @@ and tangent against finite differences of the energy."""
 import numpy as np
 import pytest
 
-from toolkit.common.materials import (
+from toolkit.common.fem.materials import (
     VOIGT,
     LinearElastic,
     MaterialWarning,
@@ -130,7 +130,7 @@ def _random_F(scale=0.3):
 def test_closed_form_determinant_and_inverse_transpose_match_numpy():
     """The cofactor formula gives numpy's det F and F^-T on random matrices (relative 1e-12 of
     the largest entry), and a non-finite F^-T, not an exception, for a singular F."""
-    from toolkit.common.materials import det_and_inverse_transpose
+    from toolkit.common.fem.materials import det_and_inverse_transpose
 
     F = np.eye(3) + 0.4 * np.random.default_rng(3).normal(size=(500, 3, 3))
     det, inv_t = det_and_inverse_transpose(F)
@@ -269,8 +269,8 @@ def test_every_law_satisfies_the_material_contract(index):
     (truncation ~1e-12 of the curvature, round-off ~1e-10 of |P| / step) within 1e-6 of |dP/dF|."""
     import inspect
 
+    from toolkit.common.fem.materials import LinearMaterial, Material, StressResult
     from toolkit.common.fem.tangent import algorithmic_tangent
-    from toolkit.common.materials import LinearMaterial, Material, StressResult
 
     law, state = _laws()[index]
     assert isinstance(law, Material)

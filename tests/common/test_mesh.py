@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from toolkit.common.mesh import DegenerateElementError, InvertedElementError, Mesh, MeshError
-from toolkit.common.topology import boundary_faces, kuhn_tets, tet10_from_tet4
+from toolkit.common.meshes.mesh import DegenerateElementError, InvertedElementError, Mesh, MeshError
+from toolkit.common.meshes.topology import boundary_faces, kuhn_tets, tet10_from_tet4
 
 CUBE = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
 REG_TET = np.array([[1, 1, 1], [-1, 1, -1], [1, -1, -1], [-1, -1, 1]], float)  # regular, positive
@@ -138,7 +138,7 @@ def test_tet10_midside_nodes_are_shared_and_at_midpoints():
     P, _, corners = grid_hexes(2)
     tets = kuhn_tets(corners, P)
     p10, t10 = tet10_from_tet4(P, tets)
-    from toolkit.common.topology import TET_EDGES
+    from toolkit.common.meshes.topology import TET_EDGES
 
     assert np.allclose(p10[t10[:, 4:]], 0.5 * (p10[t10[:, TET_EDGES[:, 0]]] + p10[t10[:, TET_EDGES[:, 1]]]))
     # Euler: each unique edge once -> mid-node count equals the edge count of the tet4 mesh

@@ -1,4 +1,4 @@
-"""Tests for toolkit.common.metrics: closed forms, hand-computed values and scipy references."""
+"""Tests for toolkit.common.analysis.metrics: closed forms, hand-computed values and scipy references."""
 
 import numpy as np
 import pandas as pd
@@ -6,7 +6,7 @@ import pytest
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from toolkit.common.metrics import (
+from toolkit.common.analysis.metrics import (
     BOTH_LIPS_THRESHOLD_MM,
     SINGLE_LIP_THRESHOLD_MM,
     convex_part,

@@ -5,10 +5,10 @@ Units mm."""
 import numpy as np
 import pytest
 
-from toolkit.common.convert import to_skfem
-from toolkit.common.mesh import InvertedElementError, Mesh, MeshError
-from toolkit.common.mixed_bar import mixed_bar
-from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
+from toolkit.common.meshes.convert import to_skfem
+from toolkit.common.meshes.mesh import InvertedElementError, Mesh, MeshError
+from toolkit.common.meshes.topology import triangulated_boundary, wedges_from_hexes
+from toolkit.common.phantoms.mixed_bar import mixed_bar
 
 #: right prism on an equilateral triangle of side 2 mm, height 3 mm, Abaqus C3D6 order
 _S = np.sqrt(3.0)

@@ -8,8 +8,8 @@ import inspect
 import numpy as np
 
 from toolkit.common import papers
-from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
-from toolkit.common.phantom import ball_density
+from toolkit.common.fem.materials import LinearElastic, NeoHookean, TransverselyIsotropic
+from toolkit.common.phantoms.phantom import ball_density
 from toolkit.impact import plasticity, scene
 from toolkit.impact.dataset import PAPER_VELOCITIES
 from toolkit.static.plan import PHYSIOLOGICAL_RANGES
@@ -53,4 +53,4 @@ def test_plasticity_does_not_import_the_phantom_generator():
     tree = ast.parse(inspect.getsource(plasticity))
     imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-    assert "toolkit.common.phantom" not in imported
+    assert "toolkit.common.phantoms.phantom" not in imported

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from toolkit.common.phantom import (
+from toolkit.common.phantoms.phantom import (
     BOUNDARY_SETS,
     FaceShape,
     ball,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from toolkit.common.phantom import face_hex
+from toolkit.common.phantoms.phantom import face_hex
 
 
 def _image(path):
@@ -57,7 +57,7 @@ def test_render_mixed_mesh(tmp_path):
     """A mesh with hex8, wedge6 and tet4 blocks renders off-screen, coloured by a cell
     field over all blocks: a non-empty PNG that is not all background."""
     pytest.importorskip("pyvista")
-    from toolkit.common.mixed_bar import mixed_bar
+    from toolkit.common.phantoms.mixed_bar import mixed_bar
     from toolkit.common.plotting import render
 
     mesh = mixed_bar(2)

@@ -11,7 +11,7 @@ import pytest
 
 from toolkit.cli import main
 from toolkit.common.config_diff import IncompatibleError
-from toolkit.common.database import read_failures, read_index
+from toolkit.common.training.database import read_failures, read_index
 from toolkit.impact import simulate
 from toolkit.impact.dataset import build_database, default_held_out, load_database, velocity_key
 from toolkit.impact.simulate import face_mesh, fixed_nodes
@@ -141,7 +141,7 @@ def test_an_interrupted_database_is_usable_at_once_and_the_rerun_finishes_it(tmp
     import shutil
     import warnings
 
-    from toolkit.common.database import DatabaseError, IncompleteDatabaseWarning
+    from toolkit.common.training.database import DatabaseError, IncompleteDatabaseWarning
     from toolkit.impact import dataset
 
     real = dataset.SimulationWorker.__call__
@@ -176,7 +176,7 @@ def test_an_interrupted_database_is_usable_at_once_and_the_rerun_finishes_it(tmp
 
 
 def test_a_database_in_a_missing_folder_is_refused_before_any_simulation(tmp_path, monkeypatch):
-    from toolkit.common.database import DatabaseError
+    from toolkit.common.training.database import DatabaseError
     from toolkit.impact import dataset
 
     def never(self, params):

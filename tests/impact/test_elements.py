@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from toolkit.common.fem.kinematics import deformation_gradient, internal_force, lumped_mass
-from toolkit.common.mesh import Mesh
-from toolkit.common.phantom import block
-from toolkit.common.topology import tet10_from_tet4
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.topology import tet10_from_tet4
+from toolkit.common.phantoms.phantom import block
 from toolkit.impact.elements import _element_stiffness, critical_time_step, tet_kinematics
 from toolkit.impact.plasticity import J2Plasticity
 

@@ -20,9 +20,9 @@ import scipy.sparse.linalg as sla
 from scipy.optimize import brentq
 
 from toolkit.common.fem.kinematics import deformation_gradient, internal_force, lumped_mass
-from toolkit.common.mesh import Mesh
-from toolkit.common.phantom import block
-from toolkit.common.topology import tet10_from_tet4
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.topology import tet10_from_tet4
+from toolkit.common.phantoms.phantom import block
 from toolkit.impact import (
     BallSpec,
     FaceSpec,

@@ -9,7 +9,7 @@ import pytest
 
 from toolkit.cli import main
 from toolkit.common import face_hex
-from toolkit.common.io import read, write
+from toolkit.common.meshes.io import read, write
 from toolkit.impact import Scene
 from toolkit.impact.scene import SceneError, meshed_scene
 from toolkit.impact.simulate import build_model, face_mesh
@@ -103,7 +103,7 @@ def test_an_answer_within_a_tolerance_on_a_meshed_face(meshed, tmp_path, capsys)
     """A database, model and calibration on the meshed face (velocities 20-40 mm/s to train, nine
     others to calibrate): `predict --tolerance` answers by the LSTM at a loose tolerance, with an
     error estimate per node and frame, and by the quasi-static FE of the meshed face at a tight one."""
-    from toolkit.common.io import read_time_series
+    from toolkit.common.meshes.io import read_time_series
 
     scene = ["--mesh", str(meshed), "--ball", "rigid", "--duration", "0.05", *EXPLICIT,
              "--workers", "0"]

@@ -2,7 +2,7 @@
 
 ``summary.json`` says ``"status"``: ``"finished"``, ``"failed"`` (with the error and its reason)
 or ``"interrupted"`` (Ctrl-C), with the last finished frame; the frames written so far open with
-:func:`toolkit.common.io.read_time_series` and with meshio, also when the run stopped before its
+:func:`toolkit.common.meshes.io.read_time_series` and with meshio, also when the run stopped before its
 first frame; ``history.h5`` holds the finished frames.
 """
 
@@ -14,8 +14,8 @@ import meshio
 import numpy as np
 import pytest
 
-from toolkit.common.io import TimeSeriesWriter, read_time_series
-from toolkit.common.phantom import face_tet
+from toolkit.common.meshes.io import TimeSeriesWriter, read_time_series
+from toolkit.common.phantoms.phantom import face_tet
 from toolkit.impact import BallSpec, FaceSpec, Scene, simulate
 from toolkit.impact.explicit import InstabilityError
 

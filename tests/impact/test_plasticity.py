@@ -10,7 +10,7 @@ from scipy.integrate import quad
 from scipy.linalg import expm, logm
 from scipy.optimize import brentq
 
-from toolkit.common.materials import lame
+from toolkit.common.fem.materials import lame
 from toolkit.impact.plasticity import (
     BALL_TABLE,
     FACE_TABLE,

@@ -17,8 +17,8 @@ import scipy.sparse as sp
 
 from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.fem.jit import HAVE_NUMBA
+from toolkit.common.fem.materials import isotropic_tangent
 from toolkit.common.fem.tangent import algorithmic_tangent
-from toolkit.common.materials import isotropic_tangent
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact
 from toolkit.impact.plasticity import FACE_TABLE, HardeningTable, J2Plasticity
 from toolkit.impact.quasi_static import QuasiStaticOptions, StepContact

@@ -221,7 +221,7 @@ def test_the_default_scene_is_mirror_symmetric_about_the_midsagittal_plane(resol
     and moves in the plane x = 0. benchmarks/impact_ladder.py relies on this to compare a run
     with the mirror image of its reference: a deformable ball pressed into this face slides to
     one side or the other (a symmetry-breaking branch)."""
-    from toolkit.common.symmetry import mirror_index
+    from toolkit.common.analysis.symmetry import mirror_index
 
     built = build_model(default_scene().with_face(resolution=resolution).with_ball(rigid=True))
     face = built.face

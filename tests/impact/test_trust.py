@@ -11,7 +11,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from toolkit.cli import main  # noqa: E402
-from toolkit.common import io  # noqa: E402
+from toolkit.common.meshes import io  # noqa: E402
 from toolkit.common.training.conformal import conformal_rank  # noqa: E402
 from toolkit.impact import trust  # noqa: E402
 from toolkit.impact.dataset import build_database, load_database  # noqa: E402

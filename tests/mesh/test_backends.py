@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from toolkit.common.errors import ToolkitError
-from toolkit.common.quality import scaled_jacobian
+from toolkit.common.meshes.quality import scaled_jacobian
 from toolkit.mesh.backends import BACKENDS, Backend, MeshingError, available, tetrahedralize
 
 EDGE_MM = 20.0
@@ -67,7 +67,7 @@ def test_bad_input_is_refused_before_meshing(kwargs, match):
 
 @pytest.mark.parametrize("backend", list(BACKENDS))
 def test_read_only_input_is_meshed(backend):
-    """Surfaces from a :class:`~toolkit.common.mesh.Mesh` hold read-only arrays."""
+    """Surfaces from a :class:`~toolkit.common.meshes.mesh.Mesh` hold read-only arrays."""
     if not available()[backend]:
         pytest.skip(f"{BACKENDS[backend].module} is not installed ({BACKENDS[backend].install})")
     points, triangles = _cube()

@@ -7,8 +7,8 @@ every node set within 10 % of the clean surfaces' on the same mesh.
 import numpy as np
 import pytest
 
-from toolkit.common.mesh import Mesh
-from toolkit.common.phantom import face_hex, face_tet
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.phantoms.phantom import face_hex, face_tet
 from toolkit.mesh.damage import DAMAGE, damaged, flipped_in_patches, remeshed
 from toolkit.mesh.labels import label_nodes
 from toolkit.mesh.phantom import phantom_surfaces
@@ -86,7 +86,7 @@ def test_the_damage_is_what_it_says(surfaces):
 def test_a_kerf_leaves_a_gap_between_the_bones(damaged_bones):
     """The 1 mm osteotomy kerf leaves the Le Fort I and the distal bone at least 0.5 mm apart."""
     cut = damaged_bones["kerf"]
-    from toolkit.common.surface_distance import closest_points
+    from toolkit.common.analysis.surface_distance import closest_points
 
     gap = closest_points(cut["lefort"].points, cut["distal"].points, cut["distal"].cells["tri3"]).distance.min()
     assert gap >= 0.5 - 1e-9

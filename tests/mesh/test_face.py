@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from toolkit.common import face_hex, read
-from toolkit.common.topology import boundary_faces
+from toolkit.common.meshes.topology import boundary_faces
 from toolkit.mesh import DEFAULT
 from toolkit.mesh.face import FaceInputError, dihedral_angles, mesh_face
 from toolkit.mesh.mouth import MouthError, cut_mouth
@@ -183,8 +183,8 @@ def test_self_intersecting_tissue_is_meshed_by_the_default_backend(inputs):
     the tissue pushed 2 mm through the opposite side."""
     from scipy.spatial import cKDTree
 
-    from toolkit.common.mesh import Mesh
-    from toolkit.common.surface_distance import closest_points, vertex_normals
+    from toolkit.common.analysis.surface_distance import closest_points, vertex_normals
+    from toolkit.common.meshes.mesh import Mesh
 
     surface, bones, _ = inputs
     p = surface.points.copy()

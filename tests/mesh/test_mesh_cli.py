@@ -70,7 +70,7 @@ def test_bad_files_are_refused_before_meshing(files, tmp_path, capsys):
 @pytest.fixture(scope="module")
 def lps_files(tmp_path_factory):
     """The coarse phantom's surfaces and commissures as DICOM/ITK-SNAP write them (LPS: y posterior)."""
-    from toolkit.common.axes import mesh_to_toolkit, to_toolkit
+    from toolkit.common.meshes.axes import mesh_to_toolkit, to_toolkit
     from toolkit.mesh.phantom import PhantomSurfaces
 
     s = phantom_surfaces(face_hex("coarse"))

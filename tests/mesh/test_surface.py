@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from toolkit.common import face_hex, write
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
 from toolkit.mesh.surface import SurfaceError, closed_surface, read_tissue_surface, tissue_surface_of
 
 
@@ -93,7 +93,7 @@ def test_surface_in_metres_is_refused_then_read_with_units(tmp_path, surface):
     import meshio
 
     meshio.write(path, meshio.Mesh(write_stl.points, [("triangle", write_stl.cells["tri3"])]))
-    from toolkit.common.io import UnitsError
+    from toolkit.common.meshes.io import UnitsError
 
     with pytest.raises(UnitsError, match="metres.*--units m"):
         read_tissue_surface(path)

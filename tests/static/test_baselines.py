@@ -5,7 +5,7 @@ linear solution plus a POD regression of its residual)."""
 import numpy as np
 import pytest
 
-from toolkit.common.phantom import face_hex
+from toolkit.common.phantoms.phantom import face_hex
 from toolkit.static import default_plan, simulate
 from toolkit.static.baselines import InfluenceMatrix, LinearPlusPOD, PODRegression, quadratic_features
 from toolkit.static.boundary import NodeType

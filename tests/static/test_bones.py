@@ -7,10 +7,10 @@ import meshio
 import numpy as np
 import pytest
 
-from toolkit.common.io import write
-from toolkit.common.mesh import Mesh, MeshError
-from toolkit.common.phantom import face_hex
-from toolkit.common.surfaces import orient_surface, read_surface
+from toolkit.common.meshes.io import write
+from toolkit.common.meshes.mesh import Mesh, MeshError
+from toolkit.common.meshes.surfaces import orient_surface, read_surface
+from toolkit.common.phantoms.phantom import face_hex
 from toolkit.static import default_plan, simulate
 from toolkit.static.bones import segments_from_files
 
@@ -41,7 +41,7 @@ def test_files_give_the_phantom_result(phantom, tmp_path):
         meshio.write(path, meshio.Mesh(seg.surface.points, [("triangle", tris)]))
         files[name] = path
     write(tmp_path / "face.vtu", phantom.mesh)
-    from toolkit.common.io import read
+    from toolkit.common.meshes.io import read
 
     face = read(tmp_path / "face.vtu")
     segments = segments_from_files(face, files, {n: s.pivot for n, s in phantom.segments.items()})
@@ -103,7 +103,7 @@ def test_cli_runs_a_mesh_with_bone_files(phantom, tmp_path):
     displacement (result.vtu) and the post-operative face (postop.vtu), whose points are the
     reference points plus that displacement."""
     from toolkit.cli import main
-    from toolkit.common.io import read
+    from toolkit.common.meshes.io import read
 
     write(tmp_path / "face.inp", phantom.mesh)
     for name, stem in (("lefort", "maxilla"), ("distal", "mandible")):

@@ -4,8 +4,8 @@ models, the explicit one-hot encoding and the k-nearest-neighbour label transfer
 import numpy as np
 import pytest
 
-from toolkit.common.mesh import Mesh
-from toolkit.common.phantom import FaceShape, face_hex
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.phantoms.phantom import FaceShape, face_hex
 from toolkit.static.boundary import (
     BoundaryConditions,
     BoundaryError,
@@ -187,7 +187,7 @@ def test_knn_labels_transfers_phantom_types_to_itself(phantom, bc):
 def _two_segment_block(h: float):
     """A 40 x 10 x 10 mm hex block whose bottom face is attached to ``lefort`` for x < 20 and to
     ``distal`` from x = 20 on (node spacing ``h`` mm), with a fixed top face."""
-    from toolkit.common.phantom import BoneSegment, block
+    from toolkit.common.phantoms.phantom import BoneSegment, block
 
     n = round(40 / h)
     mesh = block([np.linspace(0, 40, n + 1), np.linspace(0, 10, round(10 / h) + 1), np.linspace(0, 10, 3)])

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from toolkit.common.io import write
-from toolkit.common.mesh import Mesh
-from toolkit.common.phantom import FacePhantom, FaceShape, face_hex
+from toolkit.common.meshes.io import write
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.phantoms.phantom import FacePhantom, FaceShape, face_hex
 from toolkit.static import StaticCase, SurgicalPlan, default_plan, load_case, simulate
 
 

@@ -6,8 +6,8 @@ moving plan, or with an inverted element is refused after it."""
 import numpy as np
 import pytest
 
-from toolkit.common.mesh import Mesh
-from toolkit.common.phantom import face_hex
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.phantoms.phantom import face_hex
 from toolkit.static.boundary import BoundaryConditions, NodeType
 from toolkit.static.checks import (
     MIN_CARRIED_MM2,

@@ -12,7 +12,7 @@ import numpy as np
 import pandas.testing as pd_testing
 import pytest
 
-from toolkit.common.database import DatabaseError, IncompleteDatabaseWarning
+from toolkit.common.training.database import DatabaseError, IncompleteDatabaseWarning
 from toolkit.static.dataset import DatasetConfig, StaticDatabase, build_database, read_samples
 
 dataset_module = importlib.import_module("toolkit.static.dataset")
@@ -108,7 +108,7 @@ def test_rerun_resumes_and_an_interrupted_run_gives_the_same_database(small_db, 
     path = tmp_path / "cut.h5"
     with pytest.raises(KeyboardInterrupt):
         build_database(path, CONFIG, executor=Interrupting(), progress=False)
-    from toolkit.common.database import Database
+    from toolkit.common.training.database import Database
 
     assert len(Database(path, dataset_module.DATABASE_KIND, dataset_module.DATABASE_VERSION, CONFIG.to_dict())
                .keys()) == 2

@@ -11,14 +11,14 @@ from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
 from toolkit.common.fem.assembly import SparsePattern
-from toolkit.common.fem.solvers import solve
-from toolkit.common.materials import (
+from toolkit.common.fem.materials import (
     LinearElastic,
     NeoHookean,
     TransverselyIsotropic,
     lame,
 )
-from toolkit.common.mesh import Mesh
+from toolkit.common.fem.solvers import solve
+from toolkit.common.meshes.mesh import Mesh
 from toolkit.static.constraints import Constraints
 from toolkit.static.problem import StaticProblem, solve_with_lip_contact
 from toolkit.static.stiffness import (

@@ -8,10 +8,10 @@ import pytest
 
 from toolkit.common.fem import reference_element
 from toolkit.common.fem.assembly import SparsePattern
-from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
-from toolkit.common.mesh import Mesh, MeshError
-from toolkit.common.mixed_bar import mixed_bar
-from toolkit.common.topology import triangulated_boundary, wedges_from_hexes
+from toolkit.common.fem.materials import LinearElastic, NeoHookean, TransverselyIsotropic
+from toolkit.common.meshes.mesh import Mesh, MeshError
+from toolkit.common.meshes.topology import triangulated_boundary, wedges_from_hexes
+from toolkit.common.phantoms.mixed_bar import mixed_bar
 from toolkit.static.constraints import Constraints
 from toolkit.static.problem import ConvergenceError, StaticProblem
 from toolkit.static.stiffness import (

@@ -1,13 +1,13 @@
 """Mucosa off the bone, as segmented faces come: the phantom with its bone surfaces moved away
-from the tissue (:func:`toolkit.common.off_bone.off_bone`), and the sliding constraint that
+from the tissue (:func:`toolkit.common.phantoms.off_bone.off_bone`), and the sliding constraint that
 keeps each mucosa node at its pre-operative distance from its moving bone. Units mm."""
 
 import numpy as np
 import pytest
 
-from toolkit.common.off_bone import off_bone
-from toolkit.common.phantom import face_hex
-from toolkit.common.surface_distance import beyond_rim_onto_plane, closest_points
+from toolkit.common.analysis.surface_distance import beyond_rim_onto_plane, closest_points
+from toolkit.common.phantoms.off_bone import off_bone
+from toolkit.common.phantoms.phantom import face_hex
 from toolkit.static.boundary import NodeType
 from toolkit.static.plan import default_plan
 from toolkit.static.simulate import SimulationOptions, simulate

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from toolkit.common.phantom import face_hex
+from toolkit.common.phantoms.phantom import face_hex
 from toolkit.static.plan import (
     PHYSIOLOGICAL_RANGES,
     SEGMENTS,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from toolkit.common.phantom import face_hex
+from toolkit.common.phantoms.phantom import face_hex
 from toolkit.static.boundary import BoundaryConditions, NodeType
 from toolkit.static.pointnet2 import (
     BoundaryTargets,

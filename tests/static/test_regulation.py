@@ -4,7 +4,7 @@ only the nodes no boundary condition holds, keeping boundary nodes on their surf
 import numpy as np
 import pytest
 
-from toolkit.common.phantom import block
+from toolkit.common.phantoms.phantom import block
 from toolkit.static.regulation import element_quality, regulate
 
 
@@ -142,7 +142,7 @@ def test_a_folded_hexahedron_beside_tet10_blocks_is_regulated_without_a_quadrati
     """A mesh of tet10 and hex8 blocks: a hexahedron folded by a node that may not move (pushed
     25 mm through its 10 mm cell) has no quadratic map to descend on, so regulation keeps stage
     one's answer instead of failing; the held node stays where it was put."""
-    from toolkit.common.mesh import Mesh
+    from toolkit.common.meshes.mesh import Mesh
 
     tets = block([np.linspace(0, 20, 3)] * 3, "tet10")
     hexes = block([np.linspace(0, 30, 4)] * 3, "hex8")

@@ -9,8 +9,8 @@ import warnings
 import numpy as np
 import pytest
 
-from toolkit.common.face_variants import jittered, remeshed
-from toolkit.common.phantom import face_hex
+from toolkit.common.phantoms.face_variants import jittered, remeshed
+from toolkit.common.phantoms.phantom import face_hex
 from toolkit.static import NodeType, RigidMotion, SimulationOptions, SurgicalPlan, default_plan, simulate
 from toolkit.static.plan import PlanRangeWarning, sample_plans
 from toolkit.static.simulate import SimulationError
@@ -203,7 +203,7 @@ def test_mucosa_past_the_edge_of_a_bone_is_not_gathered_on_the_edge(paper):
     whatever the release band, 10/15/20 mm). Projected onto the plane of the
     edge triangle instead, they lie beyond the edge on the extended surface, and the linear run
     has nodes there: each sits on that plane (normal offset < 1e-6 mm) and off the edge line."""
-    from toolkit.common.surface_distance import beyond_rim_onto_plane, closest_points
+    from toolkit.common.analysis.surface_distance import beyond_rim_onto_plane, closest_points
 
     plan = sample_plans(12, 0, "full", phantom=paper, max_jaw_closing_mm=10.0)[11]
     result = simulate(paper, plan)

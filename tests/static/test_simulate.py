@@ -8,9 +8,9 @@ import warnings
 import numpy as np
 import pytest
 
-from toolkit.common.materials import LinearElastic
-from toolkit.common.phantom import face_hex
-from toolkit.common.surface_distance import closest_points
+from toolkit.common.analysis.surface_distance import closest_points
+from toolkit.common.fem.materials import LinearElastic
+from toolkit.common.phantoms.phantom import face_hex
 from toolkit.static.boundary import BoundaryConditions, NodeType
 from toolkit.static.plan import (
     PlanRangeWarning,
@@ -200,8 +200,8 @@ def test_points_beyond_the_rim_of_an_open_surface_go_onto_the_edge_plane():
     """Unit square z = 0 in two triangles: a point above the inside projects straight down
     (unchanged closest point); a point past the edge x = 1 projects onto the plane z = 0 at
     its own x, y (not onto the edge line); past the corner as well."""
-    from toolkit.common.surface_distance import beyond_rim_onto_plane, closest_points
-    from toolkit.common.topology import rim_edges
+    from toolkit.common.analysis.surface_distance import beyond_rim_onto_plane, closest_points
+    from toolkit.common.meshes.topology import rim_edges
 
     pts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
     tris = np.array([[0, 1, 2], [0, 2, 3]])

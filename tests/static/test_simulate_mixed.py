@@ -7,9 +7,9 @@ import meshio
 import numpy as np
 
 from toolkit.cli import main
-from toolkit.common import io
-from toolkit.common.face_variants import remeshed
-from toolkit.common.phantom import face_hex
+from toolkit.common.meshes import io
+from toolkit.common.phantoms.face_variants import remeshed
+from toolkit.common.phantoms.phantom import face_hex
 from toolkit.static.plan import default_plan
 
 

@@ -5,7 +5,7 @@ Schur complement instead of the FE's elimination and refactorization per active 
 import numpy as np
 import pytest
 
-from toolkit.common.phantom import face_hex
+from toolkit.common.phantoms.phantom import face_hex
 from toolkit.static import default_plan
 from toolkit.static.baselines import InfluenceMatrix
 from toolkit.static.constraints import Constraints

@@ -7,6 +7,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from toolkit.common.fem.factory import FactorMaker
+from toolkit.common.fem.materials import LinearElastic, NeoHookean
 from toolkit.common.fem.solvers import (
     AUTO_DIRECT_MAX_ENTRIES,
     REUSED_DIRECT_MAX_ENTRIES,
@@ -14,8 +15,7 @@ from toolkit.common.fem.solvers import (
     choose_method,
     estimate_factor_entries,
 )
-from toolkit.common.materials import LinearElastic, NeoHookean
-from toolkit.common.phantom import block, face_hex
+from toolkit.common.phantoms.phantom import block, face_hex
 from toolkit.static.constraints import Constraints
 from toolkit.static.problem import StaticProblem
 from toolkit.static.stiffness import MaterialAssignment

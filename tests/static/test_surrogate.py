@@ -59,8 +59,8 @@ def test_a_linear_prior_model_learns_what_the_influence_matrix_misses(db100, tmp
     prior's, exactly 0 and the prescribed value; predicting without the prior is refused.
     (Measured: 0.23 mm against 0.49 mm for the influence matrix, 0.46 mm for the same network
     without the prior (``hard_model``), and 1.47 mm mean displacement.)"""
-    from toolkit.common.metrics import nodal_errors
-    from toolkit.common.phantom import face_hex
+    from toolkit.common.analysis.metrics import nodal_errors
+    from toolkit.common.phantoms.phantom import face_hex
     from toolkit.static.features import encode
     from toolkit.static.surrogate import linear_prior
 
@@ -192,7 +192,7 @@ def test_cli_dataset_train_evaluate_predict(tmp_path):
     `toolkit static simulate` (reference mesh with displacement, post-operative face,
     summary with the wall time)."""
     from toolkit.cli import main
-    from toolkit.common import io
+    from toolkit.common.meshes import io
 
     db, model, ev, pred = tmp_path / "db.h5", tmp_path / "model", tmp_path / "eval", tmp_path / "pred"
     assert main(["static", "dataset", "--resolution", "coarse", "--plans", "3", "--workers", "0",

@@ -92,7 +92,7 @@ def add_units(parser: argparse.ArgumentParser) -> None:
                         help="length unit of the --mesh file, converted to mm")
 
 
-#: :data:`toolkit.common.axes.AXES` (named here so that building the parser imports no numerical
+#: :data:`toolkit.common.meshes.axes.AXES` (named here so that building the parser imports no numerical
 #: library; a test keeps them equal)
 AXES = ("toolkit", "LPS", "RAS")
 

@@ -97,7 +97,7 @@ def _record_command(args, argv: list[str]) -> None:
     import shlex
     from pathlib import Path
 
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     out = getattr(args, "out", None)
     path = Path(out) / "summary.json" if out is not None else None

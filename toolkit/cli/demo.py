@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _write_phantom(name: str, kind: str, resolution: str, out: Path, render: bool) -> dict:
     """Build, check and write one phantom (.inp, .vtu, optionally .png); its summary row."""
-    from toolkit.common.io import write
+    from toolkit.common.meshes.io import write
 
     t0 = time.perf_counter()
     mesh = build(kind, resolution)
@@ -92,7 +92,7 @@ def _impact(out: Path, preview: bool):
 
 def _preview_sets(mesh) -> dict:
     """The boundary node sets of a phantom (or the ball's surface), for previews."""
-    from toolkit.common.phantom import BOUNDARY_SETS
+    from toolkit.common.phantoms.phantom import BOUNDARY_SETS
 
     names = [n for n in BOUNDARY_SETS if n in mesh.node_sets]
     names = names or [n for n in ("fixed", "surface") if n in mesh.node_sets]

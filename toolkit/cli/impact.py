@@ -118,9 +118,9 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def dataset(args: argparse.Namespace) -> int:
-    from toolkit.common.database import read_index
     from toolkit.common.outputs import check_output_file
     from toolkit.common.papers import BALL_VELOCITIES
+    from toolkit.common.training.database import read_index
     from toolkit.impact.dataset import build_database
     from toolkit.impact.scene import yielding_scene
 

@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from toolkit.common.io import write
+    from toolkit.common.meshes.io import write
     from toolkit.common.outputs import check_output_file
 
     check_output_file(args.out, what="mesh file")
@@ -47,7 +47,7 @@ def face_shape(seed: int | None, mouth_open: float | None):
     ``--mouth-open`` (mm; None: the shape's own)."""
     from dataclasses import replace
 
-    from toolkit.common.phantom import FaceShape
+    from toolkit.common.phantoms.phantom import FaceShape
 
     shape = FaceShape.sample(seed) if seed is not None else FaceShape()
     return shape if mouth_open is None else replace(shape, mouth_open=mouth_open)
@@ -55,7 +55,7 @@ def face_shape(seed: int | None, mouth_open: float | None):
 
 def build(kind: str, resolution: str, shape=None):
     """The mesh of a phantom ``kind`` (one of :data:`KINDS`)."""
-    from toolkit.common.phantom import ball, face_hex, face_tet
+    from toolkit.common.phantoms.phantom import ball, face_hex, face_tet
 
     if kind == "face-hex":
         return face_hex(resolution, shape).mesh

@@ -403,7 +403,7 @@ def _coarse_radii(path) -> bool:
     :data:`COARSE_NODES` nodes (a database that does not say is the paper phantom's)."""
     import json
 
-    from toolkit.common.database import Database
+    from toolkit.common.training.database import Database
 
     config = json.loads(Database.open_attrs(Path(path)).get("config", "{}"))
     if config.get("mesh") is None:

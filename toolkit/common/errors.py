@@ -30,7 +30,7 @@ class                       raised when                            builtin base
 
 The classes live beside the code that raises them; those raised in several places live here:
 :class:`ConvergenceError` and :class:`AnswerError` (both workflows) and the mesh errors
-(:mod:`toolkit.common.mesh`, :mod:`toolkit.common.quality`, :mod:`toolkit.common.convert`, which
+(:mod:`toolkit.common.meshes.mesh`, :mod:`toolkit.common.meshes.quality`, :mod:`toolkit.common.meshes.convert`, which
 also export them).
 """
 

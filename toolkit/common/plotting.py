@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.convert import to_pyvista
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.convert import to_pyvista
+from toolkit.common.meshes.mesh import Mesh
 
 __all__ = ["render", "plot_curves", "plot_tradeoff", "CAMERAS", "SET_COLOURS", "set_colour"]
 
@@ -116,7 +116,7 @@ def render(
     -------
     Path of the PNG.
     """
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
     from toolkit.common.runtime import configure_headless_rendering
 
     if camera not in CAMERAS:
@@ -252,7 +252,7 @@ def plot_tradeoff(
 
 
 def _save(fig, path) -> None:
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     path = Path(path)
     with atomic_path(path) as tmp:

@@ -7,7 +7,7 @@ For every output frame of a whole-face answer (displacement ``(F, N, 3)`` mm, vo
 - the nodes the scene holds (:func:`toolkit.impact.simulate.fixed_nodes`) stay where they are (to
   :data:`FIXED_TOLERANCE_MM`);
 - no element is inverted: the smallest scaled Jacobian of the deformed face over all frames is
-  above zero (:func:`toolkit.common.quality.scaled_jacobian`; for tet10 the corner tetrahedron
+  above zero (:func:`toolkit.common.meshes.quality.scaled_jacobian`; for tet10 the corner tetrahedron
   scaled by the curved element's Jacobian ratio);
 - the von Mises stress is nowhere negative.
 
@@ -25,7 +25,7 @@ import time
 import numpy as np
 
 from toolkit.common.errors import AnswerError
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
 
 __all__ = ["answer_checks", "check_answer", "min_scaled_jacobian_over_frames", "scaled_jacobian_per_frame",
            "FIXED_TOLERANCE_MM"]

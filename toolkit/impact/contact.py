@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from toolkit.common.surface_distance import barycentric, closest_points
+from toolkit.common.analysis.surface_distance import barycentric, closest_points
 
 __all__ = [
     "ContactStep",
@@ -516,7 +516,7 @@ def orient_outward(triangles, points, inside_point) -> np.ndarray:
     A triangle ``(a, b, c)`` has the normal ``(b - a) x (c - a)``; it is flipped to ``(a, c, b)``
     when that normal points towards ``inside_point`` (seen from its centroid). Exact for
     surfaces that are star-shaped about ``inside_point`` (a ball and its centre); boundary faces
-    from :func:`toolkit.common.topology.boundary_faces` of positively oriented cells are already
+    from :func:`toolkit.common.meshes.topology.boundary_faces` of positively oriented cells are already
     outward and need no fixing.
 
     Parameters
@@ -545,7 +545,7 @@ def orient_outward(triangles, points, inside_point) -> np.ndarray:
 
 def _contact_weights(p, a, b, c) -> np.ndarray:
     """Barycentric weights (n, 3) of points ``p`` on triangles ``(a, b, c)``
-    (:func:`~toolkit.common.surface_distance.barycentric`), clipped to >= 0 and normalised to
+    (:func:`~toolkit.common.analysis.surface_distance.barycentric`), clipped to >= 0 and normalised to
     sum to 1 (the points lie on the triangles up to round-off)."""
     weights = np.clip(barycentric(p, np.stack([a, b, c], axis=1)), 0.0, None)
     return weights / weights.sum(axis=1, keepdims=True)
@@ -556,7 +556,7 @@ class SurfaceContact(_PenaltyContact):
 
     Orientation: ``master_triangles`` must be wound counter-clockwise seen from outside the master
     body, i.e. ``(b - a) x (c - a)`` points out of it (what
-    :func:`toolkit.common.topology.boundary_faces` returns for positively oriented tets; use
+    :func:`toolkit.common.meshes.topology.boundary_faces` returns for positively oriented tets; use
     :func:`orient_outward` otherwise). For a tet10 ball pass the corner nodes of its boundary faces.
 
     Per call: the closest point ``p`` of every candidate slave ``x`` on the master surface (exact

@@ -16,7 +16,7 @@ and once (``/shared``): the face's reference points ``(N, 3)`` mm (the items' in
 positions), its cells, a ``fixed`` mask (nodes held by the scene) and ``skin``/``bone``
 masks, and the scene itself as TOML. Items for learning are the node time series
 (inputs per frame: initial position, imposed velocity, time, fixed flag). The file is the
-resumable :class:`toolkit.common.database.Database` (tag ``toolkit.impact.database``):
+resumable :class:`toolkit.common.training.database.Database` (tag ``toolkit.impact.database``):
 finished simulations survive a crash (after a Ctrl-C or a failure the ``.h5`` alone holds
 them all), failures are recorded with their reason, and a rerun with the same scene does
 only what is missing; more velocities grow the database. :func:`load_database` warns
@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from toolkit.common import papers
-from toolkit.common.database import (
+from toolkit.common.training.database import (
     Database,
     Job,
     Record,
@@ -92,7 +92,7 @@ def mesh_checksum(points: np.ndarray) -> str:
 @dataclass(frozen=True)
 class SimulationWorker:
     """Picklable worker: runs the base ``scene`` (as a dict) at ``params["velocity"]`` mm/s and
-    returns the fields as a :class:`~toolkit.common.database.Record` (float32 fields)."""
+    returns the fields as a :class:`~toolkit.common.training.database.Record` (float32 fields)."""
 
     scene: dict
 

@@ -27,9 +27,9 @@ import numpy as np
 
 from toolkit.common.fem.assembly import element_tangent
 from toolkit.common.fem.kinematics import BlockKinematics, kinematics
+from toolkit.common.fem.materials import isotropic_tangent
 from toolkit.common.fem.reference import reference_element
-from toolkit.common.materials import isotropic_tangent
-from toolkit.common.mesh import InvertedElementError, Mesh
+from toolkit.common.meshes.mesh import InvertedElementError, Mesh
 
 __all__ = ["tet_kinematics", "critical_time_step"]
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.kinematics import BlockKinematics, deformation_gradient, internal_force
-from toolkit.common.materials import von_mises
+from toolkit.common.fem.materials import von_mises
 
 __all__ = ["Body", "ExplicitModel", "Frame", "InstabilityError", "EnergyBalanceWarning", "run_explicit", "Energies",
            "moving_sphere_contact", "ContactResponse"]

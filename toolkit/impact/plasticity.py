@@ -44,8 +44,8 @@ import numpy as np
 from toolkit.common import papers
 from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.jit import njit, use_jit
+from toolkit.common.fem.materials import IsotropicModuli, _check, von_mises
 from toolkit.common.fem.tangent import algorithmic_tangent
-from toolkit.common.materials import IsotropicModuli, _check, von_mises
 
 __all__ = [
     "HardeningTable",

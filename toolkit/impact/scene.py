@@ -26,7 +26,7 @@ import numpy as np
 from toolkit.common import papers
 from toolkit.common.errors import ToolkitError
 from toolkit.common.papers import BALL_YIELD, FACE_YIELD
-from toolkit.common.phantom import BALL_RESOLUTIONS, TET_RESOLUTIONS
+from toolkit.common.phantoms.phantom import BALL_RESOLUTIONS, TET_RESOLUTIONS
 
 __all__ = ["SceneError", "MaterialSpec", "FaceSpec", "BallSpec", "ContactSpec", "Fidelity", "Scene", "default_scene",
            "yielding_scene", "meshed_scene", "mesh_order", "MESH_ORDERS",
@@ -79,7 +79,7 @@ YIELDING_DURATION = 0.36
 @dataclass(frozen=True)
 class FaceSpec:
     """The face: ``resolution`` (``coarse``/``paper``) or ``mesh`` (a tet4 or tet10 file,
-    length unit ``units``, axes ``axes`` (:data:`toolkit.common.axes.AXES`, converted to the
+    length unit ``units``, axes ``axes`` (:data:`toolkit.common.meshes.axes.AXES`, converted to the
     toolkit's on reading; the ball's target and direction are in the toolkit's), with node sets
     ``fixed_set`` and ``skin``, and ``bone`` for ``support = "skull"``, as ``toolkit mesh`` writes
     them; its element order must be the fidelity's), its material, the fraction of the height
@@ -109,8 +109,8 @@ class FaceSpec:
     axes: str = "toolkit"
 
     def __post_init__(self):
-        from toolkit.common.axes import AXES
-        from toolkit.common.io import UNIT_SCALES
+        from toolkit.common.meshes.axes import AXES
+        from toolkit.common.meshes.io import UNIT_SCALES
 
         if self.units not in UNIT_SCALES:
             raise SceneError(f"face units {self.units!r} is not one of {sorted(UNIT_SCALES)} (the length unit of "
@@ -243,16 +243,16 @@ class Fidelity:
                              "in (0, 1)")
         if not self.mass_scaling >= 1.0:
             raise SceneError(f"mass_scaling must be >= 1, got {self.mass_scaling}")
+        if not 0 < self.safety <= 1.0:
+            raise SceneError(f"safety must be in (0, 1], got {self.safety}")
+        if self.dt is not None and not 0 < self.dt < np.inf:
+            raise SceneError(f"dt must be a positive time step (s) or None for the stable one, got {self.dt}")
         if self.integrator != "explicit" and (self.mass_scaling != 1.0 or self.dt is not None):
             given = ", ".join(f"{k}={v}" for k, v in (("mass_scaling", self.mass_scaling), ("dt", self.dt))
                               if v not in (1.0, None))
             raise SceneError(f"{given} applies to the explicit integrator only (the {self.integrator} one has no "
                              f"inertia and no time step): give integrator='explicit' with it (command line: "
                              f"--integrator explicit)")
-        if not 0 < self.safety <= 1.0:
-            raise SceneError(f"safety must be in (0, 1], got {self.safety}")
-        if self.dt is not None and not 0 < self.dt < np.inf:
-            raise SceneError(f"dt must be a positive time step (s) or None for the stable one, got {self.dt}")
 
 
 @dataclass(frozen=True)
@@ -332,7 +332,7 @@ class Scene:
         if not path.is_file():
             raise FileNotFoundError(f"scene file {str(path)!r} does not exist; expected a TOML scene (command line: "
                                     "--scene FILE; Scene.write or `toolkit impact predict` writes one)")
-        from toolkit.common.io import read_text
+        from toolkit.common.meshes.io import read_text
 
         text = read_text(path, SceneError, "a TOML scene")
         try:
@@ -346,7 +346,7 @@ class Scene:
 
     def write(self, path: str | os.PathLike) -> Path:
         """Write as TOML (atomically)."""
-        from toolkit.common.io import atomic_path
+        from toolkit.common.meshes.io import atomic_path
 
         lines = [f"duration = {self.duration!r}", f"n_frames = {self.n_frames!r}", ""]
 
@@ -499,7 +499,7 @@ MESH_ORDERS = {"tet4": 1, "tet10": 2}
 def mesh_order(path, units: str = "mm") -> int:
     """Element order (1: tet4, 2: tet10) of the face mesh file at ``path``, or 0 when it holds
     other cells (:func:`toolkit.impact.simulate.face_mesh` then says why)."""
-    from toolkit.common.io import read
+    from toolkit.common.meshes.io import read
 
     types = read(path, units=units).volume_types
     return MESH_ORDERS.get(types[0], 0) if len(types) == 1 else 0

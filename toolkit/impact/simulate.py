@@ -28,10 +28,10 @@ import numpy as np
 
 from toolkit.common.errors import AnswerError, ToolkitError
 from toolkit.common.fem.kinematics import lumped_mass
-from toolkit.common.materials import lame
-from toolkit.common.mesh import Mesh
+from toolkit.common.fem.materials import lame
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.topology import boundary_faces
 from toolkit.common.runtime import count_finished
-from toolkit.common.topology import boundary_faces
 from toolkit.impact.checks import answer_checks
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact, penalty_stiffness
 from toolkit.impact.elements import critical_time_step, tet_kinematics
@@ -187,7 +187,7 @@ def _face_body(scene: Scene, face: Mesh, fixed: np.ndarray) -> tuple[Body, np.nd
 def _ball_body(scene: Scene, centre0: np.ndarray, offset: int) -> tuple[Body, Mesh, np.ndarray, tuple]:
     """The deformable ball at ``centre0``: its body (the back, beyond ``driven_fraction`` of the
     radius, driven at the ball's velocity; the front free), mesh, masses and stable step."""
-    from toolkit.common.phantom import ball as ball_mesh
+    from toolkit.common.phantoms.phantom import ball as ball_mesh
 
     ms, R = scene.fidelity.mass_scaling, scene.ball.radius
     d = np.asarray(scene.ball.direction, dtype=float)
@@ -282,7 +282,7 @@ def face_mesh(scene: Scene) -> Mesh:
     """The scene's face: the tetrahedral phantom at ``scene.face.resolution`` and the fidelity's
     element order, or the mesh file ``scene.face.mesh`` (with node sets ``fixed_set``, ``skin``
     and, for a skull-held face, ``bone``). Points ``(n, 3)`` mm."""
-    from toolkit.common.phantom import face_tet
+    from toolkit.common.phantoms.phantom import face_tet
 
     if scene.face.mesh:
         return _face_file(scene)
@@ -293,9 +293,9 @@ def face_mesh(scene: Scene) -> Mesh:
 def _face_file(scene: Scene) -> Mesh:
     """The face mesh file of ``scene`` in the toolkit's axes, checked: tetrahedra of the fidelity's
     order, the node sets the scene holds and aims at (:class:`~toolkit.impact.scene.SceneError`
-    otherwise) and the anatomy (:func:`toolkit.common.axes.check_mesh_axes`)."""
-    from toolkit.common.axes import check_mesh_axes, mesh_to_toolkit
-    from toolkit.common.io import read
+    otherwise) and the anatomy (:func:`toolkit.common.meshes.axes.check_mesh_axes`)."""
+    from toolkit.common.meshes.axes import check_mesh_axes, mesh_to_toolkit
+    from toolkit.common.meshes.io import read
 
     spec = scene.face
     assert spec.mesh is not None  # called for a scene whose face is a mesh file
@@ -454,10 +454,10 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
     class, the last finished frame (``last_frame_time_s``, ``frames_written`` of
     ``frames_planned``) and, when the error knows it, the simulated time it stopped at
     (``stopped_at_time_s``); the frames
-    written so far stay readable (:func:`toolkit.common.io.read_time_series`, meshio, ParaView)
+    written so far stay readable (:func:`toolkit.common.meshes.io.read_time_series`, meshio, ParaView)
     and ``history.h5`` holds them. The error is then raised again.
     """
-    from toolkit.common.io import TimeSeriesWriter
+    from toolkit.common.meshes.io import TimeSeriesWriter
     from toolkit.common.outputs import check_output_dir
 
     guess: tuple[np.ndarray, ...] | None = None
@@ -556,7 +556,7 @@ def _write_history(path: Path, frames: list) -> None:
     """``history.h5`` of ``frames``: times s, energies mJ, contact force N, per-frame maxima."""
     import h5py
 
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     energies = _energies(frames)
     with atomic_path(path) as tmp:
@@ -573,7 +573,7 @@ def _write_history(path: Path, frames: list) -> None:
 def write_summary(path: Path, summary: dict) -> None:
     """``summary`` (JSON-ready) with ``toolkit_version``, written to ``path`` atomically."""
     from toolkit import __version__
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps({**summary, "toolkit_version": __version__}, indent=2))
@@ -608,7 +608,7 @@ def write_preview(path: str | Path, face: Mesh, displacement: np.ndarray, von_mi
     """``preview.png`` of one frame: the deformed face (``displacement (n, 3)`` mm) coloured by
     ``von_mises (n,)`` MPa, seen from the left, titled with ``time_s``; ``rigid_ball`` =
     ``(centre (3,) mm, radius mm)`` draws a rigid ball there, translucent."""
-    from toolkit.common.phantom import ball as ball_mesh
+    from toolkit.common.phantoms.phantom import ball as ball_mesh
     from toolkit.common.plotting import render
 
     shown = None if rigid_ball is None else ball_mesh(rigid_ball[1], "coarse", 1, centre=rigid_ball[0])

@@ -64,7 +64,7 @@ from toolkit.impact.dataset import ImpactDatabase, load_database
 if TYPE_CHECKING:  # pragma: no cover
     from types import FrameType
 
-    from toolkit.common.mesh import Mesh
+    from toolkit.common.meshes.mesh import Mesh
     from toolkit.impact.scene import Scene
 
 __all__ = ["SurrogateConfig", "CONFIGS", "FEATURES", "INPUTS", "OUTPUTS", "MODEL_KIND", "SPLITS", "item_features",
@@ -455,7 +455,7 @@ class Prediction:
         ``toolkit impact simulate --scene scene.toml``) and, with ``preview``, ``preview.png`` of
         the last frame (as :func:`toolkit.impact.simulate.simulate` draws it)."""
 
-        from toolkit.common.io import TimeSeriesWriter
+        from toolkit.common.meshes.io import TimeSeriesWriter
         from toolkit.impact.simulate import ball_start, write_preview, write_summary
 
         out = Path(out)

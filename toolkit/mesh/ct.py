@@ -99,7 +99,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage as ndi
 
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
 from toolkit.mesh import ct_anatomy as anatomy
 from toolkit.mesh.ct_anatomy import CTError, CTRules, Frame
 from toolkit.mesh.volume import Volume, read_volume
@@ -132,7 +132,7 @@ class CTSurfaces:
         ``folder``, each atomically. Returns name -> path."""
         import meshio
 
-        from toolkit.common.io import atomic_path
+        from toolkit.common.meshes.io import atomic_path
 
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
@@ -295,8 +295,8 @@ def _affine(volume: Volume, axis: np.ndarray, sign: np.ndarray, spacing: np.ndar
 
 
 def _check_axes(tissue: Mesh, bones: dict[str, Mesh]) -> None:
-    """The surfaces found must be a face in the toolkit's axes (:mod:`toolkit.common.axes`)."""
-    from toolkit.common.axes import AxesError, check_anatomical_axes
+    """The surfaces found must be a face in the toolkit's axes (:mod:`toolkit.common.meshes.axes`)."""
+    from toolkit.common.meshes.axes import AxesError, check_anatomical_axes
 
     try:
         check_anatomical_axes(tissue.points, {k: b.points for k, b in bones.items()}, source="the CT's surfaces")

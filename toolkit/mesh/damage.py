@@ -8,7 +8,7 @@ surfaces, so that :func:`toolkit.mesh.mesh_face` can be shown to label the damag
 labels the clean one (``benchmarks/segmentation_damage.py``, ``tests/mesh/test_damage.py``).
 
 Every function is pure (new meshes out) and draws its randomness from the ``rng`` it is given.
-Surfaces are ``tri3`` :class:`~toolkit.common.mesh.Mesh` objects in mm.
+Surfaces are ``tri3`` :class:`~toolkit.common.meshes.mesh.Mesh` objects in mm.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from collections.abc import Mapping
 import numpy as np
 from scipy.spatial import cKDTree
 
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
 
 __all__ = ["DAMAGE", "flipped_in_patches", "kerfed", "with_holes", "in_pieces", "remeshed", "off_bone", "damaged"]
 
@@ -57,7 +57,7 @@ def kerfed(bones: Mapping[str, Mesh], width_mm: float) -> dict[str, Mesh]:
     the saw cut (kerf) of the osteotomy, which leaves every segment open along its cut line.
     Bones whose edges are longer than the kerf are split first (:func:`remeshed`, the same
     geometry) so that the cut follows the line."""
-    from toolkit.common.surface_distance import closest_points
+    from toolkit.common.analysis.surface_distance import closest_points
 
     out = {}
     for name, surface in bones.items():
@@ -128,7 +128,7 @@ def off_bone(tissue: Mesh, bones: Mapping[str, Mesh], max_mm: float, rng: np.ran
     tissue (a closed surface) stays as it is, so the phantom's own mesh can be run on the same
     bones (``benchmarks/segmentation_damage.py``). Apply it to consistently wound bones, each one
     sheet (before :func:`flipped_in_patches`)."""
-    from toolkit.common.surface_distance import closest_points, vertex_normals
+    from toolkit.common.analysis.surface_distance import closest_points, vertex_normals
 
     x = tissue.points[tissue.cells["tri3"]]
     outward = 1.0 if np.einsum("ij,ij->i", x[:, 0], np.cross(x[:, 1], x[:, 2])).sum() > 0 else -1.0

@@ -5,9 +5,9 @@
 1. **read**: the tissue surface and the bone surfaces (STL, OBJ, PLY, VTK, VTU, OFF; unit
    check and ``units`` conversion), the tissue repaired into a closed outward surface
    (:func:`~toolkit.mesh.surface.closed_surface`), the surfaces and commissures converted from
-   ``axes`` (:mod:`toolkit.common.axes`), each bone oriented toward the tissue, every bone
+   ``axes`` (:mod:`toolkit.common.meshes.axes`), each bone oriented toward the tissue, every bone
    checked to lie against the tissue (within the contact distance) and the anatomy checked to be
-   in the toolkit's axes (:func:`~toolkit.common.axes.check_anatomical_axes`);
+   in the toolkit's axes (:func:`~toolkit.common.meshes.axes.check_anatomical_axes`);
 2. **mesh**: linear tetrahedra of edge length about ``size_mm``
    (:func:`~toolkit.mesh.backends.tetrahedralize`);
 3. **mouth** (with commissures): the slit cut between them (:mod:`toolkit.mesh.mouth`);
@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.axes import axes_matrix, check_anatomical_axes, mesh_to_toolkit, to_toolkit
 from toolkit.common.errors import ToolkitError
-from toolkit.common.fibres import with_lip_fibres
-from toolkit.common.mesh import Mesh
+from toolkit.common.fem.fibres import with_lip_fibres
+from toolkit.common.meshes.axes import axes_matrix, check_anatomical_axes, mesh_to_toolkit, to_toolkit
+from toolkit.common.meshes.mesh import Mesh
 from toolkit.mesh.backends import DEFAULT, tetrahedralize
 from toolkit.mesh.rules import SEGMENTS, LabelRules, read_rules
 
@@ -56,9 +56,9 @@ class FaceInputError(ToolkitError, ValueError):
 class MeshedFace:
     """A labelled face mesh and what made it.
 
-    mesh : tet4 or tet10 :class:`~toolkit.common.mesh.Mesh` (mm) with the node sets of the
+    mesh : tet4 or tet10 :class:`~toolkit.common.meshes.mesh.Mesh` (mm) with the node sets of the
         static workflow and, with a mouth, the element set ``lip_muscle`` and the cell field
-        ``fibre_direction`` (:func:`toolkit.common.fibres.superior_fibres`)
+        ``fibre_direction`` (:func:`toolkit.common.fem.fibres.superior_fibres`)
     bones : segment name -> its ``tri3`` surface (mm), oriented toward the tissue
     report : counts, quality, repairs, rules and stage times (``labels.json``)
     """
@@ -70,7 +70,7 @@ class MeshedFace:
     def write(self, path, *, image: bool = True) -> dict[str, Path]:
         """Write the mesh to ``path`` (``.vtu`` or ``.inp``), ``labels.json`` and ``labels.png``
         beside it (atomically each). Returns the paths written."""
-        from toolkit.common.io import atomic_path, write
+        from toolkit.common.meshes.io import atomic_path, write
 
         path = Path(path)
         out = {"mesh": path, "labels": path.with_name("labels.json")}
@@ -140,7 +140,7 @@ def _check_budget(surface: Mesh, size_mm: float, order: int, memory_gib: float |
 
 
 def _read_bone(name: str, source, units: str) -> Mesh:
-    from toolkit.common.surfaces import read_surface
+    from toolkit.common.meshes.surfaces import read_surface
 
     if isinstance(source, Mesh):
         return source
@@ -148,7 +148,7 @@ def _read_bone(name: str, source, units: str) -> Mesh:
 
 
 def _check_contact(tissue: Mesh, bones: Mapping[str, Mesh], rules: LabelRules, names: Mapping[str, str]) -> None:
-    from toolkit.common.surface_distance import closest_points
+    from toolkit.common.analysis.surface_distance import closest_points
 
     for name, bone in bones.items():
         d = closest_points(bone.points, tissue.points, tissue.cells["tri3"]).distance
@@ -163,7 +163,7 @@ def _check_contact(tissue: Mesh, bones: Mapping[str, Mesh], rules: LabelRules, n
 def _edges_of(faces: np.ndarray) -> np.ndarray:
     """Unique sorted edges ``(e, 2)`` of triangles."""
     from toolkit.common.fem.reference import REFERENCE_ELEMENTS
-    from toolkit.common.topology import unique_edges
+    from toolkit.common.meshes.topology import unique_edges
 
     return unique_edges(faces, REFERENCE_ELEMENTS["tri3"].edges)[0]
 
@@ -189,7 +189,7 @@ def _elevate(points: np.ndarray, tets: np.ndarray, node_sets: dict[str, np.ndarr
              set_faces: Mapping[str, np.ndarray]):
     """tet10 from tet4, each set extended to the mid-edge nodes of the edges of its faces
     (``set_faces[name]``; default the boundary faces) whose two ends are in the set."""
-    from toolkit.common.topology import boundary_faces, tet10_from_tet4
+    from toolkit.common.meshes.topology import boundary_faces, tet10_from_tet4
 
     p10, t10 = tet10_from_tet4(points, tets)
     n4 = points.shape[0]
@@ -245,7 +245,7 @@ def carried_report(mesh: Mesh, rules: LabelRules) -> dict:
     """Per labelled segment, what it holds of the tissue: ``attached_nodes`` (its carried set),
     ``attached_area_mm2`` and ``facing_area_mm2`` (lumped boundary areas of the carried set and
     of all the tissue lying on its bone, carried or sliding) and ``carried_share`` (their ratio)."""
-    from toolkit.common.topology import lumped_boundary_area
+    from toolkit.common.meshes.topology import lumped_boundary_area
     from toolkit.mesh.labels import CARRIED_SETS
 
     area = lumped_boundary_area(mesh.points, mesh.cells)
@@ -300,9 +300,9 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
     rules : :class:`~toolkit.mesh.rules.LabelRules`, a TOML file of overrides, or None (defaults)
     units : length unit of the files (``mm``, ``cm``, ``m``, ``um``)
     axes : axes of the tissue, the bones and the commissures, files or Meshes (``toolkit``: x left,
-        y anterior, z superior; ``LPS``; ``RAS``: :data:`toolkit.common.axes.AXES`), converted to
+        y anterior, z superior; ``LPS``; ``RAS``: :data:`toolkit.common.meshes.axes.AXES`), converted to
         the toolkit's. A face whose anatomy says other axes is refused
-        (:class:`~toolkit.common.axes.AxesError`, naming the ``axes`` that fits) before meshing
+        (:class:`~toolkit.common.meshes.axes.AxesError`, naming the ``axes`` that fits) before meshing
     max_hole_edges : holes of the tissue surface bounded by up to this many edges are closed
     threads : threads the mesher may use (fTetWild). fTetWild's mesh differs from run to run even
         on one thread (the coarse phantom at 10 mm: 4,193-4,558 tet10 nodes in four runs); keep the
@@ -313,7 +313,7 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
         under ``estimate``); a size whose estimate exceeds this is refused, naming the finest
         size that fits
     """
-    from toolkit.common.surfaces import orient_surface
+    from toolkit.common.meshes.surfaces import orient_surface
     from toolkit.mesh.labels import label_nodes
     from toolkit.mesh.surface import closed_surface, read_tissue_surface
 
@@ -423,7 +423,7 @@ def render_labels(face: MeshedFace, path) -> Path:
     from matplotlib.figure import Figure
     from matplotlib.image import imread
 
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
     from toolkit.common.plotting import render
 
     sets = {k: face.mesh.node_sets[k] for k in _SHOWN if k in face.mesh.node_sets and k != "skin"}

@@ -19,7 +19,7 @@ import numpy as np
 
 from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.reference import REFERENCE_ELEMENTS
-from toolkit.common.topology import boundary_faces, rim_edges, unique_edges
+from toolkit.common.meshes.topology import boundary_faces, rim_edges, unique_edges
 
 __all__ = ["MouthError", "MouthSlit", "cut_mouth"]
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.mesh import Mesh
-from toolkit.common.phantom import FacePhantom
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.phantoms.phantom import FacePhantom
 
 __all__ = ["PhantomSurfaces", "phantom_surfaces", "write_surfaces"]
 
@@ -74,7 +74,7 @@ def write_surfaces(folder, surfaces: PhantomSurfaces, suffix: str = ".stl") -> d
     ``--commissures`` values). Returns name -> path."""
     import meshio
 
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -189,7 +189,7 @@ def read_rules(source: str | Path | dict | None = None) -> LabelRules:
     else:
         import tomllib
 
-        from toolkit.common.io import read_text
+        from toolkit.common.meshes.io import read_text
 
         path = Path(source)
         if not path.is_file():

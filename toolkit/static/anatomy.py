@@ -1,6 +1,6 @@
 """Where plans are placed on a meshed face: the segments' pivots, the condyles and the dental arch.
 
-A phantom carries these (:class:`~toolkit.common.phantom.FacePhantom`). A face meshed from a
+A phantom carries these (:class:`~toolkit.common.phantoms.phantom.FacePhantom`). A face meshed from a
 patient's surfaces (``toolkit mesh``) carries only node sets and bone surfaces, so
 :func:`face_anatomy` derives them by documented rules, each overridable:
 
@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common.errors import ToolkitError
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
 
 __all__ = ["FaceAnatomy", "face_anatomy", "AnatomyError", "CONDYLE_BAND_MM", "ARCH_BAND_MM"]
 
@@ -78,7 +78,7 @@ def face_anatomy(mesh: Mesh, bones: Mapping[str, str | Path | Mesh] | None = Non
     AnatomyError when the mesh has no ``maxilla`` set, ``lefort`` or ``distal`` has no surface,
     or ``condyles`` is not two points
     """
-    from toolkit.common.fibres import with_lip_fibres
+    from toolkit.common.fem.fibres import with_lip_fibres
     from toolkit.static.bones import segments_from_files
     from toolkit.static.boundary import BoundaryError, segments_from_mesh
 

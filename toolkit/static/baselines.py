@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
 
 __all__ = ["InfluenceMatrix", "PODRegression", "LinearPlusPOD", "quadratic_features"]
 

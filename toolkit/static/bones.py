@@ -3,8 +3,8 @@
 A real planning case comes as a face mesh plus the segmented bones (STL, OBJ, PLY, VTK,
 VTU or OFF, in mm), e.g. ``maxilla.stl`` for the Le Fort I segment and
 ``mandible.stl`` for the distal mandible, read and oriented towards the soft tissue by
-:mod:`toolkit.common.surfaces`; :func:`segments_from_files` turns a set of them into the
-:class:`~toolkit.common.phantom.BoneSegment` mapping :func:`~toolkit.static.simulate.simulate`
+:mod:`toolkit.common.meshes.surfaces`; :func:`segments_from_files` turns a set of them into the
+:class:`~toolkit.common.phantoms.phantom.BoneSegment` mapping :func:`~toolkit.static.simulate.simulate`
 takes, attached and sliding on the face mesh's node sets as for the phantoms.
 """
 
@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.mesh import VOLUME_TYPES, Mesh
-from toolkit.common.surfaces import orient_surface, read_surface
+from toolkit.common.meshes.mesh import VOLUME_TYPES, Mesh
+from toolkit.common.meshes.surfaces import orient_surface, read_surface
 
 __all__ = ["segments_from_files"]
 
@@ -35,15 +35,15 @@ def segments_from_files(face: Mesh, bones: Mapping[str, str | Path | Mesh], pivo
     pivots : segment name -> (3,) mm pivot (the plan's; segments without one pivot about
         their surface centroid)
     units : length unit of the files
-    axes : axes of the surfaces, files or Meshes (:data:`toolkit.common.axes.AXES`), converted to
+    axes : axes of the surfaces, files or Meshes (:data:`toolkit.common.meshes.axes.AXES`), converted to
         the toolkit's
 
     Returns
     -------
     dict name -> BoneSegment, surfaces oriented towards the face's bone-side nodes
     """
-    from toolkit.common.axes import mesh_to_toolkit
-    from toolkit.common.phantom import BoneSegment
+    from toolkit.common.meshes.axes import mesh_to_toolkit
+    from toolkit.common.phantoms.phantom import BoneSegment
     from toolkit.static.boundary import ATTACHMENT_SETS
 
     unknown = sorted(set(bones) - set(ATTACHMENT_SETS))

@@ -19,9 +19,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from toolkit.common.analysis.surface_distance import closest_points
 from toolkit.common.errors import ToolkitError
-from toolkit.common.mesh import VOLUME_TYPES, Mesh
-from toolkit.common.surface_distance import closest_points
+from toolkit.common.meshes.mesh import VOLUME_TYPES, Mesh
 
 __all__ = ["NodeType", "BoundaryConditions", "knn_labels", "BoundaryError", "segments_from_mesh",
            "ATTACHMENT_SETS", "tissue_distance", "tissue_graph", "DEFAULT_RELEASE_WIDTH"]
@@ -325,7 +325,7 @@ class BoundaryConditions:
         Parameters
         ----------
         mesh : the face (hex or tet) with those node sets; sets must be disjoint
-        segments : name -> :class:`~toolkit.common.phantom.BoneSegment`; a mucosa node slides
+        segments : name -> :class:`~toolkit.common.phantoms.phantom.BoneSegment`; a mucosa node slides
             on the segment whose ``sliding_set`` holds it, or (without such sets) on the
             segment surface nearest to it
         lip_threshold : mm; without ``upper_lip_face``/``lower_lip_face`` sets, lip nodes are
@@ -409,8 +409,8 @@ def segments_from_mesh(mesh: Mesh, pivots: Mapping[str, np.ndarray]) -> dict:
     -------
     dict name -> BoneSegment
     """
-    from toolkit.common.phantom import BoneSegment
-    from toolkit.common.topology import triangulated_boundary
+    from toolkit.common.meshes.topology import triangulated_boundary
+    from toolkit.common.phantoms.phantom import BoneSegment
 
     tris = triangulated_boundary(mesh.cells)[:, [0, 2, 1]]  # normals into the tissue: out of the bone
     own = {}

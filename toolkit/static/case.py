@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from toolkit.common.defaults import STATIC_SIMULATION
-from toolkit.common.mesh import Mesh
-from toolkit.common.phantom import FacePhantom, FaceShape
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.phantoms.phantom import FacePhantom, FaceShape
 from toolkit.static.plan import SurgicalPlan
 
 __all__ = ["StaticCase", "load_case"]
@@ -132,9 +132,9 @@ def load_case(
         plan file does not say ``force = true``
     units : length unit of a mesh file (``mm``, ``m``, ``cm``, ``um``), converted to mm
     axes : axes of ``mesh`` and ``bones``, files or Meshes (``toolkit``: x left, y anterior, z
-        superior; ``LPS``; ``RAS``: :data:`toolkit.common.axes.AXES`), converted to the toolkit's.
+        superior; ``LPS``; ``RAS``: :data:`toolkit.common.meshes.axes.AXES`), converted to the toolkit's.
         The plan is in the toolkit's axes. A mesh whose anatomy says other axes is refused
-        (:func:`toolkit.common.axes.check_mesh_axes`)
+        (:func:`toolkit.common.meshes.axes.check_mesh_axes`)
 
     Returns
     -------
@@ -147,7 +147,7 @@ def load_case(
     AxesError for a mesh not in the toolkit's axes once converted from ``axes``, or ``axes`` other
     than ``toolkit`` for the phantom without bone files.
     """
-    from toolkit.common.axes import AxesError, axes_matrix, check_mesh_axes, mesh_to_toolkit
+    from toolkit.common.meshes.axes import AxesError, axes_matrix, check_mesh_axes, mesh_to_toolkit
     from toolkit.static.bones import segments_from_files
 
     bones = dict(bones or {})
@@ -156,7 +156,7 @@ def load_case(
         raise FileNotFoundError(f"plan file {str(plan)!r} does not exist; expected a .toml or .json plan "
                                 "(command line: --plan FILE)")
     if mesh is None:
-        from toolkit.common.phantom import face_hex
+        from toolkit.common.phantoms.phantom import face_hex
         from toolkit.static.plan import default_plan
 
         if axes != "toolkit" and not bones:
@@ -181,8 +181,8 @@ def load_case(
     if plan is None:
         raise ValueError(f"mesh {_name(mesh)} needs a plan (with pivot_mm for every rotating segment); got plan=None, "
                          "and only the phantom has a default plan: give plan= (command line: --plan FILE)")
-    from toolkit.common.fibres import with_lip_fibres
-    from toolkit.common.io import read
+    from toolkit.common.fem.fibres import with_lip_fibres
+    from toolkit.common.meshes.io import read
     from toolkit.static.boundary import BoundaryError, segments_from_mesh
 
     face = mesh if isinstance(mesh, Mesh) else read(mesh, units=units, require_node_sets=["fixed"])

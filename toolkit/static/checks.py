@@ -31,7 +31,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from toolkit.common.errors import AnswerError
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
 from toolkit.static.plan import PHYSIOLOGICAL_RANGES, PlanError, SurgicalPlan
 
 __all__ = ["AnswerError", "check_plan", "check_answer", "answer_checks", "with_answer_checks", "carried_area",
@@ -58,8 +58,8 @@ MOVING_MM = 1.0
 
 def carried_area(mesh: Mesh, nodes: np.ndarray) -> float:
     """Boundary area (mm^2) held by ``nodes`` (int ids): the sum of their lumped boundary areas
-    (:func:`~toolkit.common.topology.lumped_boundary_area`)."""
-    from toolkit.common.topology import lumped_boundary_area
+    (:func:`~toolkit.common.meshes.topology.lumped_boundary_area`)."""
+    from toolkit.common.meshes.topology import lumped_boundary_area
 
     return float(lumped_boundary_area(mesh.points, mesh.cells)[np.asarray(nodes, dtype=np.int64)].sum())
 

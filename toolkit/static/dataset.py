@@ -1,7 +1,7 @@
 """The static surrogate's learning database (the PointNet++ paper): FE simulations of sampled plans.
 
 Each *simulation* runs one plan of :func:`~toolkit.static.plan.sample_plans` on one
-*subject* (a face phantom: subject 0 is the default :class:`~toolkit.common.phantom.FaceShape`,
+*subject* (a face phantom: subject 0 is the default :class:`~toolkit.common.phantoms.phantom.FaceShape`,
 subject k > 0 is ``FaceShape.sample(k)``; or the one subject of a database on a meshed face,
 ``DatasetConfig.for_mesh``, whose plans are placed by :func:`~toolkit.static.anatomy.face_anatomy`),
 and each of its increments is one learning *sample*, as in the PointNet++ paper:
@@ -13,7 +13,7 @@ and each of its increments is one learning *sample*, as in the PointNet++ paper:
   bone's rigid motion in this increment would do at their place (they slide on it instead);
 - the FE displacement ``v (n, 3)`` mm of the increment (the target).
 
-Storage (one HDF5 file through :mod:`toolkit.common.database`: crash-safe shards, resume,
+Storage (one HDF5 file through :mod:`toolkit.common.training.database`: crash-safe shards, resume,
 failures recorded with their reason, a configuration check that refuses a foreign file):
 ``/shared/subject_<k>/`` holds each subject's pre-operative points, boundary types and
 bone-segment ids (``/shared/cells/<type>`` and ``/shared/sets/<name>`` the topology and
@@ -26,7 +26,7 @@ displacements ``bone (increments, n, 3)`` (float32, mm), and its own boundary ty
 truncation cut (:func:`~toolkit.static.simulate.simulate`'s retries) has its own; ``/index`` one row per
 simulation and ``/samples`` one row per increment (subject, plan, increment, plan
 parameters, largest input displacement, solver diagnostics), both read as DataFrames with
-``str`` strings by :func:`toolkit.common.database.read_index` (``read_index(path, "samples")``;
+``str`` strings by :func:`toolkit.common.training.database.read_index` (``read_index(path, "samples")``;
 :func:`read_samples` also rebuilds ``/samples`` of an interrupted run from its records).
 
 Generation runs on any ``concurrent.futures``-style executor (local processes by default,
@@ -54,7 +54,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from toolkit.common.database import (
+from toolkit.common.defaults import STATIC_SIMULATION
+from toolkit.common.papers import TISSUE_NU
+from toolkit.common.training.database import (
     Database,
     Job,
     Record,
@@ -65,8 +67,6 @@ from toolkit.common.database import (
     read_index,
     run_jobs,
 )
-from toolkit.common.defaults import STATIC_SIMULATION
-from toolkit.common.papers import TISSUE_NU
 from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -113,7 +113,7 @@ class DatasetConfig:
         bone-side faces (:func:`~toolkit.static.anatomy.face_anatomy`)
     condyles : ``((x, y, z), (x, y, z))`` mm, left then right, instead of the anatomy's rule
     units : length unit of the mesh and bone files
-    axes : axes of the mesh and bone files and of ``condyles`` (:data:`toolkit.common.axes.AXES`),
+    axes : axes of the mesh and bone files and of ``condyles`` (:data:`toolkit.common.meshes.axes.AXES`),
         converted to the toolkit's on reading
     """
 
@@ -135,8 +135,8 @@ class DatasetConfig:
     axes: str = "toolkit"
 
     def __post_init__(self):
-        from toolkit.common.axes import axes_matrix
-        from toolkit.common.phantom import FACE_RESOLUTIONS
+        from toolkit.common.meshes.axes import axes_matrix
+        from toolkit.common.phantoms.phantom import FACE_RESOLUTIONS
         from toolkit.static.simulate import MATERIALS, SLIDING_MODELS
 
         axes_matrix(self.axes)
@@ -196,7 +196,7 @@ def _sha1(path) -> str:
 @lru_cache(maxsize=8)
 def subject_phantom(resolution: str, subject: int):
     """The face phantom of ``subject`` (0: the default shape; k: ``FaceShape.sample(k)``)."""
-    from toolkit.common.phantom import FaceShape, face_hex
+    from toolkit.common.phantoms.phantom import FaceShape, face_hex
 
     return face_hex(resolution, FaceShape() if subject == 0 else FaceShape.sample(int(subject)))
 
@@ -209,9 +209,9 @@ def database_subject(config: DatasetConfig, subject: int):
     if config.mesh is None:
         assert config.resolution is not None  # a phantom database has one (DatasetConfig checks it)
         return subject_phantom(config.resolution, subject)
-    from toolkit.common.axes import check_mesh_axes, mesh_to_toolkit, to_toolkit
-    from toolkit.common.io import read
-    from toolkit.common.surfaces import read_surface
+    from toolkit.common.meshes.axes import check_mesh_axes, mesh_to_toolkit, to_toolkit
+    from toolkit.common.meshes.io import read
+    from toolkit.common.meshes.surfaces import read_surface
     from toolkit.static.anatomy import face_anatomy
 
     for path, sha1 in ((config.mesh, config.mesh_sha1), *((p, h) for _, p, h in config.bones)):
@@ -265,7 +265,7 @@ def _jobs(config: DatasetConfig) -> list[Job]:
 
 def material_for(material: str, poisson: float | None, mesh):
     """The lip-sliding paper's material assignment, with Poisson's ratio ``poisson`` if given."""
-    from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
+    from toolkit.common.fem.materials import LinearElastic, NeoHookean, TransverselyIsotropic
     from toolkit.static.simulate import material_assignment
     from toolkit.static.stiffness import MaterialAssignment
 
@@ -367,7 +367,7 @@ def subject_mesh(path: str | os.PathLike, subject: int = 0):
     for a meshed face (with its sets and cell data) or rebuilt for a phantom."""
     import h5py
 
-    from toolkit.common.mesh import Mesh
+    from toolkit.common.meshes.mesh import Mesh
 
     config = DatasetConfig(**json.loads(Database.open_attrs(Path(path)).get("config", "{}")))
     if config.mesh is None:
@@ -388,7 +388,7 @@ def _add_subjects(path: Path, config: DatasetConfig, first_subject: int) -> None
 
     import h5py
 
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     arrays = _shared(config, first_subject)
     with atomic_path(path) as tmp:
@@ -455,7 +455,7 @@ def _write_samples(path: Path) -> None:
     import h5py
     import pandas as pd
 
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     table = _sample_table(path)
     with atomic_path(path) as tmp:
@@ -663,5 +663,5 @@ class StaticDatabase:
         return out
 
     def index(self):
-        """The per-simulation index (:func:`toolkit.common.database.read_index`)."""
+        """The per-simulation index (:func:`toolkit.common.training.database.read_index`)."""
         return read_index(self.path)

@@ -4,7 +4,7 @@ A :class:`SurgicalPlan` holds one :class:`RigidMotion` per bony segment
 (:data:`SEGMENTS`: ``lefort``, ``distal``, ``proximal_left``, ``proximal_right``;
 segments not given stay put). A motion rotates about its pivot, then translates:
 ``x' = R (x - pivot) + pivot + t``, everything in mm, axes as in
-:mod:`toolkit.common.phantom` (``x`` patient's left, ``y`` anterior, ``z`` superior).
+:mod:`toolkit.common.phantoms.phantom` (``x`` patient's left, ``y`` anterior, ``z`` superior).
 
 The lip-sliding paper (section 2.3.2.2) applies the planned movements in increments: the
 intermediate bone positions interpolate the rotation by quaternion slerp from the
@@ -50,12 +50,12 @@ from numpy.typing import ArrayLike
 
 from toolkit.common import papers
 from toolkit.common.errors import ToolkitError
-from toolkit.common.io import atomic_path
+from toolkit.common.meshes.io import atomic_path
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
 
-    from toolkit.common.phantom import FacePhantom
+    from toolkit.common.phantoms.phantom import FacePhantom
     from toolkit.static.anatomy import FaceAnatomy
 
 __all__ = [
@@ -615,7 +615,7 @@ class SurgicalPlan:
 
 def _load(path: Path, fmt: str) -> dict[str, Any]:
     """The plan file's top-level table; syntax errors name the file and the line."""
-    from toolkit.common.io import read_text
+    from toolkit.common.meshes.io import read_text
 
     text = read_text(path, PlanError, f"a {fmt[1:].upper()} plan")
     try:

@@ -28,7 +28,7 @@ from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.fem.coarse import corner_interpolation, reduced_coarse_space
 from toolkit.common.fem.newton import ArmijoOnMerit, InadmissibleState, LoadSteps, NewtonFailed, Trial, newton
 from toolkit.common.fem.solvers import LinearSolver, SolveInfo, estimate_factor_entries, rigid_body_modes
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
 from toolkit.static.constraints import Constraints
 from toolkit.static.stiffness import (
     MaterialAssignment,

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from toolkit.common.mesh import VOLUME_TYPES, Mesh
+from toolkit.common.meshes.mesh import VOLUME_TYPES, Mesh
 
 __all__ = ["regulate", "Regulation", "element_quality", "CORNERS"]
 
@@ -64,7 +64,7 @@ class Regulation:
 
 def element_quality(mesh: Mesh, points: np.ndarray) -> np.ndarray:
     """Scaled Jacobian ``(E,)`` of every volume element of ``mesh`` at ``points (n, 3)`` mm."""
-    from toolkit.common.quality import scaled_jacobian
+    from toolkit.common.meshes.quality import scaled_jacobian
 
     return np.concatenate([scaled_jacobian(ctype, points[conn]) for ctype, conn in mesh.cells.items()
                            if ctype in VOLUME_TYPES])
@@ -111,7 +111,7 @@ def _element_adjacency(mesh: Mesh) -> sp.csr_matrix:
 
 def _boundary_normals(mesh: Mesh, points: np.ndarray) -> np.ndarray:
     """Area-weighted outward normals ``(n, 3)`` at boundary nodes (zero inside)."""
-    from toolkit.common.topology import triangulated_boundary
+    from toolkit.common.meshes.topology import triangulated_boundary
 
     tris = triangulated_boundary(mesh.cells)
     x = points[tris]
@@ -147,10 +147,10 @@ def _objective(x: np.ndarray, frames: list, gradient: bool = True):
 
 def _tet10_frames(mesh: Mesh, elements: np.ndarray, x: np.ndarray, target: np.ndarray) -> list:
     """The quadratic map's Jacobian of the given ``tet10`` elements at the samples where their
-    quality is measured (:data:`~toolkit.common.quality.TET10_SAMPLE_GRADIENTS`), as frames of
+    quality is measured (:data:`~toolkit.common.meshes.quality.TET10_SAMPLE_GRADIENTS`), as frames of
     :func:`_objective`; each aims at ``target`` times the product of its corner tetrahedron's
     edge lengths at node 0 (the scale of stage one's corner frames)."""
-    from toolkit.common.quality import TET10_SAMPLE_GRADIENTS
+    from toolkit.common.meshes.quality import TET10_SAMPLE_GRADIENTS
 
     frames = []
     for ctype, conn, sel, offset in _by_block(mesh, elements):
@@ -201,7 +201,7 @@ def _place_mid_edge_nodes(mesh: Mesh, x: np.ndarray, elements: np.ndarray, movab
     """``x`` with the movable mid-edge nodes of the given ``tet10`` elements at their offset
     from their edge's midpoint in ``mesh.points`` (the pre-operative mesh): a straight edge is
     made straight again, a curved one gets its own curvature back."""
-    from toolkit.common.topology import tet10_mid_edges
+    from toolkit.common.meshes.topology import tet10_mid_edges
 
     X, out = mesh.points, x.copy()
     for ctype, conn, sel, _ in _by_block(mesh, elements):

@@ -18,7 +18,7 @@ The offset ``d0`` of a mucosa node is its distance to its bone surface (extended
 rim) on the pre-operative mesh. A segmented face never puts the tissue exactly on the bone
 (1-3 mm, up to 20 mm, on a real face): projecting the mucosa onto the bone itself would jump
 its nodes by millimetres at the first increment and invert the elements between them and the
-skin (:func:`toolkit.common.off_bone.off_bone` reproduces this). A node farther than
+skin (:func:`toolkit.common.phantoms.off_bone.off_bone` reproduces this). A node farther than
 ``max_mucosa_offset`` (5 mm) from its bone does not slide (it is left free): the offset surface of
 a rough bone has creases at such distances, and nodes sliding on it jump
 (``benchmarks/off_bone.py``). The result's summary gives the offsets (``mucosa_offset_mm``) and
@@ -77,16 +77,16 @@ from pathlib import Path
 import numpy as np
 
 from toolkit import __version__
+from toolkit.common.analysis.surface_distance import ClosestPoints, barycentric, beyond_rim_onto_plane, closest_points
 from toolkit.common.defaults import STATIC_SIMULATION
 from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.assembly import SparsePattern
+from toolkit.common.fem.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.fem.solvers import SolverError, require_method
-from toolkit.common.materials import LinearElastic, NeoHookean, TransverselyIsotropic
-from toolkit.common.mesh import Mesh
-from toolkit.common.phantom import FacePhantom
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.topology import rim_edges
+from toolkit.common.phantoms.phantom import FacePhantom
 from toolkit.common.runtime import count_finished
-from toolkit.common.surface_distance import ClosestPoints, barycentric, beyond_rim_onto_plane, closest_points
-from toolkit.common.topology import rim_edges
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
 from toolkit.static.checks import MIN_CARRIED_MM2, check_answer, check_plan
 from toolkit.static.constraints import Constraints
@@ -319,7 +319,7 @@ class SimulationResult:
         name -> ``(n, ...)`` array), ``postop.vtu`` (the post-operative face), ``summary.json``,
         ``increments.xdmf`` (+ .h5, one XDMF ``Mixed`` topology for a mesh of several cell types),
         ``plan.toml`` (the plan that ran, when the result holds it) and ``preview.png``."""
-        from toolkit.common.io import atomic_path, write, write_time_series
+        from toolkit.common.meshes.io import atomic_path, write, write_time_series
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -357,7 +357,7 @@ def material_assignment(material: str | MaterialAssignment, mesh: Mesh) -> Mater
         if "fibre_direction" not in mesh.cell_data:
             warnings.warn("the mesh has a 'lip_muscle' element set but no 'fibre_direction' cell field (an Abaqus "
                           "file keeps none): the lip muscle is isotropic; load the mesh with load_case, which gives "
-                          "it the superior fibres of toolkit.common.fibres, or write it as VTU", stacklevel=2)
+                          "it the superior fibres of toolkit.common.fem.fibres, or write it as VTU", stacklevel=2)
             return MaterialAssignment(LinearElastic())
         return MaterialAssignment(LinearElastic(), {"lip_muscle": TransverselyIsotropic()})
     if material == "neo-hookean":
@@ -414,7 +414,7 @@ class _Model:
         if "skin" in self.mesh.node_sets:
             movable[self.mesh.node_sets["skin"]] = False
         else:
-            from toolkit.common.topology import triangulated_boundary
+            from toolkit.common.meshes.topology import triangulated_boundary
 
             movable[np.unique(triangulated_boundary(self.mesh.cells))] = False
         movable[self.bc_all.upper_lip] = False
@@ -604,7 +604,7 @@ def _edge_followers(mesh: Mesh, mucosa: np.ndarray) -> tuple[np.ndarray, ...]:
     node ids of their edge's two corners ``(k,)`` each, the corners' positions in ``mucosa``
     (-1 for a corner that does not slide) and the node's pre-operative offset ``(k, 3)`` mm from
     the corners' midpoint (0 for straight edges)."""
-    from toolkit.common.topology import tet10_mid_edges
+    from toolkit.common.meshes.topology import tet10_mid_edges
 
     none = np.zeros(0, np.int64)
     if "tet10" not in mesh.cells or not mucosa.size:

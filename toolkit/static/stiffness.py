@@ -30,8 +30,8 @@ import scipy.sparse as sp
 
 from toolkit.common.fem.assembly import SparsePattern, element_tangent
 from toolkit.common.fem.kinematics import BlockKinematics, Kinematics, deformation_gradient, element_forces, kinematics
-from toolkit.common.materials import LinearElastic
-from toolkit.common.mesh import Mesh
+from toolkit.common.fem.materials import LinearElastic
+from toolkit.common.meshes.mesh import Mesh
 
 __all__ = ["Kinematics", "BlockKinematics", "kinematics", "MaterialAssignment",
            "linear_stiffness", "neo_hookean_system", "neo_hookean_energy", "small_strain"]

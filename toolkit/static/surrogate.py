@@ -790,7 +790,7 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
     """
     import pandas as pd
 
-    from toolkit.common.metrics import nodal_errors
+    from toolkit.common.analysis.metrics import nodal_errors
     from toolkit.static.dataset import StaticDatabase
 
     db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
@@ -869,7 +869,7 @@ class _Subset:
 
 def write_evaluation(result: dict, out, mesh=None) -> Path:
     """``metrics.json``, ``per_sample.csv`` and (with a mesh) ``error_map.png`` in ``out``."""
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

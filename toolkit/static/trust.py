@@ -400,7 +400,7 @@ def _pair_seconds(case: dict, scale: str, answerer: str) -> float:
 
 def _face(subject):
     """What predict_plan and simulate take for a database subject: the phantom, or the mesh."""
-    from toolkit.common.phantom import FacePhantom
+    from toolkit.common.phantoms.phantom import FacePhantom
 
     return subject if isinstance(subject, FacePhantom) else subject.mesh
 
@@ -533,7 +533,7 @@ class TrustedAnswer:
     def write(self, out, preview: bool = True) -> Path:
         """The result's files (``toolkit static simulate``'s), ``summary.json`` with ``answer``,
         and ``error_estimate`` (mm, per node) in ``result.vtu`` when the surrogate answered."""
-        from toolkit.common.io import atomic_path
+        from toolkit.common.meshes.io import atomic_path
 
         fields = {"error_estimate": self.estimate["node_mm"]} if self.answered_by != "fe" else {}
         out = self.result.write(out, preview=preview, point_data=fields)

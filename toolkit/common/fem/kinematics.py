@@ -35,7 +35,7 @@ import numpy as np
 from toolkit.common.fem.jit import njit, use_jit
 from toolkit.common.fem.mapping import shape_gradients
 from toolkit.common.fem.reference import reference_element
-from toolkit.common.mesh import CellBlock, Mesh, MeshError
+from toolkit.common.meshes.mesh import CellBlock, Mesh, MeshError
 
 __all__ = ["BlockKinematics", "Kinematics", "kinematics", "QUADRATURE_ORDER", "MEAN_DILATATION_TYPES",
            "deformation_gradient", "element_forces", "internal_force", "lumped_mass"]
@@ -78,7 +78,7 @@ class BlockKinematics:
 
     def local(self, ids: np.ndarray) -> np.ndarray:
         """The global element ``ids`` in this block, as row indices into its arrays
-        (:meth:`~toolkit.common.mesh.CellBlock.local`)."""
+        (:meth:`~toolkit.common.meshes.mesh.CellBlock.local`)."""
         return CellBlock(self.ctype, self.conn, self.offset).local(ids)
 
 

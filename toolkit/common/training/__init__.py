@@ -12,6 +12,8 @@
   outside the training data's range, per parameter;
 - :func:`calibrate`, :class:`ConformalBound` (``conformal``): split-conformal calibration of an
   error estimate to a stated coverage.
+- :func:`decide` (``decision``): who answers within a tolerance, the surrogate or the FE;
+- the resumable HDF5 job database of both workflows' learning data (``database``).
 
 Importing this package imports torch lazily (only the functions that need it do).
 """

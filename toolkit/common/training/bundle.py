@@ -57,7 +57,7 @@ class ModelBundle:
         import numpy as np
         import torch
 
-        from toolkit.common.io import atomic_path
+        from toolkit.common.meshes.io import atomic_path
 
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)

@@ -131,7 +131,7 @@ def save_calibration(directory, meta: dict, arrays: dict):
     ``calibration.json`` in the model directory ``directory``, each atomically, the JSON last, with
     the fingerprint of the model's weights (``model_sha1``, read back by :func:`load_calibration`);
     returns the directory."""
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     directory = Path(directory)
     meta = {**meta, "model_sha1": ModelBundle.weights_sha1(directory)}

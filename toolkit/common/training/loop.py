@@ -293,7 +293,7 @@ def evaluate_loss(model, loss: Callable, inputs, targets, batch_size: int) -> fl
 def _save_checkpoint(path: Path, state: dict) -> None:
     import torch
 
-    from toolkit.common.io import atomic_path
+    from toolkit.common.meshes.io import atomic_path
 
     with atomic_path(path) as tmp:
         torch.save(state, tmp)

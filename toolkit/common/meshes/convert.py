@@ -1,4 +1,4 @@
-"""Lossless conversion between :class:`~toolkit.common.mesh.Mesh` and meshio,
+"""Lossless conversion between :class:`~toolkit.common.meshes.mesh.Mesh` and meshio,
 pyvista and scikit-fem meshes.
 
 - meshio: node sets are ``point_sets``, element sets ``cell_sets`` (per block),
@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from toolkit.common.fem.reference import REFERENCE_ELEMENTS
-from toolkit.common.mesh import CELL_TYPES, Mesh, MeshError
+from toolkit.common.meshes.mesh import CELL_TYPES, Mesh, MeshError
 
 __all__ = [
     "to_meshio",

@@ -161,7 +161,7 @@ def check_blocks(points: np.ndarray, blocks: Iterable, min_scaled_jacobian: floa
     Parameters
     ----------
     points : (n_points, 3) float, mm
-    blocks : :class:`~toolkit.common.mesh.CellBlock` s (``ctype``, ``cells``, ``offset``)
+    blocks : :class:`~toolkit.common.meshes.mesh.CellBlock` s (``ctype``, ``cells``, ``offset``)
     min_scaled_jacobian : elements below this (but > 0) are degenerate
 
     Returns

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
 
 __all__ = ["superior_fibres", "with_lip_fibres"]
 
@@ -28,7 +28,7 @@ def superior_fibres(mesh: Mesh, skin: np.ndarray) -> np.ndarray:
     """
     from scipy.spatial import cKDTree
 
-    from toolkit.common.topology import triangulated_boundary
+    from toolkit.common.meshes.topology import triangulated_boundary
 
     centroids = np.concatenate([mesh.points[b.cells].mean(axis=1) for b in mesh.blocks])
     member = np.zeros(mesh.n_points, dtype=bool)

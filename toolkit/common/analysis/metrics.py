@@ -11,9 +11,9 @@ Nodal errors (the PointNet++ and impact papers)
     :func:`pearson`, :func:`region_errors`.
 Paired comparison of error distributions (the PointNet++ paper's explicit vs implicit ablation)
     :func:`wilcoxon_paired` -> :class:`PairedComparison`.
-Surface deviation along normals (the lip-sliding paper), in :mod:`toolkit.common.surface_distance`
+Surface deviation along normals (the lip-sliding paper), in :mod:`toolkit.common.analysis.surface_distance`
     :func:`vertex_normals`, :func:`surface_deviation` -> :class:`SurfaceDeviation`.
-Lip-shape analysis (the lip-sliding paper, Fig. 6), in :mod:`toolkit.common.lip_shape`
+Lip-shape analysis (the lip-sliding paper, Fig. 6), in :mod:`toolkit.common.analysis.lip_shape`
     :func:`midline_profile`, :func:`convex_part`, :func:`fit_circle` -> :class:`Circle`,
     :func:`procrustes_displacement`, :func:`lip_shape_difference`,
     :func:`lip_shape_analysis`, thresholds :data:`SINGLE_LIP_THRESHOLD_MM` and
@@ -31,8 +31,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from toolkit.common._validate import _as_float, _as_pair, _region_indices
-from toolkit.common.lip_shape import (
+from toolkit.common.analysis._validate import _as_float, _as_pair, _region_indices
+from toolkit.common.analysis.lip_shape import (
     BOTH_LIPS_THRESHOLD_MM,
     SINGLE_LIP_THRESHOLD_MM,
     Circle,
@@ -45,7 +45,7 @@ from toolkit.common.lip_shape import (
     midline_profile,
     procrustes_displacement,
 )
-from toolkit.common.surface_distance import SurfaceDeviation, surface_deviation, vertex_normals
+from toolkit.common.analysis.surface_distance import SurfaceDeviation, surface_deviation, vertex_normals
 
 __all__ = [
     "SINGLE_LIP_THRESHOLD_MM",

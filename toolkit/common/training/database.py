@@ -33,7 +33,7 @@ naming the differences, except for the keys the database ``grows`` along) and ``
 row per record (key, params, scalar attributes). :func:`read_index` reads it (or another table
 of the file, such as a static database's ``/samples``) as a DataFrame with ``str`` strings::
 
-    from toolkit.common.database import read_index
+    from toolkit.common.training.database import read_index
     index = read_index("db.h5")
 
 HDF5 has no text type that h5py returns as ``str`` inside a table (its variable-length strings
@@ -234,7 +234,7 @@ class Database:
         """Create the file (atomically) if absent, with ``/shared`` arrays; else :meth:`check` it."""
         import h5py
 
-        from toolkit.common.io import atomic_path
+        from toolkit.common.meshes.io import atomic_path
 
         if self.path.exists():
             self.check()
@@ -258,7 +258,7 @@ class Database:
         (copy-on-write; nothing is written when both are already stored)."""
         import h5py
 
-        from toolkit.common.io import atomic_path
+        from toolkit.common.meshes.io import atomic_path
 
         planned, config = json.dumps(list(keys)), json.dumps(self.config)
         attrs = self.open_attrs(self.path)
@@ -321,7 +321,7 @@ class Database:
         """Write one finished job as ``<db>.shards/<key>.h5`` (atomically)."""
         import h5py
 
-        from toolkit.common.io import atomic_path
+        from toolkit.common.meshes.io import atomic_path
 
         self.shards.mkdir(exist_ok=True)
         with atomic_path(self.shards / f"{job.key}.h5") as tmp:
@@ -344,7 +344,7 @@ class Database:
         """Fold pending shards into the main file copy-on-write; returns how many were merged."""
         import h5py
 
-        from toolkit.common.io import atomic_path
+        from toolkit.common.meshes.io import atomic_path
 
         shards = [p for p in sorted(self.shards.glob("*.h5")) if not p.name.startswith(".")] \
             if self.shards.is_dir() else []

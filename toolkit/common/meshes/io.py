@@ -3,7 +3,7 @@
 Node and element sets survive every format: Abaqus stores them as ``*NSET`` and
 ``*ELSET``; VTU and XDMF, which have no sets, carry them as ``uint8`` masks named
 ``nodeset:NAME`` / ``elset:NAME`` that :func:`read` turns back into sets. Reading a
-real mesh with its sets gives the same :class:`~toolkit.common.mesh.Mesh` the
+real mesh with its sets gives the same :class:`~toolkit.common.meshes.mesh.Mesh` the
 phantoms give.
 
 Every write is atomic: the file is written under a temporary name in the target
@@ -16,7 +16,7 @@ Units: files are taken to be in mm. A mesh whose extent looks like metres
 
 A file that cannot be read (not text, empty, truncated, a value that is not a number, an
 element or set naming a node no ``*NODE`` line defines, a node id defined twice, no volume
-cells) raises :class:`~toolkit.common.mesh.MeshError` naming the file, the line where known,
+cells) raises :class:`~toolkit.common.meshes.mesh.MeshError` naming the file, the line where known,
 and what was expected.
 """
 
@@ -32,9 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.common.abaqus import write_abaqus
-from toolkit.common.convert import ELSET_PREFIX, NODESET_PREFIX, from_meshio, to_meshio
-from toolkit.common.mesh import VOLUME_TYPES, Mesh, MeshError, MissingSetError
+from toolkit.common.meshes.abaqus import write_abaqus
+from toolkit.common.meshes.convert import ELSET_PREFIX, NODESET_PREFIX, from_meshio, to_meshio
+from toolkit.common.meshes.mesh import VOLUME_TYPES, Mesh, MeshError, MissingSetError
 
 __all__ = [
     "read",
@@ -160,7 +160,7 @@ def write(path: str | os.PathLike, mesh: Mesh) -> Path:
 
     path = Path(path)
     fmt = _format(path)
-    if fmt == "abaqus":  # our writer: each set once, spanning blocks (see toolkit.common.abaqus)
+    if fmt == "abaqus":  # our writer: each set once, spanning blocks (see toolkit.common.meshes.abaqus)
         with atomic_path(path) as tmp, open(tmp, "w") as f:
             write_abaqus(f, mesh)
         return path

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from toolkit.common.mesh import Mesh
-from toolkit.common.topology import kuhn_tets, wedges_from_hexes
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.topology import kuhn_tets, wedges_from_hexes
 
 __all__ = ["mixed_bar"]
 

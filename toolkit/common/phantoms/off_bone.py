@@ -4,7 +4,7 @@ A CT segmentation never puts the soft tissue exactly on the bone: on a real face
 mucosa nodes lie 1.2 mm (median), 2.7 mm (90th percentile) and up to ~20 mm off the
 segmented bone surface, and the bone surface is rougher than the tissue's inner boundary
 (voxel steps, teeth, thin cortical walls). :func:`off_bone` reproduces that on a
-:class:`~toolkit.common.phantom.FacePhantom`: every vertex of every bone surface moves away
+:class:`~toolkit.common.phantoms.phantom.FacePhantom`: every vertex of every bone surface moves away
 from the tissue, along its normal, by its own random log-normal offset (median ``median``,
 90th percentile ``p90``, at most ``max_offset``). The tissue mesh, its node sets and the
 plans stay as they are; only the segments' surfaces change. Projecting the mucosa onto such
@@ -19,8 +19,8 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from toolkit.common.phantom import FacePhantom
-from toolkit.common.surface_distance import vertex_normals
+from toolkit.common.analysis.surface_distance import vertex_normals
+from toolkit.common.phantoms.phantom import FacePhantom
 
 __all__ = ["off_bone"]
 

@@ -47,7 +47,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from toolkit.common.errors import ToolkitError
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
 
 __all__ = ["AXES", "AxesError", "axes_matrix", "to_toolkit", "mesh_to_toolkit", "check_anatomical_axes",
            "check_mesh_axes", "skin_points", "SEGMENT_SETS", "FRONT_DEPTH_MM", "FRONT_SPAN", "FRONT_OFFSET"]
@@ -309,7 +309,7 @@ def skin_points(mesh: Mesh) -> np.ndarray:
     """The skin of a face mesh ``(n, 3)`` mm: its node set ``skin``, or its boundary nodes."""
     ids = mesh.node_sets.get("skin")
     if ids is None or not len(ids):
-        from toolkit.common.topology import boundary_face_blocks
+        from toolkit.common.meshes.topology import boundary_face_blocks
 
         ids = np.unique(np.concatenate([f.ravel() for f in boundary_face_blocks(mesh.cells).values()]))
     return mesh.points[ids]

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from toolkit.common._validate import _as_points
+from toolkit.common.analysis._validate import _as_points
 
 __all__ = [
     "SINGLE_LIP_THRESHOLD_MM",

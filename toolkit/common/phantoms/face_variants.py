@@ -2,7 +2,7 @@
 
 Patient meshes are rarely all hexahedra: tetrahedral meshers give ``tet4``, hex-dominant
 ones mix hexahedra with wedges. :func:`remeshed` turns a hexahedral
-:class:`~toolkit.common.phantom.FacePhantom` into either, on the same nodes, so every node
+:class:`~toolkit.common.phantoms.phantom.FacePhantom` into either, on the same nodes, so every node
 set, the bony segments and the plans stay valid and results can be compared node by node:
 
 - ``tet4``: every hexahedron split into 6 Kuhn tetrahedra (conforming);
@@ -21,9 +21,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from toolkit.common.mesh import Mesh
-from toolkit.common.phantom import FACE_RESOLUTIONS, FacePhantom
-from toolkit.common.topology import kuhn_tets, wedges_from_hexes
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.topology import kuhn_tets, wedges_from_hexes
+from toolkit.common.phantoms.phantom import FACE_RESOLUTIONS, FacePhantom
 
 __all__ = ["remeshed", "jittered", "REMESH_TYPES"]
 
@@ -58,7 +58,7 @@ def remeshed(phantom: FacePhantom, cell_type: str = "mixed", wedge_fraction: flo
 
     Parameters
     ----------
-    phantom : a hexahedral FacePhantom (from :func:`~toolkit.common.phantom.face_hex`)
+    phantom : a hexahedral FacePhantom (from :func:`~toolkit.common.phantoms.phantom.face_hex`)
     cell_type : ``tet4`` or ``mixed``
     wedge_fraction : share of the through-thickness columns split into wedges (``mixed``)
     seed : chooses those columns
@@ -108,7 +108,7 @@ def jittered(phantom: FacePhantom, min_quality: float = 0.01, amplitude: float =
     -------
     FacePhantom with the moved mesh (same topology, sets and segments)
     """
-    from toolkit.common.topology import triangulated_boundary
+    from toolkit.common.meshes.topology import triangulated_boundary
 
     if not 0.0 < min_quality < 1.0:
         raise ValueError(f"min_quality = {min_quality!r}; expected a number in (0, 1)")

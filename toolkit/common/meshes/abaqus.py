@@ -17,7 +17,7 @@ from typing import TextIO
 import numpy as np
 
 from toolkit.common.fem.reference import REFERENCE_ELEMENTS
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
 
 __all__ = ["write_abaqus"]
 
@@ -36,7 +36,7 @@ def write_abaqus(f: TextIO, mesh: Mesh, heading: str = "written by toolkit") -> 
     """Write ``mesh`` (nodes, element blocks, node and element sets) to the text stream ``f``.
 
     Element ids are the global element indices + 1 (block order), node ids the point
-    indices + 1, so a deck read back with :func:`toolkit.common.io.read` gives the same
+    indices + 1, so a deck read back with :func:`toolkit.common.meshes.io.read` gives the same
     numbering.
     """
     f.write(f"*HEADING\n{heading}\n*NODE\n")

@@ -14,8 +14,8 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from toolkit.common._validate import _as_points, _as_triangles, _region_indices
-from toolkit.common.topology import rim_edges
+from toolkit.common.analysis._validate import _as_points, _as_triangles, _region_indices
+from toolkit.common.meshes.topology import rim_edges
 
 __all__ = ["vertex_normals", "SurfaceDeviation", "surface_deviation", "ClosestPoints", "closest_points",
            "barycentric", "interpolate_on_surface", "beyond_rim_onto_plane"]
@@ -314,7 +314,7 @@ def beyond_rim_onto_plane(points, cp: ClosestPoints, surface_points, triangles, 
     points : (n, 3) float, mm — the query points of ``cp``
     cp : ClosestPoints of ``points`` on the surface
     surface_points : (m, 3) float, mm; triangles : (t, 3) int
-    rim : (e, 2) rim edges (:func:`toolkit.common.topology.rim_edges`; computed when None)
+    rim : (e, 2) rim edges (:func:`toolkit.common.meshes.topology.rim_edges`; computed when None)
     tol : barycentric tolerance for "on an edge", and mm for "off the normal"
 
     Returns

@@ -52,9 +52,9 @@ from types import MappingProxyType
 
 import numpy as np
 
-from toolkit.common.mesh import Mesh
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.topology import kuhn_tets, tet10_from_tet4
 from toolkit.common.papers import BALL_RADIUS, ball_density
-from toolkit.common.topology import kuhn_tets, tet10_from_tet4
 
 __all__ = [
     "FaceShape",
@@ -603,7 +603,7 @@ def face_tet(
 
 def _with_midside_nodes(ids: np.ndarray, tets10: np.ndarray, n_corner_nodes: int) -> np.ndarray:
     """Extend a node set of corner nodes by the mid-edge nodes whose two ends are in it."""
-    from toolkit.common.topology import TET_EDGES
+    from toolkit.common.meshes.topology import TET_EDGES
 
     member = np.zeros(n_corner_nodes, dtype=bool)
     member[ids] = True

@@ -24,8 +24,8 @@ Node ordering inside a cell is that of the cell's reference element
 (which for ``tet10`` is also Abaqus C3D10's) and meshio/Abaqus C3D6/gmsh for
 ``wedge6`` (the (0, 1, 2) triangle's normal points into the element).
 
-Conversions (lossless, sets and fields kept) live in :mod:`toolkit.common.convert`;
-element quality in :mod:`toolkit.common.quality`.
+Conversions (lossless, sets and fields kept) live in :mod:`toolkit.common.meshes.convert`;
+element quality in :mod:`toolkit.common.meshes.quality`.
 """
 
 from __future__ import annotations
@@ -40,8 +40,8 @@ import numpy as np
 
 from toolkit.common.errors import DegenerateElementError, InvertedElementError, MeshError, MissingSetError
 from toolkit.common.fem.reference import REFERENCE_ELEMENTS
-from toolkit.common.quality import check_blocks, scaled_jacobian
-from toolkit.common.topology import boundary_face_blocks
+from toolkit.common.meshes.quality import check_blocks, scaled_jacobian
+from toolkit.common.meshes.topology import boundary_face_blocks
 
 __all__ = [
     "Mesh",
@@ -328,7 +328,7 @@ class Mesh:
             hexahedra, counter-clockwise seen from outside. A boundary with both
             triangles and quads (wedges, mixed meshes) raises :class:`MeshError`: use
             :meth:`boundary_face_blocks` or
-            :func:`toolkit.common.topology.triangulated_boundary` there.
+            :func:`toolkit.common.meshes.topology.triangulated_boundary` there.
         """
         blocks = self.boundary_face_blocks()
         if len(blocks) > 1:
@@ -370,7 +370,7 @@ class Mesh:
         element index when the volume blocks come first, as in the phantoms and in
         files read here). 1 for an ideal cube / regular tetrahedron / right prism on an
         equilateral triangle, <= 0 for inverted elements. See
-        :func:`toolkit.common.quality.scaled_jacobian` for the definitions.
+        :func:`toolkit.common.meshes.quality.scaled_jacobian` for the definitions.
         """
         parts = [scaled_jacobian(b.ctype, self.points[b.cells]) for b in self.volume_blocks]
         return np.concatenate(parts) if parts else np.zeros(0)
