@@ -87,3 +87,34 @@ def test_the_check_finds_a_wrong_option_in_a_span_a_block_and_a_table():
     assert unknown_options(text, known) == ["line 1: toolkit static predict: --answerer",
                                             "line 4: toolkit impact simulate: --no-image",
                                             "line 6: toolkit mesh: --resolution"]
+
+
+def remedies(root: Path, known) -> tuple[int, list[str]]:
+    """``(count, problems)`` of the command lines the library's messages and docstrings quote
+    (```toolkit ...``` in backticks): a command that does not exist, or an option it does not take."""
+    count, bad = 0, []
+    for source in sorted(root.rglob("*.py")):
+        for quoted in re.findall(r"`(toolkit [^`]+)`", source.read_text()):
+            uses = _uses(quoted, known)
+            if not uses and re.match(r"toolkit (static|impact) [a-z]", quoted):  # not `toolkit static ...`
+                bad.append(f"{source.name}: `{quoted}` names no command")
+            for command, options in uses:
+                count += 1
+                bad += [f"{source.name}: `{quoted}`: {o}" for o in sorted(options - known[command] - COMMON)]
+    return count, bad
+
+
+def test_every_command_line_a_message_quotes_parses():
+    """A remedy such as "make one with `toolkit static calibrate --model M --data DB.h5`" names a
+    command and options that exist."""
+    import toolkit
+
+    count, bad = remedies(Path(toolkit.__file__).parent, _options())
+    assert count >= 50 and bad == []
+
+
+def test_the_remedy_check_finds_a_wrong_option_and_command(tmp_path):
+    (tmp_path / "m.py").write_text('raise ValueError("rerun `toolkit static simulate --answerer fe` or '
+                                   '`toolkit static fly --out o`")\n')
+    assert remedies(tmp_path, _options()) == (1, ["m.py: `toolkit static simulate --answerer fe`: --answerer",
+                                                  "m.py: `toolkit static fly --out o` names no command"])
