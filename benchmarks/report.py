@@ -557,6 +557,19 @@ def _interrupts(data):
     return "\n".join(lines)
 
 
+def _interrupt_stress(data):
+    df, side = data["interrupt_stress"]
+    hit = df[~df["ended_before"].astype(bool)]
+    x = side.get("extra", {})
+    codes = ", ".join(f"{n} x {int(c)}" for c, n in hit["exit_code"].value_counts().sort_index().items())
+    return (f"{len(df)} tries, SIGINT between {df['interrupt_s'].min():.2f} and {df['interrupt_s'].max():.2f} s after "
+            f"the start ({len(df) - len(hit)} had ended before it): {int(df['hung'].sum())} hung; exit codes "
+            f"{codes}; {int((~hit['interrupted_line'].astype(bool)).sum())} without the `interrupted:` line, "
+            f"{int(hit['traceback'].astype(bool).sum())} with a traceback; the slowest ended "
+            f"{hit['exit_after_s'].max():.2f} s after the signal (median {hit['exit_after_s'].median():.2f} s)."
+            if len(hit) else f"{x.get('tries', len(df))} tries, none interrupted before it ended.")
+
+
 #: (text of the failure, its short name in the table), the first that matches names it
 _MESHER_FAILURES = (("needs a closed surface", "refused: not closed"),
                     ("contain self-intersections", "self-intersections"),
@@ -955,6 +968,7 @@ SOURCES = {s.stem: s for s in (
     Source("phantoms", "python benchmarks/phantoms.py", 2),
     Source("bad_inputs", "python benchmarks/bad_inputs.py", 4),
     Source("bad_inputs_interrupts", "python benchmarks/bad_inputs.py --interrupts", 5),
+    Source("interrupt_stress", "python benchmarks/interrupt_stress.py", 8),
     Source("mixed_elements", "python benchmarks/mixed_elements.py", 1),
     Source("static_meshed_speed_ct", "python benchmarks/static_meshed_speed.py --face ct --code /tmp/before . "
            "--repeats 1 --out benchmarks/results/static_meshed_speed_ct.csv", 50),
@@ -1203,6 +1217,11 @@ BLOCKS = {b.name: b for b in (
           "group, as Ctrl-C) at several times, and rerun: the finished simulations or epochs on disk at the "
           "interrupt and after the rerun, whether any was lost, and whether the rerun completes the job.",
           (SOURCES["bad_inputs_interrupts"],), _interrupts),
+    Block("interrupt_stress", "Ctrl-C at random times in a database run",
+          "`toolkit static dataset --resolution coarse --plans 300 --workers 1`, started afresh for each try in its "
+          "own process group and sent SIGINT (to the worker too) at a time drawn uniformly over its first seconds, "
+          "when the worker may be anywhere in a simulation (its METIS ordering included); a try that has not ended "
+          "a minute later counts as hung.", (SOURCES["interrupt_stress"],), _interrupt_stress),
 )}
 #: blocks whose table needs every source (the others render what is present, the rest as one line)
 _PARTIAL = {"headline", "static_surrogate", "impact_surrogate", "static_convergence", "own_face",
