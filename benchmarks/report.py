@@ -561,7 +561,7 @@ def _interrupt_stress(data):
     df, side = data["interrupt_stress"]
     hit = df[~df["ended_before"].astype(bool)]
     x = side.get("extra", {})
-    codes = ", ".join(f"{n} x {int(c)}" for c, n in hit["exit_code"].value_counts().sort_index().items())
+    codes = ", ".join(f"{int(c)} ({n} tries)" for c, n in hit["exit_code"].value_counts().sort_index().items())
     return (f"{len(df)} tries, SIGINT between {df['interrupt_s'].min():.2f} and {df['interrupt_s'].max():.2f} s after "
             f"the start ({len(df) - len(hit)} had ended before it): {int(df['hung'].sum())} hung; exit codes "
             f"{codes}; {int((~hit['interrupted_line'].astype(bool)).sum())} without the `interrupted:` line, "
