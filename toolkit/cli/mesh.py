@@ -18,8 +18,8 @@ def commissures(text: str) -> tuple[tuple[float, float, float], tuple[float, flo
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from toolkit.common.defaults import MESH
     from toolkit.mesh.backends import BACKENDS, DEFAULT
-    from toolkit.mesh.face import DEFAULT_ORDER, DEFAULT_SIZE_MM
 
     parser.add_argument("--tissue", required=True, type=Path,
                         help="closed surface of the soft tissue (STL/OBJ/PLY/VTK/VTU/OFF), in the axes of --axes")
@@ -30,9 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the two corners of the mouth on the skin, mm in the surface files' axes, or a file of "
                              "two lines X,Y,Z: the lips are cut between them and slide (default: a closed mouth "
                              "without lip sliding)")
-    parser.add_argument("--order", type=int, default=DEFAULT_ORDER, choices=[1, 2],
+    parser.add_argument("--order", type=int, default=MESH["order"], choices=[1, 2],
                         help="element order: 1 tet4, 2 tet10 (linear tetrahedra lock at the tissue's nu = 0.47)")
-    parser.add_argument("--size", type=positive_float, default=DEFAULT_SIZE_MM, help="tetrahedron edge length, mm")
+    parser.add_argument("--size", type=positive_float, default=MESH["size_mm"], help="tetrahedron edge length, mm")
     parser.add_argument("--backend", default=DEFAULT, choices=list(BACKENDS), help="tetrahedral mesher")
     parser.add_argument("--rules", type=Path, default=None,
                         help="labelling rules (TOML) overriding the defaults (see docs/own-face.md)")

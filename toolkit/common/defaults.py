@@ -1,8 +1,10 @@
-"""The defaults of a static simulation, read by the command line and the Python API alike.
+"""The defaults of a static simulation and of meshing a face, read by the command line and the
+Python API alike.
 
 :func:`toolkit.static.load_case`, :func:`toolkit.static.simulate`,
-:class:`toolkit.static.dataset.DatasetConfig` and ``toolkit static simulate|dataset`` take these
-when an option is neither given nor chosen by a tolerance. The impact workflow's defaults are
+:class:`toolkit.static.dataset.DatasetConfig` and ``toolkit static simulate|dataset`` take
+:data:`STATIC_SIMULATION` when an option is neither given nor chosen by a tolerance;
+:func:`toolkit.mesh.mesh_face` and ``toolkit mesh`` take :data:`MESH`. The impact workflow's defaults are
 its dataclasses' (:class:`toolkit.impact.scene.Fidelity`, :func:`toolkit.impact.default_scene`),
 which its command line reads from the scene.
 """
@@ -12,8 +14,12 @@ from __future__ import annotations
 from types import MappingProxyType
 from typing import Any
 
-__all__ = ["STATIC_SIMULATION"]
+__all__ = ["STATIC_SIMULATION", "MESH"]
 
 #: phantom resolution, load increments, tissue material and sliding of a static simulation
 STATIC_SIMULATION: MappingProxyType[str, Any] = MappingProxyType(
     {"resolution": "coarse", "increments": 3, "material": "linear", "sliding": "mucosa+lip"})
+
+#: a meshed face's tetrahedron edge length (mm; a paper-size face: a few thousand nodes) and element
+#: order (quadratic: linear tetrahedra lock at nu = 0.47)
+MESH: MappingProxyType[str, Any] = MappingProxyType({"size_mm": 3.0, "order": 2})

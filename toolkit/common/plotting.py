@@ -19,7 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common.meshes.convert import to_pyvista
+from toolkit.common.meshes.io import atomic_path
 from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.runtime import configure_headless_rendering
 
 __all__ = ["render", "plot_curves", "plot_tradeoff", "CAMERAS", "SET_COLOURS", "set_colour"]
 
@@ -116,8 +118,6 @@ def render(
     -------
     Path of the PNG.
     """
-    from toolkit.common.meshes.io import atomic_path
-    from toolkit.common.runtime import configure_headless_rendering
 
     if camera not in CAMERAS:
         raise ValueError(f"unknown camera {camera!r}; expected one of {sorted(CAMERAS)}")
@@ -252,7 +252,6 @@ def plot_tradeoff(
 
 
 def _save(fig, path) -> None:
-    from toolkit.common.meshes.io import atomic_path
 
     path = Path(path)
     with atomic_path(path) as tmp:

@@ -48,6 +48,7 @@ from toolkit.common.training.database import (
     run_jobs,
 )
 from toolkit.impact.scene import Scene, yielding_scene
+from toolkit.impact.simulate import ball_start, check_travel, face_mesh, fixed_nodes, simulate
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -97,7 +98,6 @@ class SimulationWorker:
     scene: dict
 
     def __call__(self, params: dict) -> Record:
-        from toolkit.impact.simulate import simulate
 
         scene = Scene.from_dict(self.scene).with_ball(velocity=float(params["velocity"]))
         r = simulate(scene, preview=False)
@@ -138,7 +138,6 @@ def build_database(out: str | os.PathLike, velocities=PAPER_VELOCITIES, held_out
     -------
     RunReport (done, failed with reasons, skipped)
     """
-    from toolkit.impact.simulate import ball_start, check_travel, face_mesh, fixed_nodes
 
     check_workers(workers)
     scene = scene or yielding_scene()
@@ -200,7 +199,6 @@ class SceneInputs:
     @classmethod
     def from_scene(cls, scene: Scene, face, times) -> SceneInputs:
         """From a scene and its face Mesh (node set ``skin``) at the frame ``times`` (s)."""
-        from toolkit.impact.simulate import ball_start, fixed_nodes
 
         fixed = np.zeros(face.n_points, dtype=bool)
         fixed[fixed_nodes(scene, face)] = True
@@ -246,7 +244,6 @@ class ImpactDatabase:
     @property
     def inputs(self) -> SceneInputs:
         """The scene's per-item inputs (positions, fixed flags, frames, the ball's path)."""
-        from toolkit.impact.simulate import ball_start
 
         return SceneInputs(self.points, self.fixed, self.times, ball_start(self.scene, self.points[self.skin]),
                            np.asarray(self.scene.ball.direction, dtype=float), float(self.scene.ball.radius))

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common.analysis import metrics
+from toolkit.common.meshes.io import atomic_path
 from toolkit.impact.dataset import ImpactDatabase, load_database
 from toolkit.impact.surrogate import Surrogate, item_features, item_targets, split_items
 
@@ -219,7 +220,6 @@ def write_evaluation(ev: Evaluation, db: ImpactDatabase, surrogate: Surrogate, o
     """Write ``metrics.json``, ``timeseries.png`` and ``fields.png`` to ``out``; both figures show
     the fastest simulation with test items of ``ev`` (one of ``test_velocities_mm_s``). ``nodes``
     and ``frames`` are checked (:func:`check_figure_choices`) before anything is written."""
-    from toolkit.common.meshes.io import atomic_path
 
     check_figure_choices(db, nodes, frames, ev)
     out = Path(out)
@@ -232,7 +232,6 @@ def write_evaluation(ev: Evaluation, db: ImpactDatabase, surrogate: Surrogate, o
 
 
 def _save(fig, path) -> None:
-    from toolkit.common.meshes.io import atomic_path
 
     path = Path(path)
     with atomic_path(path) as tmp:

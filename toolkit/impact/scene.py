@@ -25,6 +25,8 @@ import numpy as np
 
 from toolkit.common import papers
 from toolkit.common.errors import ToolkitError
+from toolkit.common.meshes.axes import AXES
+from toolkit.common.meshes.io import UNIT_SCALES, atomic_path, read, read_text
 from toolkit.common.papers import BALL_YIELD, FACE_YIELD
 from toolkit.common.phantoms.phantom import BALL_RESOLUTIONS, TET_RESOLUTIONS
 
@@ -109,8 +111,6 @@ class FaceSpec:
     axes: str = "toolkit"
 
     def __post_init__(self):
-        from toolkit.common.meshes.axes import AXES
-        from toolkit.common.meshes.io import UNIT_SCALES
 
         if self.units not in UNIT_SCALES:
             raise SceneError(f"face units {self.units!r} is not one of {sorted(UNIT_SCALES)} (the length unit of "
@@ -332,7 +332,6 @@ class Scene:
         if not path.is_file():
             raise FileNotFoundError(f"scene file {str(path)!r} does not exist; expected a TOML scene (command line: "
                                     "--scene FILE; Scene.write or `toolkit impact predict` writes one)")
-        from toolkit.common.meshes.io import read_text
 
         text = read_text(path, SceneError, "a TOML scene")
         try:
@@ -346,7 +345,6 @@ class Scene:
 
     def write(self, path: str | os.PathLike) -> Path:
         """Write as TOML (atomically)."""
-        from toolkit.common.meshes.io import atomic_path
 
         lines = [f"duration = {self.duration!r}", f"n_frames = {self.n_frames!r}", ""]
 
@@ -499,7 +497,6 @@ MESH_ORDERS = {"tet4": 1, "tet10": 2}
 def mesh_order(path, units: str = "mm") -> int:
     """Element order (1: tet4, 2: tet10) of the face mesh file at ``path``, or 0 when it holds
     other cells (:func:`toolkit.impact.simulate.face_mesh` then says why)."""
-    from toolkit.common.meshes.io import read
 
     types = read(path, units=units).volume_types
     return MESH_ORDERS.get(types[0], 0) if len(types) == 1 else 0

@@ -26,17 +26,25 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from toolkit import __version__
 from toolkit.common.errors import AnswerError, ToolkitError
 from toolkit.common.fem.kinematics import lumped_mass
 from toolkit.common.fem.materials import lame
+from toolkit.common.meshes.axes import check_mesh_axes, mesh_to_toolkit
+from toolkit.common.meshes.io import TimeSeriesWriter, atomic_path, read
 from toolkit.common.meshes.mesh import Mesh
 from toolkit.common.meshes.topology import boundary_faces
+from toolkit.common.outputs import check_output_dir
+from toolkit.common.phantoms.phantom import ball as ball_mesh
+from toolkit.common.phantoms.phantom import face_tet
+from toolkit.common.plotting import render
 from toolkit.common.runtime import count_finished
 from toolkit.impact.checks import answer_checks
 from toolkit.impact.contact import CoulombFriction, RigidSphereContact, SurfaceContact, penalty_stiffness
 from toolkit.impact.elements import critical_time_step, tet_kinematics
 from toolkit.impact.explicit import Body, ContactResponse, ExplicitModel, moving_sphere_contact, run_explicit
 from toolkit.impact.plasticity import HardeningTable, J2Plasticity
+from toolkit.impact.quasi_static import QuasiStaticOptions, StepContact, run_quasistatic
 from toolkit.impact.scene import MESH_ORDERS, MaterialSpec, Scene, SceneError, mesh_order
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -187,7 +195,6 @@ def _face_body(scene: Scene, face: Mesh, fixed: np.ndarray) -> tuple[Body, np.nd
 def _ball_body(scene: Scene, centre0: np.ndarray, offset: int) -> tuple[Body, Mesh, np.ndarray, tuple]:
     """The deformable ball at ``centre0``: its body (the back, beyond ``driven_fraction`` of the
     radius, driven at the ball's velocity; the front free), mesh, masses and stable step."""
-    from toolkit.common.phantoms.phantom import ball as ball_mesh
 
     ms, R = scene.fidelity.mass_scaling, scene.ball.radius
     d = np.asarray(scene.ball.direction, dtype=float)
@@ -282,7 +289,6 @@ def face_mesh(scene: Scene) -> Mesh:
     """The scene's face: the tetrahedral phantom at ``scene.face.resolution`` and the fidelity's
     element order, or the mesh file ``scene.face.mesh`` (with node sets ``fixed_set``, ``skin``
     and, for a skull-held face, ``bone``). Points ``(n, 3)`` mm."""
-    from toolkit.common.phantoms.phantom import face_tet
 
     if scene.face.mesh:
         return _face_file(scene)
@@ -294,8 +300,6 @@ def _face_file(scene: Scene) -> Mesh:
     """The face mesh file of ``scene`` in the toolkit's axes, checked: tetrahedra of the fidelity's
     order, the node sets the scene holds and aims at (:class:`~toolkit.impact.scene.SceneError`
     otherwise) and the anatomy (:func:`toolkit.common.meshes.axes.check_mesh_axes`)."""
-    from toolkit.common.meshes.axes import check_mesh_axes, mesh_to_toolkit
-    from toolkit.common.meshes.io import read
 
     spec = scene.face
     assert spec.mesh is not None  # called for a scene whose face is a mesh file
@@ -413,7 +417,6 @@ def _run(scene: Scene, built: BuiltScene, on_frame, progress: bool, initial_gues
     """The scene's integrator over its duration: frames and statistics."""
     if scene.fidelity.integrator == "explicit":
         return run_explicit(built.model, scene.duration, scene.n_frames, on_frame=on_frame, progress=progress)
-    from toolkit.impact.quasi_static import QuasiStaticOptions, StepContact, run_quasistatic
 
     fid = scene.fidelity
     contact = StepContact(built.contact_pair, built.model.points.shape[0], built.ball_centre,
@@ -457,8 +460,6 @@ def simulate(scene: Scene, out: str | Path | None = None, progress: bool = False
     written so far stay readable (:func:`toolkit.common.meshes.io.read_time_series`, meshio, ParaView)
     and ``history.h5`` holds them. The error is then raised again.
     """
-    from toolkit.common.meshes.io import TimeSeriesWriter
-    from toolkit.common.outputs import check_output_dir
 
     guess: tuple[np.ndarray, ...] | None = None
     if initial_guess is not None:
@@ -556,7 +557,6 @@ def _write_history(path: Path, frames: list) -> None:
     """``history.h5`` of ``frames``: times s, energies mJ, contact force N, per-frame maxima."""
     import h5py
 
-    from toolkit.common.meshes.io import atomic_path
 
     energies = _energies(frames)
     with atomic_path(path) as tmp:
@@ -572,8 +572,6 @@ def _write_history(path: Path, frames: list) -> None:
 
 def write_summary(path: Path, summary: dict) -> None:
     """``summary`` (JSON-ready) with ``toolkit_version``, written to ``path`` atomically."""
-    from toolkit import __version__
-    from toolkit.common.meshes.io import atomic_path
 
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps({**summary, "toolkit_version": __version__}, indent=2))
@@ -608,8 +606,6 @@ def write_preview(path: str | Path, face: Mesh, displacement: np.ndarray, von_mi
     """``preview.png`` of one frame: the deformed face (``displacement (n, 3)`` mm) coloured by
     ``von_mises (n,)`` MPa, seen from the left, titled with ``time_s``; ``rigid_ball`` =
     ``(centre (3,) mm, radius mm)`` draws a rigid ball there, translucent."""
-    from toolkit.common.phantoms.phantom import ball as ball_mesh
-    from toolkit.common.plotting import render
 
     shown = None if rigid_ball is None else ball_mesh(rigid_ball[1], "coarse", 1, centre=rigid_ball[0])
     render(face.with_point_data(von_mises=von_mises), path, scalars="von_mises", displacement=displacement,

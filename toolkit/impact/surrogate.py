@@ -48,6 +48,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from toolkit.common.config_diff import require_same
+from toolkit.common.meshes.io import TimeSeriesWriter
+from toolkit.common.outputs import check_output_dir
 from toolkit.common.training import (
     MinMaxScaler,
     ModelBundle,
@@ -59,7 +61,9 @@ from toolkit.common.training import (
     train,
 )
 from toolkit.impact.checks import answer_checks
-from toolkit.impact.dataset import ImpactDatabase, load_database
+from toolkit.impact.dataset import ImpactDatabase, SceneInputs, load_database, mesh_checksum
+from toolkit.impact.scene import Scene
+from toolkit.impact.simulate import ball_start, face_mesh, write_preview, write_summary
 
 if TYPE_CHECKING:  # pragma: no cover
     from types import FrameType
@@ -269,7 +273,6 @@ def train_surrogate(db: ImpactDatabase | str | os.PathLike, config: SurrogateCon
     """
     import torch
 
-    from toolkit.common.outputs import check_output_dir
     from toolkit.impact.networks import build_network
 
     if out is not None:
@@ -455,8 +458,6 @@ class Prediction:
         ``toolkit impact simulate --scene scene.toml``) and, with ``preview``, ``preview.png`` of
         the last frame (as :func:`toolkit.impact.simulate.simulate` draws it)."""
 
-        from toolkit.common.meshes.io import TimeSeriesWriter
-        from toolkit.impact.simulate import ball_start, write_preview, write_summary
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -481,9 +482,6 @@ def predict_scene(surrogate: Surrogate, velocity: float) -> Prediction:
     """Predict the training database's scene at ``velocity`` mm/s on its face (rebuilt from the
     scene, and refused if it is not the face the model was trained on), with the answer's checks
     (:func:`toolkit.impact.checks.answer_checks`; the prediction's ``checks``)."""
-    from toolkit.impact.dataset import SceneInputs, mesh_checksum
-    from toolkit.impact.scene import Scene
-    from toolkit.impact.simulate import face_mesh
 
     t0 = time.perf_counter()
     sig = surrogate.bundle.data

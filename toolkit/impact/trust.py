@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from toolkit.common.config_diff import jsonable
+from toolkit.common.config_diff import differences, jsonable
 from toolkit.common.errors import AnswerError
 from toolkit.common.training.conformal import (
     ConformalBound,
@@ -52,6 +52,10 @@ from toolkit.common.training.conformal import (
 )
 from toolkit.common.training.decision import check_tolerance, decide
 from toolkit.impact.checks import answer_checks
+from toolkit.impact.dataset import ImpactDatabase, SceneInputs, _scene_config, load_database, mesh_checksum
+from toolkit.impact.scene import Scene
+from toolkit.impact.simulate import face_mesh, simulate, write_summary
+from toolkit.impact.surrogate import ExtrapolationWarning, Prediction
 
 if TYPE_CHECKING:  # pragma: no cover
     from toolkit.impact.simulate import ImpactResult
@@ -179,7 +183,6 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     """
     from tqdm import tqdm
 
-    from toolkit.impact.dataset import ImpactDatabase, load_database
 
     if scale not in SCALES:
         raise ValueError(f"scale = {scale!r}; expected one of {SCALES}")
@@ -251,8 +254,6 @@ def out_of_distribution(model, scene) -> dict:
     the ball's velocity and the integrator's options differs from the training database's:
     another aim, ball, face, support, material, duration or frames.
     """
-    from toolkit.common.config_diff import differences
-    from toolkit.impact.dataset import _scene_config
 
     reasons = []
     v = float(scene.ball.velocity)
@@ -314,7 +315,6 @@ class TrustedAnswer:
 
     def write_summary(self, out) -> None:
         """``out/summary.json``: the result's summary with ``answer`` (atomically)."""
-        from toolkit.impact.simulate import write_summary
 
         write_summary(Path(out) / "summary.json", jsonable({"status": "finished", **self.summary()}))
 
@@ -351,10 +351,6 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
 
     Raises ValueError for a tolerance that is not a positive number, before any computation.
     """
-    from toolkit.impact.dataset import SceneInputs, mesh_checksum
-    from toolkit.impact.scene import Scene
-    from toolkit.impact.simulate import face_mesh, simulate
-    from toolkit.impact.surrogate import Prediction
 
     tolerance_mm = check_tolerance(tolerance_mm, 1)
     calibration = calibration or Calibration.load(model.directory)
@@ -422,7 +418,6 @@ def _quiet_predict(model, velocity, inputs):
     records the velocity's distance to the training ones)."""
     import warnings
 
-    from toolkit.impact.surrogate import ExtrapolationWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ExtrapolationWarning)

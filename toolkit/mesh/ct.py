@@ -99,9 +99,12 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage as ndi
 
+from toolkit.common.meshes.axes import AxesError, check_anatomical_axes
+from toolkit.common.meshes.io import atomic_path
 from toolkit.common.meshes.mesh import Mesh
 from toolkit.mesh import ct_anatomy as anatomy
 from toolkit.mesh.ct_anatomy import CTError, CTRules, Frame
+from toolkit.mesh.surface import closed_surface
 from toolkit.mesh.volume import Volume, read_volume
 
 __all__ = ["CTRules", "CTSurfaces", "CTError", "ct_surfaces", "SEGMENT_NAMES"]
@@ -132,7 +135,6 @@ class CTSurfaces:
         ``folder``, each atomically. Returns name -> path."""
         import meshio
 
-        from toolkit.common.meshes.io import atomic_path
 
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
@@ -238,7 +240,6 @@ def _cut(surface, cuts: dict[str, float]):
 
 def _tissue_surface(surface) -> tuple[Mesh, dict]:
     """The cut surface as a closed, outward ``tri3`` Mesh (:func:`~toolkit.mesh.surface.closed_surface`)."""
-    from toolkit.mesh.surface import closed_surface
 
     mesh, repair = closed_surface(np.asarray(surface.points, dtype=float),
                                   np.asarray(surface.faces.reshape(-1, 4)[:, 1:], dtype=np.int64),
@@ -296,7 +297,6 @@ def _affine(volume: Volume, axis: np.ndarray, sign: np.ndarray, spacing: np.ndar
 
 def _check_axes(tissue: Mesh, bones: dict[str, Mesh]) -> None:
     """The surfaces found must be a face in the toolkit's axes (:mod:`toolkit.common.meshes.axes`)."""
-    from toolkit.common.meshes.axes import AxesError, check_anatomical_axes
 
     try:
         check_anatomical_axes(tissue.points, {k: b.points for k, b in bones.items()}, source="the CT's surfaces")

@@ -32,20 +32,23 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common.defaults import MESH
 from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.fibres import with_lip_fibres
+from toolkit.common.fem.reference import REFERENCE_ELEMENTS
 from toolkit.common.meshes.axes import axes_matrix, check_anatomical_axes, mesh_to_toolkit, to_toolkit
+from toolkit.common.meshes.io import atomic_path, write
 from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.surfaces import orient_surface, read_surface
+from toolkit.common.meshes.topology import boundary_faces, lumped_boundary_area, tet10_from_tet4, unique_edges
+from toolkit.common.plotting import render
 from toolkit.mesh.backends import DEFAULT, tetrahedralize
+from toolkit.mesh.budget import available_memory_gib, estimate_size, finest_fitting_size
 from toolkit.mesh.rules import SEGMENTS, LabelRules, read_rules
+from toolkit.mesh.surface import closed_surface, read_tissue_surface
 
-__all__ = ["MeshedFace", "mesh_face", "carried_report", "FaceInputError", "dihedral_angles", "mid_edge_lookup",
-           "DEFAULT_SIZE_MM", "DEFAULT_ORDER"]
+__all__ = ["MeshedFace", "mesh_face", "carried_report", "FaceInputError", "dihedral_angles", "mid_edge_lookup"]
 
-#: mm, default tetrahedron edge length (a paper-size face: a few thousand nodes)
-DEFAULT_SIZE_MM = 3.0
-#: default element order of a meshed face (quadratic: linear tetrahedra lock at nu = 0.47)
-DEFAULT_ORDER = 2
 
 
 class FaceInputError(ToolkitError, ValueError):
@@ -70,7 +73,6 @@ class MeshedFace:
     def write(self, path, *, image: bool = True) -> dict[str, Path]:
         """Write the mesh to ``path`` (``.vtu`` or ``.inp``), ``labels.json`` and ``labels.png``
         beside it (atomically each). Returns the paths written."""
-        from toolkit.common.meshes.io import atomic_path, write
 
         path = Path(path)
         out = {"mesh": path, "labels": path.with_name("labels.json")}
@@ -124,7 +126,6 @@ def _check_inputs(bones: Mapping, size_mm: float, order: int, commissures) -> No
 def _check_budget(surface: Mesh, size_mm: float, order: int, memory_gib: float | None, source: str):
     """The :class:`~toolkit.mesh.budget.SizeEstimate` of meshing ``surface`` at ``size_mm``;
     raises :class:`FaceInputError` when it needs more than ``memory_gib`` (default: available)."""
-    from toolkit.mesh.budget import available_memory_gib, estimate_size, finest_fitting_size
 
     tri = surface.cells["tri3"]
     estimate = estimate_size(surface.points, tri, size_mm, order)
@@ -140,7 +141,6 @@ def _check_budget(surface: Mesh, size_mm: float, order: int, memory_gib: float |
 
 
 def _read_bone(name: str, source, units: str) -> Mesh:
-    from toolkit.common.meshes.surfaces import read_surface
 
     if isinstance(source, Mesh):
         return source
@@ -162,8 +162,6 @@ def _check_contact(tissue: Mesh, bones: Mapping[str, Mesh], rules: LabelRules, n
 
 def _edges_of(faces: np.ndarray) -> np.ndarray:
     """Unique sorted edges ``(e, 2)`` of triangles."""
-    from toolkit.common.fem.reference import REFERENCE_ELEMENTS
-    from toolkit.common.meshes.topology import unique_edges
 
     return unique_edges(faces, REFERENCE_ELEMENTS["tri3"].edges)[0]
 
@@ -189,7 +187,6 @@ def _elevate(points: np.ndarray, tets: np.ndarray, node_sets: dict[str, np.ndarr
              set_faces: Mapping[str, np.ndarray]):
     """tet10 from tet4, each set extended to the mid-edge nodes of the edges of its faces
     (``set_faces[name]``; default the boundary faces) whose two ends are in the set."""
-    from toolkit.common.meshes.topology import boundary_faces, tet10_from_tet4
 
     p10, t10 = tet10_from_tet4(points, tets)
     n4 = points.shape[0]
@@ -245,7 +242,6 @@ def carried_report(mesh: Mesh, rules: LabelRules) -> dict:
     """Per labelled segment, what it holds of the tissue: ``attached_nodes`` (its carried set),
     ``attached_area_mm2`` and ``facing_area_mm2`` (lumped boundary areas of the carried set and
     of all the tissue lying on its bone, carried or sliding) and ``carried_share`` (their ratio)."""
-    from toolkit.common.meshes.topology import lumped_boundary_area
     from toolkit.mesh.labels import CARRIED_SETS
 
     area = lumped_boundary_area(mesh.points, mesh.cells)
@@ -280,8 +276,8 @@ def _check_carried(segments: Mapping[str, dict], rules: LabelRules, names: Mappi
                 f"in --rules")
 
 
-def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFAULT_SIZE_MM,
-              order: int = DEFAULT_ORDER, backend: str = DEFAULT, rules=None, units: str = "mm",
+def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = MESH["size_mm"],
+              order: int = MESH["order"], backend: str = DEFAULT, rules=None, units: str = "mm",
               axes: str = "toolkit", max_hole_edges: int = 60, threads: int = 1,
               memory_gib: float | None = None) -> MeshedFace:
     """Mesh and label a face from its segmented surfaces (see the module for the stages).
@@ -313,9 +309,7 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = DEFA
         under ``estimate``); a size whose estimate exceeds this is refused, naming the finest
         size that fits
     """
-    from toolkit.common.meshes.surfaces import orient_surface
     from toolkit.mesh.labels import label_nodes
-    from toolkit.mesh.surface import closed_surface, read_tissue_surface
 
     _check_inputs(bones, size_mm, order, commissures)
     axes_matrix(axes)
@@ -423,8 +417,6 @@ def render_labels(face: MeshedFace, path) -> Path:
     from matplotlib.figure import Figure
     from matplotlib.image import imread
 
-    from toolkit.common.meshes.io import atomic_path
-    from toolkit.common.plotting import render
 
     sets = {k: face.mesh.node_sets[k] for k in _SHOWN if k in face.mesh.node_sets and k != "skin"}
     fig = Figure(figsize=(12, 5), dpi=100)

@@ -27,9 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from toolkit.common.analysis.surface_distance import closest_points
+from toolkit.common.analysis.surface_distance import barycentric, closest_points
 from toolkit.common.meshes.mesh import Mesh
-from toolkit.common.meshes.topology import boundary_faces
+from toolkit.common.meshes.topology import boundary_faces, rim_edges
 from toolkit.mesh.rules import SEGMENTS, LabelRules
 
 __all__ = ["FaceLabels", "label_nodes", "CARRIED_SETS"]
@@ -176,8 +176,6 @@ def label_nodes(points: np.ndarray, tets: np.ndarray, bones: Mapping[str, Mesh],
 def _on_rim(bone: Mesh, cp, tol: float = 1e-6) -> np.ndarray:
     """Whether closest points ``cp`` on ``bone`` lie on its rim (an edge of one triangle only,
     within ``tol`` of the triangle's size in barycentric terms): points beyond the bone's edge."""
-    from toolkit.common.analysis.surface_distance import barycentric
-    from toolkit.common.meshes.topology import rim_edges
 
     tris = bone.cells["tri3"][cp.triangle]
     rim = rim_edges(bone.cells["tri3"])

@@ -9,8 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common.meshes.io import atomic_path
 from toolkit.common.meshes.mesh import Mesh
 from toolkit.common.phantoms.phantom import FacePhantom
+from toolkit.mesh.surface import tissue_surface_of
 
 __all__ = ["PhantomSurfaces", "phantom_surfaces", "write_surfaces"]
 
@@ -57,7 +59,6 @@ def phantom_surfaces(phantom: FacePhantom) -> PhantomSurfaces:
     """The surfaces of a hexahedral face phantom (:func:`toolkit.common.face_hex`): its closed
     tissue surface, its bone surfaces cut back to their segments (they do not overlap, as
     after a virtual osteotomy) and its commissures."""
-    from toolkit.mesh.surface import tissue_surface_of
 
     m = phantom.mesh
     skin = np.zeros(m.n_points, dtype=bool)
@@ -74,7 +75,6 @@ def write_surfaces(folder, surfaces: PhantomSurfaces, suffix: str = ".stl") -> d
     ``--commissures`` values). Returns name -> path."""
     import meshio
 
-    from toolkit.common.meshes.io import atomic_path
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

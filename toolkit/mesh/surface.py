@@ -27,7 +27,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from toolkit.common.meshes.mesh import Mesh, MeshError
+from toolkit.common.meshes.mesh import VOLUME_TYPES, Mesh, MeshError
+from toolkit.common.meshes.surfaces import consistent_orientation, read_surface
+from toolkit.common.meshes.topology import triangulated_boundary
 
 __all__ = ["SurfaceError", "SurfaceRepair", "closed_surface", "read_tissue_surface", "tissue_surface_of"]
 
@@ -154,7 +156,6 @@ def _drop_small_pieces(tris: np.ndarray, fraction: float) -> tuple[np.ndarray, i
 def _orient(points: np.ndarray, tris: np.ndarray, name: str) -> tuple[np.ndarray, int]:
     """Consistent orientation per piece, outward (positive signed volume); and how many
     triangles turned."""
-    from toolkit.common.meshes.surfaces import consistent_orientation
 
     try:
         out, piece = consistent_orientation(tris, name)
@@ -285,7 +286,6 @@ def read_tissue_surface(path, units: str = "mm", **repair) -> tuple[Mesh, Surfac
     """
     from pathlib import Path
 
-    from toolkit.common.meshes.surfaces import read_surface
 
     surface = read_surface(path, units=units)
     return closed_surface(surface.points, surface.cells["tri3"], name=f"tissue surface {Path(path).name}", **repair)
@@ -294,8 +294,6 @@ def read_tissue_surface(path, units: str = "mm", **repair) -> tuple[Mesh, Surfac
 def tissue_surface_of(mesh: Mesh) -> Mesh:
     """The closed soft-tissue surface of a volume mesh, as a segmentation would export it:
     its boundary triangulated, the two faces of a mouth slit merged (a closed mouth)."""
-    from toolkit.common.meshes.mesh import VOLUME_TYPES
-    from toolkit.common.meshes.topology import triangulated_boundary
 
     # coincident nodes (the two faces of a mouth slit) become one: the slit's faces turn inner
     first, inverse = _coincident(mesh.points, 1e-6)

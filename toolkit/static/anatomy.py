@@ -28,7 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.common.errors import ToolkitError
+from toolkit.common.fem.fibres import with_lip_fibres
 from toolkit.common.meshes.mesh import Mesh
+from toolkit.static.bones import segments_from_files
+from toolkit.static.boundary import BoundaryError, segments_from_mesh
 
 __all__ = ["FaceAnatomy", "face_anatomy", "AnatomyError", "CONDYLE_BAND_MM", "ARCH_BAND_MM"]
 
@@ -78,9 +81,6 @@ def face_anatomy(mesh: Mesh, bones: Mapping[str, str | Path | Mesh] | None = Non
     AnatomyError when the mesh has no ``maxilla`` set, ``lefort`` or ``distal`` has no surface,
     or ``condyles`` is not two points
     """
-    from toolkit.common.fem.fibres import with_lip_fibres
-    from toolkit.static.bones import segments_from_files
-    from toolkit.static.boundary import BoundaryError, segments_from_mesh
 
     if "maxilla" not in mesh.node_sets or not len(mesh.node_sets["maxilla"]):
         raise AnatomyError("the face mesh has no 'maxilla' node set (tissue attached to the Le Fort I segment); "

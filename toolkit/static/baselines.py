@@ -29,7 +29,12 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from toolkit.common.fem.factors import choose_method
+from toolkit.common.fem.ordering import estimate_factor_entries
+from toolkit.common.fem.solvers import superlu
 from toolkit.common.meshes.mesh import Mesh
+from toolkit.static.problem import StaticProblem
+from toolkit.static.simulate import material_assignment
 
 __all__ = ["InfluenceMatrix", "PODRegression", "LinearPlusPOD", "quadratic_features"]
 
@@ -79,11 +84,6 @@ class InfluenceMatrix:
             :data:`~toolkit.common.fem.factors.AUTO_DIRECT_MAX_ENTRIES`, else AMG-CG, as the FE
             chooses), ``superlu`` or ``amg``
         """
-        from toolkit.common.fem.factors import choose_method
-        from toolkit.common.fem.ordering import estimate_factor_entries
-        from toolkit.common.fem.solvers import superlu
-        from toolkit.static.problem import StaticProblem
-        from toolkit.static.simulate import material_assignment
 
         t0 = time.perf_counter()
         driven, fixed = np.unique(np.asarray(driven, np.int64)), np.unique(np.asarray(fixed, np.int64))

@@ -15,8 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common.meshes.axes import mesh_to_toolkit
 from toolkit.common.meshes.mesh import VOLUME_TYPES, Mesh
 from toolkit.common.meshes.surfaces import orient_surface, read_surface
+from toolkit.common.phantoms.phantom import BoneSegment
+from toolkit.static.boundary import ATTACHMENT_SETS
 
 __all__ = ["segments_from_files"]
 
@@ -42,9 +45,6 @@ def segments_from_files(face: Mesh, bones: Mapping[str, str | Path | Mesh], pivo
     -------
     dict name -> BoneSegment, surfaces oriented towards the face's bone-side nodes
     """
-    from toolkit.common.meshes.axes import mesh_to_toolkit
-    from toolkit.common.phantoms.phantom import BoneSegment
-    from toolkit.static.boundary import ATTACHMENT_SETS
 
     unknown = sorted(set(bones) - set(ATTACHMENT_SETS))
     if unknown:

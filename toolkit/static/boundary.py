@@ -22,6 +22,9 @@ from scipy.spatial import cKDTree
 from toolkit.common.analysis.surface_distance import closest_points
 from toolkit.common.errors import ToolkitError
 from toolkit.common.meshes.mesh import VOLUME_TYPES, Mesh
+from toolkit.common.meshes.topology import triangulated_boundary
+from toolkit.common.phantoms.phantom import BoneSegment
+from toolkit.static.plan import SEGMENTS
 
 __all__ = ["NodeType", "BoundaryConditions", "knn_labels", "BoundaryError", "segments_from_mesh",
            "ATTACHMENT_SETS", "tissue_distance", "tissue_graph", "DEFAULT_RELEASE_WIDTH"]
@@ -219,7 +222,6 @@ class BoundaryConditions:
     def drivers(self) -> np.ndarray:
         """What moves each node, ``(n,)`` int: -1 nothing (free, lip), 0 fixed (the skull),
         ``1 + s`` bony segment ``s`` (attached or sliding on it)."""
-        from toolkit.static.plan import SEGMENTS
 
         d = np.full(self.n_nodes, -1, dtype=np.int64)
         d[self.types == NodeType.FIXED] = 0
@@ -409,8 +411,6 @@ def segments_from_mesh(mesh: Mesh, pivots: Mapping[str, np.ndarray]) -> dict:
     -------
     dict name -> BoneSegment
     """
-    from toolkit.common.meshes.topology import triangulated_boundary
-    from toolkit.common.phantoms.phantom import BoneSegment
 
     tris = triangulated_boundary(mesh.cells)[:, [0, 2, 1]]  # normals into the tissue: out of the bone
     own = {}

@@ -20,9 +20,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from toolkit.common.defaults import STATIC_SIMULATION
+from toolkit.common.fem.fibres import with_lip_fibres
+from toolkit.common.meshes.axes import AxesError, axes_matrix, check_mesh_axes, mesh_to_toolkit
+from toolkit.common.meshes.io import read
 from toolkit.common.meshes.mesh import Mesh
 from toolkit.common.phantoms.phantom import FacePhantom, FaceShape
+from toolkit.static.bones import segments_from_files
+from toolkit.static.boundary import BoundaryError, segments_from_mesh
 from toolkit.static.plan import SurgicalPlan
+from toolkit.static.simulate import simulate
 
 __all__ = ["StaticCase", "load_case"]
 
@@ -75,7 +81,6 @@ class StaticCase:
         """
         from dataclasses import replace
 
-        from toolkit.static.simulate import simulate
 
         if fidelity is None:
             return simulate(self.subject, self.plan, segments=self.segments, **kwargs)
@@ -147,8 +152,6 @@ def load_case(
     AxesError for a mesh not in the toolkit's axes once converted from ``axes``, or ``axes`` other
     than ``toolkit`` for the phantom without bone files.
     """
-    from toolkit.common.meshes.axes import AxesError, axes_matrix, check_mesh_axes, mesh_to_toolkit
-    from toolkit.static.bones import segments_from_files
 
     bones = dict(bones or {})
     axes_matrix(axes)
@@ -181,9 +184,6 @@ def load_case(
     if plan is None:
         raise ValueError(f"mesh {_name(mesh)} needs a plan (with pivot_mm for every rotating segment); got plan=None, "
                          "and only the phantom has a default plan: give plan= (command line: --plan FILE)")
-    from toolkit.common.fem.fibres import with_lip_fibres
-    from toolkit.common.meshes.io import read
-    from toolkit.static.boundary import BoundaryError, segments_from_mesh
 
     face = mesh if isinstance(mesh, Mesh) else read(mesh, units=units, require_node_sets=["fixed"])
     face = with_lip_fibres(mesh_to_toolkit(face, axes))

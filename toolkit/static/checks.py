@@ -32,6 +32,8 @@ import numpy as np
 
 from toolkit.common.errors import AnswerError
 from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.topology import lumped_boundary_area
+from toolkit.static.boundary import NodeType
 from toolkit.static.plan import PHYSIOLOGICAL_RANGES, PlanError, SurgicalPlan
 
 __all__ = ["AnswerError", "check_plan", "check_answer", "answer_checks", "with_answer_checks", "carried_area",
@@ -59,7 +61,6 @@ MOVING_MM = 1.0
 def carried_area(mesh: Mesh, nodes: np.ndarray) -> float:
     """Boundary area (mm^2) held by ``nodes`` (int ids): the sum of their lumped boundary areas
     (:func:`~toolkit.common.meshes.topology.lumped_boundary_area`)."""
-    from toolkit.common.meshes.topology import lumped_boundary_area
 
     return float(lumped_boundary_area(mesh.points, mesh.cells)[np.asarray(nodes, dtype=np.int64)].sum())
 
@@ -83,7 +84,6 @@ def check_plan(mesh: Mesh, bc, segments: Mapping, plan: SurgicalPlan,
     :class:`~toolkit.static.boundary.BoundaryConditions` as read from its node sets. Returns
     ``{segment: {"reach_mm", "reach_bound_mm", "pivot_to_bone_mm", "attached_nodes",
     "attached_area_mm2"}}`` for every segment the plan moves."""
-    from toolkit.static.boundary import NodeType
 
     out = {}
     for name in bc.segment_names:
@@ -127,7 +127,6 @@ def answer_checks(mesh: Mesh, bc, plan: SurgicalPlan, displacement: np.ndarray, 
     """The checks of a final ``displacement`` ``(n, 3)`` mm against ``plan`` on the pre-operative
     ``mesh`` with boundary conditions ``bc`` (the ones the answer was made with), without raising:
     the values checked (mm, s), ``passed`` and ``problems`` (one sentence each)."""
-    from toolkit.static.boundary import NodeType
 
     t0 = time.perf_counter()
     X, u = mesh.points, np.asarray(displacement, dtype=float)

@@ -55,7 +55,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from toolkit.common.defaults import STATIC_SIMULATION
+from toolkit.common.fem.materials import LinearElastic, NeoHookean, TransverselyIsotropic
+from toolkit.common.meshes.axes import axes_matrix, check_mesh_axes, mesh_to_toolkit, to_toolkit
+from toolkit.common.meshes.io import atomic_path, read
+from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.surfaces import read_surface
 from toolkit.common.papers import TISSUE_NU
+from toolkit.common.phantoms.phantom import FACE_RESOLUTIONS, FaceShape, face_hex
 from toolkit.common.training.database import (
     Database,
     Job,
@@ -67,7 +73,17 @@ from toolkit.common.training.database import (
     read_index,
     run_jobs,
 )
-from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES
+from toolkit.static.anatomy import face_anatomy
+from toolkit.static.plan import MAX_JAW_CLOSING_MM, SAMPLING_MODES, SurgicalPlan, dental_arch, jaw_closing, sample_plans
+from toolkit.static.simulate import (
+    MATERIALS,
+    SLIDING_MODELS,
+    SimulationOptions,
+    boundary_conditions,
+    material_assignment,
+    simulate,
+)
+from toolkit.static.stiffness import MaterialAssignment
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -135,9 +151,6 @@ class DatasetConfig:
     axes: str = "toolkit"
 
     def __post_init__(self):
-        from toolkit.common.meshes.axes import axes_matrix
-        from toolkit.common.phantoms.phantom import FACE_RESOLUTIONS
-        from toolkit.static.simulate import MATERIALS, SLIDING_MODELS
 
         axes_matrix(self.axes)
         object.__setattr__(self, "bones", tuple(tuple(b) for b in self.bones))  # hashable, also from JSON lists
@@ -196,7 +209,6 @@ def _sha1(path) -> str:
 @lru_cache(maxsize=8)
 def subject_phantom(resolution: str, subject: int):
     """The face phantom of ``subject`` (0: the default shape; k: ``FaceShape.sample(k)``)."""
-    from toolkit.common.phantoms.phantom import FaceShape, face_hex
 
     return face_hex(resolution, FaceShape() if subject == 0 else FaceShape.sample(int(subject)))
 
@@ -209,10 +221,6 @@ def database_subject(config: DatasetConfig, subject: int):
     if config.mesh is None:
         assert config.resolution is not None  # a phantom database has one (DatasetConfig checks it)
         return subject_phantom(config.resolution, subject)
-    from toolkit.common.meshes.axes import check_mesh_axes, mesh_to_toolkit, to_toolkit
-    from toolkit.common.meshes.io import read
-    from toolkit.common.meshes.surfaces import read_surface
-    from toolkit.static.anatomy import face_anatomy
 
     for path, sha1 in ((config.mesh, config.mesh_sha1), *((p, h) for _, p, h in config.bones)):
         if not Path(path).is_file():
@@ -230,7 +238,6 @@ def database_subject(config: DatasetConfig, subject: int):
 
 def _boundary(phantom, sliding: str):
     """The boundary conditions a simulation of ``phantom`` uses (release bands, sliding model)."""
-    from toolkit.static.simulate import boundary_conditions
 
     return boundary_conditions(phantom.mesh, phantom.segments, sliding)[0]
 
@@ -248,7 +255,6 @@ def plan_features(plan, increments: int) -> np.ndarray:
 
 
 def _jobs(config: DatasetConfig) -> list[Job]:
-    from toolkit.static.plan import sample_plans
 
     jobs = []
     for subject in range(config.subjects):
@@ -265,9 +271,6 @@ def _jobs(config: DatasetConfig) -> list[Job]:
 
 def material_for(material: str, poisson: float | None, mesh):
     """The lip-sliding paper's material assignment, with Poisson's ratio ``poisson`` if given."""
-    from toolkit.common.fem.materials import LinearElastic, NeoHookean, TransverselyIsotropic
-    from toolkit.static.simulate import material_assignment
-    from toolkit.static.stiffness import MaterialAssignment
 
     if poisson is None:
         return material
@@ -280,8 +283,6 @@ def material_for(material: str, poisson: float | None, mesh):
 
 def simulate_job(params: dict) -> Record:
     """Worker: run one simulation of the database (picklable, module level)."""
-    from toolkit.static.plan import SurgicalPlan, dental_arch, jaw_closing
-    from toolkit.static.simulate import SimulationOptions, simulate
 
     cfg = DatasetConfig(**params["config"])
     phantom = database_subject(cfg, int(params["subject"]))
@@ -367,7 +368,6 @@ def subject_mesh(path: str | os.PathLike, subject: int = 0):
     for a meshed face (with its sets and cell data) or rebuilt for a phantom."""
     import h5py
 
-    from toolkit.common.meshes.mesh import Mesh
 
     config = DatasetConfig(**json.loads(Database.open_attrs(Path(path)).get("config", "{}")))
     if config.mesh is None:
@@ -388,7 +388,6 @@ def _add_subjects(path: Path, config: DatasetConfig, first_subject: int) -> None
 
     import h5py
 
-    from toolkit.common.meshes.io import atomic_path
 
     arrays = _shared(config, first_subject)
     with atomic_path(path) as tmp:
@@ -455,7 +454,6 @@ def _write_samples(path: Path) -> None:
     import h5py
     import pandas as pd
 
-    from toolkit.common.meshes.io import atomic_path
 
     table = _sample_table(path)
     with atomic_path(path) as tmp:
@@ -642,7 +640,6 @@ class StaticDatabase:
 
     def plan(self, key: str):
         """The SurgicalPlan of simulation ``key`` (drawn again from the configuration's seed)."""
-        from toolkit.static.plan import SurgicalPlan
 
         if not self._motions:
             self._motions.update({j.key: j.params["motions"] for j in _jobs(self.config)})

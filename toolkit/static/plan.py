@@ -50,7 +50,7 @@ from numpy.typing import ArrayLike
 
 from toolkit.common import papers
 from toolkit.common.errors import ToolkitError
-from toolkit.common.meshes.io import atomic_path
+from toolkit.common.meshes.io import atomic_path, read_text
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -615,7 +615,6 @@ class SurgicalPlan:
 
 def _load(path: Path, fmt: str) -> dict[str, Any]:
     """The plan file's top-level table; syntax errors name the file and the line."""
-    from toolkit.common.meshes.io import read_text
 
     text = read_text(path, PlanError, f"a {fmt[1:].upper()} plan")
     try:

@@ -30,6 +30,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from toolkit.common.meshes.mesh import VOLUME_TYPES, Mesh
+from toolkit.common.meshes.quality import TET10_SAMPLE_GRADIENTS, scaled_jacobian
+from toolkit.common.meshes.topology import tet10_mid_edges, triangulated_boundary
 
 __all__ = ["regulate", "Regulation", "element_quality", "CORNERS"]
 
@@ -64,7 +66,6 @@ class Regulation:
 
 def element_quality(mesh: Mesh, points: np.ndarray) -> np.ndarray:
     """Scaled Jacobian ``(E,)`` of every volume element of ``mesh`` at ``points (n, 3)`` mm."""
-    from toolkit.common.meshes.quality import scaled_jacobian
 
     return np.concatenate([scaled_jacobian(ctype, points[conn]) for ctype, conn in mesh.cells.items()
                            if ctype in VOLUME_TYPES])
@@ -111,7 +112,6 @@ def _element_adjacency(mesh: Mesh) -> sp.csr_matrix:
 
 def _boundary_normals(mesh: Mesh, points: np.ndarray) -> np.ndarray:
     """Area-weighted outward normals ``(n, 3)`` at boundary nodes (zero inside)."""
-    from toolkit.common.meshes.topology import triangulated_boundary
 
     tris = triangulated_boundary(mesh.cells)
     x = points[tris]
@@ -150,7 +150,6 @@ def _tet10_frames(mesh: Mesh, elements: np.ndarray, x: np.ndarray, target: np.nd
     quality is measured (:data:`~toolkit.common.meshes.quality.TET10_SAMPLE_GRADIENTS`), as frames of
     :func:`_objective`; each aims at ``target`` times the product of its corner tetrahedron's
     edge lengths at node 0 (the scale of stage one's corner frames)."""
-    from toolkit.common.meshes.quality import TET10_SAMPLE_GRADIENTS
 
     frames = []
     for ctype, conn, sel, offset in _by_block(mesh, elements):
@@ -201,7 +200,6 @@ def _place_mid_edge_nodes(mesh: Mesh, x: np.ndarray, elements: np.ndarray, movab
     """``x`` with the movable mid-edge nodes of the given ``tet10`` elements at their offset
     from their edge's midpoint in ``mesh.points`` (the pre-operative mesh): a straight edge is
     made straight again, a curved one gets its own curvature back."""
-    from toolkit.common.meshes.topology import tet10_mid_edges
 
     X, out = mesh.points, x.copy()
     for ctype, conn, sel, _ in _by_block(mesh, elements):

@@ -83,8 +83,9 @@ from toolkit.common.errors import ToolkitError
 from toolkit.common.fem.assembly import SparsePattern
 from toolkit.common.fem.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.fem.solvers import SolverError, require_method
+from toolkit.common.meshes.io import atomic_path, write, write_time_series
 from toolkit.common.meshes.mesh import Mesh
-from toolkit.common.meshes.topology import rim_edges
+from toolkit.common.meshes.topology import rim_edges, tet10_mid_edges
 from toolkit.common.phantoms.phantom import FacePhantom
 from toolkit.common.runtime import count_finished
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
@@ -319,7 +320,6 @@ class SimulationResult:
         name -> ``(n, ...)`` array), ``postop.vtu`` (the post-operative face), ``summary.json``,
         ``increments.xdmf`` (+ .h5, one XDMF ``Mixed`` topology for a mesh of several cell types),
         ``plan.toml`` (the plan that ran, when the result holds it) and ``preview.png``."""
-        from toolkit.common.meshes.io import atomic_path, write, write_time_series
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -604,7 +604,6 @@ def _edge_followers(mesh: Mesh, mucosa: np.ndarray) -> tuple[np.ndarray, ...]:
     node ids of their edge's two corners ``(k,)`` each, the corners' positions in ``mucosa``
     (-1 for a corner that does not slide) and the node's pre-operative offset ``(k, 3)`` mm from
     the corners' midpoint (0 for straight edges)."""
-    from toolkit.common.meshes.topology import tet10_mid_edges
 
     none = np.zeros(0, np.int64)
     if "tet10" not in mesh.cells or not mucosa.size:

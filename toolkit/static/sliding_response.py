@@ -33,6 +33,13 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from toolkit.common.fem.solvers import superlu
+from toolkit.static.constraints import Constraints
+from toolkit.static.dataset import bone_increment
+from toolkit.static.plan import PlanRangeWarning, SurgicalPlan
+from toolkit.static.problem import StaticProblem
+from toolkit.static.simulate import SimulationOptions, _build_model, _sliding_constraints, _State
+
 __all__ = ["SlidingResponse"]
 
 #: mm: a free lip pair is tied when its gap would close below minus this, as in the FE
@@ -81,11 +88,6 @@ class SlidingResponse:
         model and ``options`` (SimulationOptions: release bands, lip threshold, mucosa offset), on
         the linear material. Raises ValueError for a mesh whose moving and fixed nodes leave it
         free to move rigidly."""
-        from toolkit.common.fem.solvers import superlu
-        from toolkit.static.constraints import Constraints
-        from toolkit.static.plan import SurgicalPlan
-        from toolkit.static.problem import StaticProblem
-        from toolkit.static.simulate import SimulationOptions, _build_model, _sliding_constraints, _State
 
         t0 = time.perf_counter()
         options = options or SimulationOptions()
@@ -164,8 +166,6 @@ class SlidingResponse:
 
         Returns the cumulative displacement ``(increments + 1, n, 3)`` mm (row 0 zero) and each
         step's bone motion ``(increments, n, 3)`` mm (zero off the bone-driven nodes)."""
-        from toolkit.static.dataset import bone_increment
-        from toolkit.static.plan import PlanRangeWarning
 
         with warnings.catch_warnings():  # the plan warned of its range where it was built
             warnings.simplefilter("ignore", PlanRangeWarning)

@@ -41,6 +41,10 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from toolkit.common.analysis.metrics import nodal_errors
+from toolkit.common.config_diff import require_same
+from toolkit.common.meshes.io import atomic_path
+from toolkit.common.outputs import check_output_dir
 from toolkit.common.papers import TISSUE_NU
 from toolkit.common.training import (
     LR_SCHEDULES,
@@ -53,9 +57,22 @@ from toolkit.common.training import (
     torch_seeded,
 )
 from toolkit.common.training import train as train_loop
+from toolkit.static.baselines import InfluenceMatrix
+from toolkit.static.boundary import NodeType
+from toolkit.static.checks import check_plan, with_answer_checks
+from toolkit.static.dataset import PLAN_FEATURES, DatasetConfig, StaticDatabase, bone_increment, jaw_side
 from toolkit.static.features import FeatureSpec, channel_names, encode
-from toolkit.static.plan import SEGMENTS, PlanRangeWarning
-from toolkit.static.simulate import SimulationResult
+from toolkit.static.plan import (
+    PHYSIOLOGICAL_RANGES,
+    SEGMENTS,
+    PlanRangeWarning,
+    dental_arch,
+    sampled_parameters,
+    sampling_hull,
+)
+from toolkit.static.pointnet2_config import PointNet2Config
+from toolkit.static.simulate import IncrementReport, SimulationResult, boundary_conditions, face_mesh_and_segments
+from toolkit.static.sliding_response import SlidingResponse
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -157,7 +174,6 @@ class SurrogateConfig:
 
 def network_config(config: SurrogateConfig):
     """The :class:`~toolkit.static.pointnet2_config.PointNet2Config` of a surrogate."""
-    from toolkit.static.pointnet2_config import PointNet2Config
 
     preset = dict(NETWORK_PRESETS[config.network])
     preset.update(in_channels=config.features.n_channels, hard_boundary=config.features.variant == "hard")
@@ -167,7 +183,6 @@ def network_config(config: SurrogateConfig):
 def linear_prior(mesh, types: np.ndarray):
     """The influence matrix of ``mesh`` for boundary ``types (n,)``: moving nodes (1) driven,
     fixed nodes (2) held (:class:`~toolkit.static.baselines.InfluenceMatrix`, linear material)."""
-    from toolkit.static.baselines import InfluenceMatrix
 
     types = np.asarray(types)
     return InfluenceMatrix.build(mesh, np.flatnonzero(types == 1), np.flatnonzero(types == 2))
@@ -185,7 +200,6 @@ def _simulation_identities(db) -> dict:
     """Simulation key -> what the simulation is (hash of its subject's points, its plan parameters
     per increment and Poisson's ratio): equal for the same simulation in two databases, whatever
     its key there."""
-    from toolkit.static.dataset import PLAN_FEATURES
 
     subject_keys = {int(sid): _points_key(p) for sid, p in db.points.items()}
     out = {}
@@ -204,7 +218,6 @@ def plan_extrapolation(plan, hull: dict, arch: np.ndarray | None = None) -> dict
     segment, out-of-plane motion, and with the face's dental ``arch`` ``(k, 3)`` mm the jaw
     closing) outside ``hull`` (:func:`training_hull`). The one verdict of ``static predict``,
     with or without a tolerance (:func:`~toolkit.static.trust.out_of_distribution`)."""
-    from toolkit.static.plan import sampled_parameters
 
     return extrapolation(sampled_parameters(plan, arch), hull, "plans")
 
@@ -212,7 +225,6 @@ def plan_extrapolation(plan, hull: dict, arch: np.ndarray | None = None) -> dict
 def training_hull(database: dict) -> dict:
     """:func:`~toolkit.static.plan.sampling_hull` of a training database's settings (its
     ``DatasetConfig`` as a dict: ``mode``, ``max_jaw_closing_mm``), physiological ranges."""
-    from toolkit.static.plan import PHYSIOLOGICAL_RANGES, sampling_hull
 
     return sampling_hull(database.get("mode", "sagittal"), PHYSIOLOGICAL_RANGES, database.get("max_jaw_closing_mm"))
 
@@ -222,7 +234,6 @@ def arch_nodes(db) -> np.ndarray:
     points, on every subject of that topology), ``(k,)`` int64."""
     from scipy.spatial import cKDTree
 
-    from toolkit.static.plan import dental_arch
 
     first = min(db.points)
     return cKDTree(db.points[first]).query(dental_arch(db.subject(first)))[1].astype(np.int64)
@@ -275,7 +286,6 @@ def with_exact_attachment(U: np.ndarray, X: np.ndarray, bc, plan) -> np.ndarray:
     stepping from reached positions) drifts from it by micrometres. ``X`` ``(n, 3)`` mm."""
     import warnings as _warnings
 
-    from toolkit.static.boundary import NodeType
 
     U = np.array(U, dtype=float)
     with _warnings.catch_warnings():  # the plan warned of its range where it was built
@@ -439,8 +449,6 @@ class Surrogate:
         """The :class:`~toolkit.static.sliding_response.SlidingResponse` of ``face`` (a
         FacePhantom, or a Mesh with ``segments``) under the training database's sliding model
         (built once per face and bone surfaces, cached)."""
-        from toolkit.static.simulate import face_mesh_and_segments
-        from toolkit.static.sliding_response import SlidingResponse
 
         mesh, segments = face_mesh_and_segments(face, segments)
         key = (_points_key(mesh.points),) + tuple(sorted((name, _points_key(seg.surface.points))
@@ -503,9 +511,6 @@ class Surrogate:
         ``checks`` holds :func:`~toolkit.static.checks.answer_checks`: a failed check is flagged there, not
         raised). The plan is checked against the face first (:func:`~toolkit.static.checks.check_plan`)
         """
-        from toolkit.static.checks import check_plan, with_answer_checks
-        from toolkit.static.dataset import DatasetConfig, bone_increment, jaw_side
-        from toolkit.static.simulate import IncrementReport, boundary_conditions, face_mesh_and_segments
 
         t0 = time.perf_counter()
         data = DatasetConfig(**self.bundle.data["database"])
@@ -656,8 +661,6 @@ def train_surrogate(database, config: SurrogateConfig = SurrogateConfig(), *, ou
     """
     import torch
 
-    from toolkit.common.outputs import check_output_dir
-    from toolkit.static.dataset import StaticDatabase
     from toolkit.static.pointnet2 import PointHierarchy
 
     out = check_output_dir(out, what="model directory")
@@ -725,7 +728,6 @@ def evaluation_keys(model: Surrogate, db, keys=None) -> tuple[list, str]:
 def check_database(model: Surrogate, db) -> None:
     """Refuse a database of other settings (:data:`MUST_MATCH`) or another mesh than the model's
     training database, with :class:`~toolkit.common.config_diff.IncompatibleError`."""
-    from toolkit.common.config_diff import require_same
 
     trained_on = model.bundle.data["database"]
     asked = db.config.to_dict()
@@ -790,8 +792,6 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
     """
     import pandas as pd
 
-    from toolkit.common.analysis.metrics import nodal_errors
-    from toolkit.static.dataset import StaticDatabase
 
     db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
     keys, scored, excluded, scored_training = _scored_keys(model, db, keys)
@@ -869,7 +869,6 @@ class _Subset:
 
 def write_evaluation(result: dict, out, mesh=None) -> Path:
     """``metrics.json``, ``per_sample.csv`` and (with a mesh) ``error_map.png`` in ``out``."""
-    from toolkit.common.meshes.io import atomic_path
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -52,6 +52,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from toolkit.common.config_diff import jsonable
+from toolkit.common.meshes.io import atomic_path
+from toolkit.common.phantoms.phantom import FacePhantom
 from toolkit.common.training.conformal import (
     ConformalBound,
     calibrate,
@@ -60,6 +62,23 @@ from toolkit.common.training.conformal import (
     save_calibration,
 )
 from toolkit.common.training.decision import check_tolerance, decide
+from toolkit.common.training.extrapolation import describe_extrapolation
+from toolkit.static.baselines import LinearPlusPOD, PODRegression
+from toolkit.static.checks import with_answer_checks
+from toolkit.static.dataset import PLAN_FEATURES, DatasetConfig, StaticDatabase, plan_features
+from toolkit.static.simulate import IncrementReport, face_mesh_and_segments, simulate
+from toolkit.static.surrogate import (
+    PLAN_PARAMETERS,
+    PlanPrediction,
+    _mesh_signature,
+    _simulation_identities,
+    check_database,
+    evaluation_keys,
+    plan_extrapolation,
+    training_hull,
+    with_exact_attachment,
+)
+from toolkit.static.surrogate import arch_nodes as surrogate_arch_nodes
 
 if TYPE_CHECKING:  # pragma: no cover
     from toolkit.static.baselines import LinearPlusPOD
@@ -156,7 +175,6 @@ class Calibration:
         """Read the calibration of a model directory (FileNotFoundError naming the command that
         makes one; ValueError, naming it too, for a calibration written by an earlier version:
         a baseline on another linear part, or no record of what the training plans span)."""
-        from toolkit.static.baselines import LinearPlusPOD, PODRegression
 
         meta, arrays = load_calibration(directory, "toolkit static calibrate")
         missing = [what for what, ok in (
@@ -210,7 +228,6 @@ class Calibration:
 def _baseline_trajectory(model, residual, face, plan, segments=None):
     """The face's SlidingResponse, the baseline's cumulative displacement ``(increments + 1, n, 3)``
     mm and each increment's bone motion ``(increments, n, 3)`` mm (see :func:`baseline_prediction`)."""
-    from toolkit.static.dataset import DatasetConfig, plan_features
 
     increments = DatasetConfig(**model.bundle.data["database"]).increments
     response = model.sliding_response(face, segments)
@@ -228,10 +245,6 @@ def baseline_prediction(model, residual, face, plan, segments=None):
 
     Returns a PlanPrediction: displacements ``(increments + 1, n, 3)`` mm, each increment's
     element quality, ``prescribed`` each increment's bone motion (moving nodes)."""
-    from toolkit.static.checks import with_answer_checks
-    from toolkit.static.dataset import DatasetConfig
-    from toolkit.static.simulate import IncrementReport, face_mesh_and_segments
-    from toolkit.static.surrogate import PlanPrediction, with_exact_attachment
 
     t0 = time.perf_counter()
     data = DatasetConfig(**model.bundle.data["database"])
@@ -288,16 +301,6 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     """
     from tqdm import tqdm
 
-    from toolkit.static.baselines import LinearPlusPOD
-    from toolkit.static.dataset import PLAN_FEATURES, StaticDatabase
-    from toolkit.static.surrogate import (
-        PLAN_PARAMETERS,
-        _simulation_identities,
-        check_database,
-        evaluation_keys,
-        training_hull,
-    )
-    from toolkit.static.surrogate import arch_nodes as surrogate_arch_nodes
 
     if scale not in SCALES + ("auto",):
         raise ValueError(f"scale = {scale!r}; expected one of {SCALES + ('auto',)}")
@@ -400,7 +403,6 @@ def _pair_seconds(case: dict, scale: str, answerer: str) -> float:
 
 def _face(subject):
     """What predict_plan and simulate take for a database subject: the phantom, or the mesh."""
-    from toolkit.common.phantoms.phantom import FacePhantom
 
     return subject if isinstance(subject, FacePhantom) else subject.mesh
 
@@ -457,8 +459,6 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
     lie from each other, or when one of its nodes lies more than :data:`MIN_SHAPE_SPREAD_MM`
     outside the per-coordinate box of that node over the training subjects.
     """
-    from toolkit.common.training.extrapolation import describe_extrapolation
-    from toolkit.static.surrogate import PLAN_PARAMETERS, plan_extrapolation
 
     reasons = []
     same_shape = same_topology and mesh.points.shape == calibration.subjects.shape[1:]
@@ -494,8 +494,6 @@ def out_of_distribution(calibration: Calibration, mesh, plan, material: str | No
 
 
 def _plan_values(plan) -> list[float]:
-    from toolkit.static.dataset import plan_features
-    from toolkit.static.surrogate import PLAN_PARAMETERS
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -533,7 +531,6 @@ class TrustedAnswer:
     def write(self, out, preview: bool = True) -> Path:
         """The result's files (``toolkit static simulate``'s), ``summary.json`` with ``answer``,
         and ``error_estimate`` (mm, per node) in ``result.vtu`` when the surrogate answered."""
-        from toolkit.common.meshes.io import atomic_path
 
         fields = {"error_estimate": self.estimate["node_mm"]} if self.answered_by != "fe" else {}
         out = self.result.write(out, preview=preview, point_data=fields)
@@ -563,8 +560,6 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
         out of distribution, so the FE answers with it
     options : SimulationOptions for the FE (default its defaults, release-band retries included)
     """
-    from toolkit.static.dataset import DatasetConfig
-    from toolkit.static.simulate import face_mesh_and_segments, simulate
 
     tolerance_mm = check_tolerance(tolerance_mm, 0.5)
     calibration = calibration or Calibration.load(model.directory)
@@ -610,6 +605,5 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
 
 
 def _same_topology(model, mesh) -> bool:
-    from toolkit.static.surrogate import _mesh_signature
 
     return model.bundle.data.get("mesh") == _mesh_signature(mesh.points, dict(mesh.cells))

@@ -23,6 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from toolkit.common.fem.reference import TET_EDGES
+from toolkit.common.fem.solvers import rigid_body_modes
 
 __all__ = ["CornerInterpolation", "CoarseSpace", "corner_interpolation", "reduced_coarse_space"]
 
@@ -87,7 +88,6 @@ def reduced_coarse_space(interp: CornerInterpolation, T: sp.spmatrix, points: np
     norm, so that a tie's merged column takes the value, not twice it), without the coarse
     columns nearly all of whose support is prescribed. ``points`` (n, 3) mm: the mesh's nodes,
     for the coarse rigid-body modes."""
-    from toolkit.common.fem.solvers import rigid_body_modes
 
     T = sp.csr_matrix(T)
     scale = np.asarray(T.multiply(T).sum(axis=0)).ravel()

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from toolkit.common.meshes.mesh import Mesh
+from toolkit.common.meshes.topology import triangulated_boundary
 
 __all__ = ["superior_fibres", "with_lip_fibres"]
 
@@ -28,7 +29,6 @@ def superior_fibres(mesh: Mesh, skin: np.ndarray) -> np.ndarray:
     """
     from scipy.spatial import cKDTree
 
-    from toolkit.common.meshes.topology import triangulated_boundary
 
     centroids = np.concatenate([mesh.points[b.cells].mean(axis=1) for b in mesh.blocks])
     member = np.zeros(mesh.n_points, dtype=bool)

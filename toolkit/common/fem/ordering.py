@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from toolkit.common.runtime import deferred_interrupt
+
 __all__ = ["ORDERINGS", "fill_reducing_order", "estimate_factor_entries"]
 
 #: orderings of a SuperLU factorization: METIS nested dissection, or SuperLU's minimum degree
@@ -19,7 +21,6 @@ def fill_reducing_order(A: sp.spmatrix) -> np.ndarray:
     node's dofs kept together, which is half the cost of ordering the dof graph for the same
     fill. (Another layout still gets a valid, only poorer, ordering.)
     """
-    from toolkit.common.runtime import deferred_interrupt
 
     try:
         import pymetis

@@ -47,6 +47,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from toolkit.common.errors import ToolkitError
+from toolkit.common.fem.reference import REFERENCE_ELEMENTS
 from toolkit.common.meshes.mesh import Mesh
 
 __all__ = ["AXES", "AxesError", "axes_matrix", "to_toolkit", "mesh_to_toolkit", "check_anatomical_axes",
@@ -123,7 +124,6 @@ def mesh_to_toolkit(mesh: Mesh, axes: str) -> Mesh:
 def _mirror_order(cell_type: str) -> np.ndarray:
     """The node order of a cell of ``cell_type`` that undoes a mirror: the reference nodes with
     their first two reference coordinates swapped (a reflection of the reference element)."""
-    from toolkit.common.fem.reference import REFERENCE_ELEMENTS
 
     nodes = REFERENCE_ELEMENTS[cell_type].nodes
     swapped = nodes.copy()

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from toolkit.common.meshes.io import UNIT_SCALES, check_units
 from toolkit.common.meshes.mesh import Mesh, MeshError
 
 __all__ = ["read_surface", "orient_surface", "consistent_orientation", "SURFACE_FORMATS"]
@@ -51,7 +52,6 @@ def read_surface(path, units: str = "mm", merge_tolerance: float = 1e-6) -> Mesh
     Mesh with one ``tri3`` block, points ``(n, 3)`` mm; degenerate triangles dropped.
     Not oriented: see :func:`orient_surface`.
     """
-    from toolkit.common.meshes.io import UNIT_SCALES, check_units
 
     path = Path(path)
     if path.suffix.lower() not in SURFACE_FORMATS:

@@ -22,7 +22,7 @@ from dataclasses import replace
 import numpy as np
 
 from toolkit.common.meshes.mesh import Mesh
-from toolkit.common.meshes.topology import kuhn_tets, wedges_from_hexes
+from toolkit.common.meshes.topology import kuhn_tets, triangulated_boundary, wedges_from_hexes
 from toolkit.common.phantoms.phantom import FACE_RESOLUTIONS, FacePhantom
 
 __all__ = ["remeshed", "jittered", "REMESH_TYPES"]
@@ -108,7 +108,6 @@ def jittered(phantom: FacePhantom, min_quality: float = 0.01, amplitude: float =
     -------
     FacePhantom with the moved mesh (same topology, sets and segments)
     """
-    from toolkit.common.meshes.topology import triangulated_boundary
 
     if not 0.0 < min_quality < 1.0:
         raise ValueError(f"min_quality = {min_quality!r}; expected a number in (0, 1)")

@@ -53,7 +53,7 @@ from types import MappingProxyType
 import numpy as np
 
 from toolkit.common.meshes.mesh import Mesh
-from toolkit.common.meshes.topology import kuhn_tets, tet10_from_tet4
+from toolkit.common.meshes.topology import TET_EDGES, kuhn_tets, tet10_from_tet4
 from toolkit.common.papers import BALL_RADIUS, ball_density
 
 __all__ = [
@@ -603,7 +603,6 @@ def face_tet(
 
 def _with_midside_nodes(ids: np.ndarray, tets10: np.ndarray, n_corner_nodes: int) -> np.ndarray:
     """Extend a node set of corner nodes by the mid-edge nodes whose two ends are in it."""
-    from toolkit.common.meshes.topology import TET_EDGES
 
     member = np.zeros(n_corner_nodes, dtype=bool)
     member[ids] = True

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from toolkit.common.config_diff import IncompatibleError, jsonable, require_same
+from toolkit.common.meshes.io import atomic_path
 from toolkit.common.training.scaling import MinMaxScaler
 
 __all__ = ["ModelBundle", "BUNDLE_FORMAT", "CALIBRATION_FILES", "IncompatibleError"]
@@ -57,7 +58,6 @@ class ModelBundle:
         import numpy as np
         import torch
 
-        from toolkit.common.meshes.io import atomic_path
 
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)

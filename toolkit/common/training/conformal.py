@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.common.meshes.io import atomic_path
 from toolkit.common.training.bundle import CALIBRATION_FILES, ModelBundle
 
 __all__ = ["ConformalBound", "calibrate", "conformal_rank", "coverage_interval", "min_calibration_cases",
@@ -131,7 +132,6 @@ def save_calibration(directory, meta: dict, arrays: dict):
     ``calibration.json`` in the model directory ``directory``, each atomically, the JSON last, with
     the fingerprint of the model's weights (``model_sha1``, read back by :func:`load_calibration`);
     returns the directory."""
-    from toolkit.common.meshes.io import atomic_path
 
     directory = Path(directory)
     meta = {**meta, "model_sha1": ModelBundle.weights_sha1(directory)}

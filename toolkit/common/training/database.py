@@ -65,7 +65,8 @@ import numpy as np
 
 from toolkit.common.config_diff import jsonable, require_same
 from toolkit.common.errors import ToolkitError
-from toolkit.common.runtime import count_finished, deferred_interrupt
+from toolkit.common.meshes.io import atomic_path
+from toolkit.common.runtime import count_finished, default_threads, deferred_interrupt, set_threads
 
 __all__ = ["Job", "Record", "RunReport", "DatabaseError", "Database", "run_jobs", "read_index", "read_failures",
            "InProcessExecutor", "DatabaseStatus", "database_status", "IncompleteDatabaseWarning",
@@ -234,7 +235,6 @@ class Database:
         """Create the file (atomically) if absent, with ``/shared`` arrays; else :meth:`check` it."""
         import h5py
 
-        from toolkit.common.meshes.io import atomic_path
 
         if self.path.exists():
             self.check()
@@ -258,7 +258,6 @@ class Database:
         (copy-on-write; nothing is written when both are already stored)."""
         import h5py
 
-        from toolkit.common.meshes.io import atomic_path
 
         planned, config = json.dumps(list(keys)), json.dumps(self.config)
         attrs = self.open_attrs(self.path)
@@ -321,7 +320,6 @@ class Database:
         """Write one finished job as ``<db>.shards/<key>.h5`` (atomically)."""
         import h5py
 
-        from toolkit.common.meshes.io import atomic_path
 
         self.shards.mkdir(exist_ok=True)
         with atomic_path(self.shards / f"{job.key}.h5") as tmp:
@@ -344,7 +342,6 @@ class Database:
         """Fold pending shards into the main file copy-on-write; returns how many were merged."""
         import h5py
 
-        from toolkit.common.meshes.io import atomic_path
 
         shards = [p for p in sorted(self.shards.glob("*.h5")) if not p.name.startswith(".")] \
             if self.shards.is_dir() else []
@@ -593,7 +590,6 @@ def _resolve_executor(executor, workers: int):
         return InProcessExecutor(), True
     import multiprocessing
 
-    from toolkit.common.runtime import default_threads
 
     # spawn: the parent may hold threads (tqdm, BLAS, torch) that fork would copy mid-state; each
     # worker runs on TOOLKIT_NUM_THREADS threads (1 unless set_threads said otherwise), so W
@@ -610,7 +606,6 @@ def _init_worker(threads: int) -> None:
     main process then leaves no semaphore behind ("leaked semaphore" at exit)."""
     from tqdm.auto import tqdm
 
-    from toolkit.common.runtime import set_threads
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     tqdm.set_lock(threading.RLock())

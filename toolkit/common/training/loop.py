@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from toolkit.common.config_diff import jsonable, require_same
+from toolkit.common.meshes.io import atomic_path
 from toolkit.common.training.device import resolve_device
 from toolkit.common.training.seeding import check_seed, generators
 
@@ -293,7 +294,6 @@ def evaluate_loss(model, loss: Callable, inputs, targets, batch_size: int) -> fl
 def _save_checkpoint(path: Path, state: dict) -> None:
     import torch
 
-    from toolkit.common.meshes.io import atomic_path
 
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
