@@ -6,6 +6,7 @@ import io as io_lib
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -462,6 +463,26 @@ def test_a_full_disk_is_an_error_line_not_a_traceback(monkeypatch, capsys):
     monkeypatch.setattr(Parser, "parse_args", lambda self, argv=None: args)
     assert main([]) == 2
     assert capsys.readouterr().err.startswith("error: run/face.h5: No space left on device")
+
+
+def test_a_write_that_fails_midway_leaves_no_result(tmp_path, monkeypatch, capsys):
+    """A static result whose third file fails to write (the disk full at the increments): one
+    ``error:`` line, exit 2, and the output folder holds none of the result's files, so nothing
+    half-written looks complete."""
+    import importlib
+
+    simulate_module = importlib.import_module("toolkit.static.simulate")
+
+    def full(path, *args, **kwargs):
+        Path(path).with_suffix(".h5").write_bytes(b"\x89HDF partial")
+        raise OSError(28, "No space left on device", str(Path(path).with_suffix(".h5")))
+
+    monkeypatch.setattr(simulate_module, "write_time_series", full)
+    out = tmp_path / "run"
+    assert main(["static", "simulate", "--resolution", "coarse", "--no-preview", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("error: ") == 1 and "No space left on device" in err and "Traceback" not in err, err
+    assert sorted(p.name for p in out.iterdir()) == []
 
 
 @pytest.mark.parametrize("argv, option", [

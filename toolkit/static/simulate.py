@@ -319,25 +319,36 @@ class SimulationResult:
         """Write ``result.vtu`` (pre-operative face with ``displacement`` and any ``point_data``,
         name -> ``(n, ...)`` array), ``postop.vtu`` (the post-operative face), ``summary.json``,
         ``increments.xdmf`` (+ .h5, one XDMF ``Mixed`` topology for a mesh of several cell types),
-        ``plan.toml`` (the plan that ran, when the result holds it) and ``preview.png``."""
+        ``plan.toml`` (the plan that ran, when the result holds it) and ``preview.png``.
+
+        ``summary.json`` comes last, so a folder holding it holds the whole result; a write that
+        fails (a full disk) removes the files this call wrote before raising."""
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        write(out / "result.vtu", self.reference_mesh.with_point_data(**(point_data or {})))
-        write(out / "postop.vtu", self.final_mesh)
-        with atomic_path(out / "summary.json") as tmp:
-            tmp.write_text(json.dumps(self.summary(), indent=2))
-        if self.plan is not None:
-            self.plan.write(out / "plan.toml")
-        write_time_series(out / "increments.xdmf", self.reference.without_fields(),
-                          np.arange(self.displacements.shape[0], dtype=float),
-                          {"displacement": self.displacements})
-        if preview:
-            from toolkit.common.plotting import render
+        names = ["result.vtu", "postop.vtu", "plan.toml", "increments.xdmf", "increments.h5", "preview.png",
+                 "summary.json"]
+        before = {name for name in names if (out / name).exists()}
+        try:
+            write(out / "result.vtu", self.reference_mesh.with_point_data(**(point_data or {})))
+            write(out / "postop.vtu", self.final_mesh)
+            if self.plan is not None:
+                self.plan.write(out / "plan.toml")
+            write_time_series(out / "increments.xdmf", self.reference.without_fields(),
+                              np.arange(self.displacements.shape[0], dtype=float),
+                              {"displacement": self.displacements})
+            if preview:
+                from toolkit.common.plotting import render
 
-            render(self.reference, out / "preview.png", scalars=self.displacement, displacement=self.displacement,
-                   camera="iso", cmap="viridis", scalar_label="|u| (mm)",
-                   title=f"{self.material}, {self.sliding}, {len(self.reports)} increments")
+                render(self.reference, out / "preview.png", scalars=self.displacement,
+                       displacement=self.displacement, camera="iso", cmap="viridis", scalar_label="|u| (mm)",
+                       title=f"{self.material}, {self.sliding}, {len(self.reports)} increments")
+            with atomic_path(out / "summary.json") as tmp:
+                tmp.write_text(json.dumps(self.summary(), indent=2))
+        except BaseException:
+            for name in set(names) - before:
+                (out / name).unlink(missing_ok=True)
+            raise
         return out
 
 
