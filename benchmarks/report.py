@@ -557,6 +557,20 @@ def _interrupts(data):
     return "\n".join(lines)
 
 
+def _threads(data):
+    df = data["threads"][0]
+    wide = df.pivot(index="kernel", columns="threads", values="seconds")
+    counts = sorted(wide.columns)
+    out = pd.DataFrame({"kernel": wide.index})
+    for n in counts:
+        out[f"t{n}"] = wide[n].to_numpy()
+    cols = [("kernel", "kernel")] + [(f"t{n}", f"{n} thread{'s' if n > 1 else ''} (s)", "{:.3g}") for n in counts]
+    if len(counts) > 1:
+        out["ratio"] = wide[counts[-1]].to_numpy() / wide[counts[0]].to_numpy()
+        cols.append(("ratio", f"{counts[-1]} threads / 1", "{:.2f}"))
+    return table(out, cols)
+
+
 def _interrupt_stress(data):
     df, side = data["interrupt_stress"]
     hit = df[~df["ended_before"].astype(bool)]
@@ -969,6 +983,7 @@ SOURCES = {s.stem: s for s in (
     Source("bad_inputs", "python benchmarks/bad_inputs.py", 4),
     Source("bad_inputs_interrupts", "python benchmarks/bad_inputs.py --interrupts", 5),
     Source("interrupt_stress", "python benchmarks/interrupt_stress.py", 8),
+    Source("threads", "python benchmarks/threads.py", 1),
     Source("mixed_elements", "python benchmarks/mixed_elements.py", 1),
     Source("static_meshed_speed_ct", "python benchmarks/static_meshed_speed.py --face ct --code /tmp/before . "
            "--repeats 1 --out benchmarks/results/static_meshed_speed_ct.csv", 50),
@@ -1003,7 +1018,7 @@ SOURCES = {s.stem: s for s in (
     Source("meshed_database_ct", "python benchmarks/meshed_database.py --ct --size 3 --order 1 --plans 10 "
            "--out benchmarks/results/meshed_database_ct.csv", 40),
     Source("meshed_database_ct_tet10", "python benchmarks/meshed_database.py --ct --size 3 --order 2 --plans 1 "
-           "--modes sagittal --out benchmarks/results/meshed_database_ct_tet10.csv", 45),
+           "--modes sagittal full --out benchmarks/results/meshed_database_ct_tet10.csv", 90),
     Source("silent_cases", "python benchmarks/silent_cases.py", 2),
     Source("own_face_impact", "python benchmarks/own_face_impact.py", 20),
     Source("surrogate_trust_static", "python benchmarks/surrogate_trust.py --cases 40", 15),
@@ -1217,6 +1232,9 @@ BLOCKS = {b.name: b for b in (
           "group, as Ctrl-C) at several times, and rerun: the finished simulations or epochs on disk at the "
           "interrupt and after the rerun, whether any was lost, and whether the rerun completes the job.",
           (SOURCES["bad_inputs_interrupts"],), _interrupts),
+    Block("threads", "One thread or two",
+          "Kernels the toolkit leans on, each in a fresh interpreter limited to that many threads "
+          "(`toolkit.set_threads`), median seconds.", (SOURCES["threads"],), _threads),
     Block("interrupt_stress", "Ctrl-C at random times in a database run",
           "`toolkit static dataset --resolution coarse --plans 300 --workers 1`, started afresh for each try in its "
           "own process group and sent SIGINT (to the worker too) at a time drawn uniformly over its first seconds, "

@@ -1,8 +1,7 @@
 """Process-wide runtime settings: thread counts, headless rendering and Ctrl-C handling.
 
-Measured on a 2-core AMD EPYC: with 2 threads a 10k-vector norm takes 8 ms against 3.5 us
-with one, pyamg runs 9x and torch ``index_add_`` 30x slower. Nothing
-here runs on import: the command line calls :func:`set_threads` (``--threads``, default
+On 2 cores the kernels the toolkit runs are slower with two threads than with one
+(``benchmarks/threads.py``, its table in ``docs/index.md``). Nothing here runs on import: the command line calls :func:`set_threads` (``--threads``, default
 1), and Python users call it themselves.
 """
 
