@@ -73,8 +73,9 @@ def stage_database(args, db_path: Path) -> pd.DataFrame:
 
     t0 = time.perf_counter()
     report = build_database(db_path, BALL_VELOCITIES, None, _scene(args), workers=args.workers)
+    seconds = time.perf_counter() - t0
     print(f"database: {len(report.done)} simulated now, {len(report.skipped)} before, {len(report.failed)} failed "
-          f"({time.perf_counter() - t0:.0f} s) -> {db_path}")
+          f"({seconds:.0f} s) -> {db_path}")
     fails = read_failures(db_path)
     if len(fails):
         print(fails.to_string(index=False))
@@ -83,7 +84,9 @@ def stage_database(args, db_path: Path) -> pd.DataFrame:
             "plastic_volume_fraction", "energy_error", "max_energy_error", "steps", "wall_time_s",
             "fe_ms_per_frame"]
     table = table[cols]
-    write_result(RESULTS / f"impact_surrogate_yield{args.suffix}.csv", table, extra=_sizes(args))
+    extra = {**_sizes(args), "integrator": args.integrator, "database_s": round(seconds, 1),
+             "simulated_now": len(report.done), "failed": fails[["key", "reason"]].to_dict("records")}
+    write_result(RESULTS / f"impact_surrogate_yield{args.suffix}.csv", table, extra=extra)
     print(table.to_string(index=False, float_format="%.4g"))
     return table
 

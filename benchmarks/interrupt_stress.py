@@ -37,8 +37,11 @@ COMMAND = ["static", "dataset", "--resolution", "coarse", "--plans", "300", "--s
 def one_try(at_s: float, grace_s: float) -> dict:
     """Run the command, interrupt its process group after ``at_s`` s, wait ``grace_s`` s."""
     with tempfile.TemporaryDirectory(prefix="toolkit-stress-") as tmp:
+        # SIGINT's default action, as in a terminal's foreground job (a benchmark started in the
+        # background ignores it, and its children would inherit that)
         proc = subprocess.Popen([sys.executable, "-m", "toolkit", *COMMAND], cwd=tmp, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.PIPE, text=True, start_new_session=True)
+                                stderr=subprocess.PIPE, text=True, start_new_session=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         time.sleep(at_s)
         sent = time.perf_counter()
         ended_before = proc.poll() is not None

@@ -557,6 +557,19 @@ def _interrupts(data):
     return "\n".join(lines)
 
 
+def _impact_database(data):
+    df, side = data["impact_surrogate_yield_quasistatic"]
+    x = side.get("extra", {})
+    text = table(df, [("velocity", "velocity (mm/s)", "{:g}"), ("held_out", "held out"), ("steps", "load steps"),
+                      ("wall_time_s", "time (s)", "{:.1f}"), ("max_displacement_mm", "max displacement (mm)", "{:.2f}"),
+                      ("max_von_mises_mpa", "max von Mises (MPa)", "{:.4f}")])
+    failed = x.get("failed", [])
+    lines = [text, "", f"{len(df)} simulations finished and {len(failed)} failed; the build took "
+             f"{x.get('database_s', float(df['wall_time_s'].sum())) / 60:.1f} min."]
+    lines += [f"- `{f['key']}`: {_number(f['reason'][:300])}" for f in failed]
+    return "\n".join(lines)
+
+
 def _threads(data):
     df = data["threads"][0]
     wide = df.pivot(index="kernel", columns="threads", values="seconds")
@@ -984,6 +997,8 @@ SOURCES = {s.stem: s for s in (
     Source("bad_inputs_interrupts", "python benchmarks/bad_inputs.py --interrupts", 5),
     Source("interrupt_stress", "python benchmarks/interrupt_stress.py", 8),
     Source("threads", "python benchmarks/threads.py", 1),
+    Source("impact_surrogate_yield_quasistatic", "python benchmarks/impact_surrogate.py --integrator quasi-static "
+           "--stages database --suffix _quasistatic", 10),
     Source("mixed_elements", "python benchmarks/mixed_elements.py", 1),
     Source("static_meshed_speed_ct", "python benchmarks/static_meshed_speed.py --face ct --code /tmp/before . "
            "--repeats 1 --out benchmarks/results/static_meshed_speed_ct.csv", 50),
@@ -1232,6 +1247,11 @@ BLOCKS = {b.name: b for b in (
           "group, as Ctrl-C) at several times, and rerun: the finished simulations or epochs on disk at the "
           "interrupt and after the rerun, whether any was lost, and whether the rerun completes the job.",
           (SOURCES["bad_inputs_interrupts"],), _interrupts),
+    Block("impact_database", "The impact learning database, quasi-static",
+          "`toolkit impact dataset`'s defaults: the skull-held yielding scene on the paper face (tet10, deformable "
+          "ball, 0.36 s) at the impact paper's six velocities and the held-out 23, 35 and 47 mm/s, on the "
+          "quasi-static integrator, one process; per velocity its load steps and time, and the whole build.",
+          (SOURCES["impact_surrogate_yield_quasistatic"],), _impact_database),
     Block("threads", "One thread or two",
           "Kernels the toolkit leans on, each in a fresh interpreter limited to that many threads "
           "(`toolkit.set_threads`), median seconds.", (SOURCES["threads"],), _threads),

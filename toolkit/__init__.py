@@ -14,9 +14,9 @@ Every error the toolkit raises on purpose derives from :class:`ToolkitError`
 (:mod:`toolkit.common.errors`).
 
 Importing the package changes nothing in the process (no environment variable, no thread
-limit). On 2 cores, two BLAS and torch threads are slower than one for the toolkit's kernels
-(``benchmarks/threads.py``), so the command line runs on one thread (``--threads``); in Python call
-:func:`toolkit.set_threads` (``set_threads(1)``, or ``set_threads()`` for
+limit). On 2 cores, two BLAS and torch threads are no faster than one for the toolkit's kernels,
+or slower (``benchmarks/threads.py``), so the command line runs on one thread (``--threads``);
+in Python call :func:`toolkit.set_threads` (``set_threads(1)``, or ``set_threads()`` for
 ``TOOLKIT_NUM_THREADS``, default 1) before heavy work.
 """
 

@@ -1,6 +1,6 @@
 """Process-wide runtime settings: thread counts, headless rendering and Ctrl-C handling.
 
-On 2 cores the kernels the toolkit runs are slower with two threads than with one
+On 2 cores the kernels the toolkit runs are no faster with two threads than with one, or slower
 (``benchmarks/threads.py``, its table in ``docs/index.md``). Nothing here runs on import: the
 command line calls :func:`set_threads` (``--threads``, default 1), and Python users call it
 themselves.
