@@ -93,10 +93,23 @@ def test_ctrl_c_reaches_python_after_and_during_meshing(during, monkeypatch):
     and then raised."""
     import signal
 
-    from toolkit.mesh import backends
 
     if not available()["ftetwild"]:
         pytest.skip("pytetwild is not installed")
+    # Python's own handler, as in a foreground process (a test run started in the background
+    # inherits an ignored SIGINT)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _mesh_then_ctrl_c(during, monkeypatch)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _mesh_then_ctrl_c(during: bool, monkeypatch) -> None:
+    import signal
+
+    from toolkit.mesh import backends
+
     if during:
         mesher = backends._RUNNERS["ftetwild"]
 
