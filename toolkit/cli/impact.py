@@ -390,13 +390,12 @@ def scene(args: argparse.Namespace, base):
     if args.order is not None:
         out = out.with_fidelity(order=args.order)
     integrator = getattr(args, "integrator", None) or out.fidelity.integrator
-    explicit_only = [f"--{name} {value:g}" for name, value in (("mass-scaling", args.mass_scaling),
-                                                              ("safety", args.safety)) if value is not None]
-    if explicit_only and integrator != "explicit":
-        verb, them = ("apply", "them") if len(explicit_only) > 1 else ("applies", "it")
-        raise ValueError(f"{' and '.join(explicit_only)} {verb} to the explicit integrator only (the {integrator} "
-                         f"one has no inertia and no time step): add --integrator explicit, or leave {them} out")
     explicit = {k: v for k, v in (("mass_scaling", args.mass_scaling), ("safety", args.safety)) if v is not None}
+    if explicit and integrator != "explicit":
+        given = " and ".join(f"--{k.replace('_', '-')} {v:g}" for k, v in explicit.items())
+        verb, them = ("apply", "them") if len(explicit) > 1 else ("applies", "it")
+        raise ValueError(f"{given} {verb} to the explicit integrator only (the {integrator} one has no inertia "
+                         f"and no time step): add --integrator explicit, or leave {them} out")
     out = out.with_fidelity(integrator=integrator, **explicit)
     if args.duration is not None:
         out = replace(out, duration=args.duration)
