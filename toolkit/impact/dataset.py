@@ -27,7 +27,6 @@ Units: mm, s, MPa, mm/s.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from dataclasses import dataclass
@@ -37,6 +36,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from toolkit.common import papers
+from toolkit.common.meshes.fingerprint import points_fingerprint
 from toolkit.common.training.database import (
     Database,
     Job,
@@ -54,7 +54,7 @@ if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
 
 __all__ = ["DATABASE_KIND", "DATABASE_VERSION", "PAPER_VELOCITIES", "default_held_out", "build_database",
-           "ImpactDatabase", "load_database", "SimulationWorker", "velocity_key", "mesh_checksum", "SceneInputs"]
+           "ImpactDatabase", "load_database", "SimulationWorker", "velocity_key", "SceneInputs"]
 
 DATABASE_KIND = "toolkit.impact.database"
 DATABASE_VERSION = 1
@@ -83,11 +83,6 @@ def _scene_config(scene: Scene) -> dict:
     if d["face"]["axes"] == "toolkit":  # the phantoms and files in the toolkit's axes: databases without axes
         del d["face"]["axes"]
     return d
-
-
-def mesh_checksum(points: np.ndarray) -> str:
-    """SHA-256 of the reference points rounded to 1e-6 mm: identifies the face a model was trained on."""
-    return hashlib.sha256(np.round(np.asarray(points, dtype=np.float64), 6).tobytes()).hexdigest()[:16]
 
 
 @dataclass(frozen=True)
@@ -164,7 +159,7 @@ def build_database(out: str | os.PathLike, velocities=PAPER_VELOCITIES, held_out
     with db.locked():  # another command filling the same file is refused before anything is written
         db.create(shared={"points": face.points, "cells": face.volume_cells, "fixed": fixed, **masks},
                   shared_attrs={"cell_type": face.volume_type, "scene_toml": _scene_toml(scene),
-                                "mesh_checksum": mesh_checksum(face.points)})
+                                "mesh_checksum": points_fingerprint(face.points)})
         return run_jobs(db, jobs, SimulationWorker(scene.to_dict()), workers=workers, executor=executor,
                         retry_failed=retry_failed, progress=progress)
 
@@ -250,7 +245,7 @@ class ImpactDatabase:
 
     def signature(self) -> dict:
         """What a model trained on this database depends on (checked when it is reused)."""
-        return {"kind": DATABASE_KIND, "n_nodes": self.n_nodes, "mesh_checksum": mesh_checksum(self.points),
+        return {"kind": DATABASE_KIND, "n_nodes": self.n_nodes, "mesh_checksum": points_fingerprint(self.points),
                 "times_s": [round(float(t), 9) for t in self.times], "scene": _scene_config(self.scene)}
 
 

@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from toolkit.common.config_diff import require_same
+from toolkit.common.meshes.fingerprint import points_fingerprint
 from toolkit.common.meshes.io import TimeSeriesWriter
 from toolkit.common.outputs import check_output_dir
 from toolkit.common.training import (
@@ -61,7 +62,7 @@ from toolkit.common.training import (
     train,
 )
 from toolkit.impact.checks import answer_checks
-from toolkit.impact.dataset import ImpactDatabase, SceneInputs, load_database, mesh_checksum
+from toolkit.impact.dataset import ImpactDatabase, SceneInputs, load_database
 from toolkit.impact.scene import Scene
 from toolkit.impact.simulate import ball_start, face_mesh, write_preview, write_summary
 
@@ -487,7 +488,7 @@ def predict_scene(surrogate: Surrogate, velocity: float) -> Prediction:
     sig = surrogate.bundle.data
     scene = Scene.from_dict(sig["scene"]).with_ball(velocity=float(velocity))
     face = face_mesh(scene)
-    if mesh_checksum(face.points) != sig["mesh_checksum"]:
+    if points_fingerprint(face.points) != sig["mesh_checksum"]:
         raise ValueError(f"the scene's face ({face.n_points} nodes) is not the one the model was trained on "
                          f"({sig['n_nodes']} nodes, checksum {sig['mesh_checksum']})")
     times = np.asarray(sig["times_s"], dtype=float)

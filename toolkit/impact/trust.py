@@ -43,6 +43,7 @@ import numpy as np
 
 from toolkit.common.config_diff import differences, jsonable
 from toolkit.common.errors import AnswerError
+from toolkit.common.meshes.fingerprint import points_fingerprint
 from toolkit.common.training.conformal import (
     ConformalBound,
     calibrate,
@@ -52,7 +53,7 @@ from toolkit.common.training.conformal import (
 )
 from toolkit.common.training.decision import check_tolerance, decide
 from toolkit.impact.checks import answer_checks
-from toolkit.impact.dataset import ImpactDatabase, SceneInputs, _scene_config, load_database, mesh_checksum
+from toolkit.impact.dataset import ImpactDatabase, SceneInputs, _scene_config, load_database
 from toolkit.impact.scene import Scene
 from toolkit.impact.simulate import face_mesh, simulate, write_summary
 from toolkit.impact.surrogate import ExtrapolationWarning, Prediction
@@ -369,7 +370,7 @@ def answer(model, velocity: float | None, tolerance_mm: float, *, scene=None, ca
     ood = out_of_distribution(model, scene)
     face = face_mesh(scene)
     est, pred = {}, None
-    if face.n_points == sig["n_nodes"] and mesh_checksum(face.points) == sig["mesh_checksum"]:
+    if face.n_points == sig["n_nodes"] and points_fingerprint(face.points) == sig["mesh_checksum"]:
         times = np.asarray(sig["times_s"], dtype=float)
         inputs = SceneInputs.from_scene(scene, face, times)
         u, vm = _quiet_predict(model, velocity, inputs)

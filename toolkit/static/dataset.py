@@ -57,6 +57,7 @@ import numpy as np
 from toolkit.common.defaults import STATIC_SIMULATION
 from toolkit.common.fem.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.meshes.axes import axes_matrix, check_mesh_axes, mesh_to_toolkit, to_toolkit
+from toolkit.common.meshes.fingerprint import file_fingerprint
 from toolkit.common.meshes.io import atomic_path, read
 from toolkit.common.meshes.mesh import Mesh
 from toolkit.common.meshes.surfaces import read_surface
@@ -195,15 +196,9 @@ class DatasetConfig:
         for what, path in (("mesh", mesh), *((f"bone {k}", v) for k, v in bones.items())):
             if not Path(path).is_file():
                 raise FileNotFoundError(f"{what} file {str(path)!r} does not exist")
-        return cls(**settings, mesh=str(Path(mesh).resolve()), mesh_sha1=_sha1(mesh), units=units, axes=axes,
-                   bones=tuple(sorted((k, str(Path(v).resolve()), _sha1(v)) for k, v in bones.items())),
+        return cls(**settings, mesh=str(Path(mesh).resolve()), mesh_sha1=file_fingerprint(mesh), units=units, axes=axes,
+                   bones=tuple(sorted((k, str(Path(v).resolve()), file_fingerprint(v)) for k, v in bones.items())),
                    condyles=None if condyles is None else tuple(map(tuple, np.asarray(condyles, float).tolist())))
-
-
-def _sha1(path) -> str:
-    import hashlib
-
-    return hashlib.sha1(Path(path).read_bytes()).hexdigest()
 
 
 @lru_cache(maxsize=8)
@@ -226,7 +221,7 @@ def database_subject(config: DatasetConfig, subject: int):
         if not Path(path).is_file():
             raise FileNotFoundError(f"{path} (a file of the database's configuration) does not exist; restore it "
                                     "or start a new database")
-        if _sha1(path) != sha1:
+        if file_fingerprint(path) != sha1:
             raise ValueError(f"{path} changed since the database was made on it; restore it or start a new database")
     mesh = mesh_to_toolkit(read(config.mesh, units=config.units, require_node_sets=["fixed"]), config.axes)
     bones = {name: mesh_to_toolkit(read_surface(path, units=config.units), config.axes)

@@ -43,6 +43,7 @@ import numpy as np
 
 from toolkit.common.analysis.metrics import nodal_errors
 from toolkit.common.config_diff import require_same
+from toolkit.common.meshes.fingerprint import array_fingerprint, mesh_fingerprint, points_fingerprint
 from toolkit.common.meshes.io import atomic_path
 from toolkit.common.outputs import check_output_dir
 from toolkit.common.papers import TISSUE_NU
@@ -201,7 +202,7 @@ def _simulation_identities(db) -> dict:
     per increment and Poisson's ratio): equal for the same simulation in two databases, whatever
     its key there."""
 
-    subject_keys = {int(sid): _points_key(p) for sid, p in db.points.items()}
+    subject_keys = {int(sid): points_fingerprint(p) for sid, p in db.points.items()}
     out = {}
     for key, g in db.samples.groupby("key", sort=True):
         h = hashlib.sha1(subject_keys[int(g.subject.iloc[0])].encode())
@@ -237,20 +238,6 @@ def arch_nodes(db) -> np.ndarray:
 
     first = min(db.points)
     return cKDTree(db.points[first]).query(dental_arch(db.subject(first)))[1].astype(np.int64)
-
-
-def _points_key(points: np.ndarray) -> str:
-    return hashlib.sha1(np.ascontiguousarray(points, dtype=np.float64).tobytes()).hexdigest()[:20]
-
-
-def _mesh_signature(points: np.ndarray, cells: dict) -> dict:
-    """What a model checks about a mesh: node count and topology (not the coordinates: a new
-    subject of the same topology is fine)."""
-    h = hashlib.sha1()
-    for ctype in sorted(cells):
-        h.update(ctype.encode())
-        h.update(np.ascontiguousarray(cells[ctype], dtype=np.int64).tobytes())
-    return {"nodes": int(points.shape[0]), "topology": h.hexdigest()[:16]}
 
 
 # ------------------------------------------------------------------ the model
@@ -413,14 +400,14 @@ class Surrogate:
                                          f"(resolution={trained!r}; command line: --resolution {trained}), ")
         hint = (f"{on}train a model on a database of this mesh, or predict on it anyway (any_mesh=True; command "
                 "line: --any-mesh)")
-        self.bundle.check_data({**self.bundle.data, "mesh": _mesh_signature(points, cells)}, "this mesh", hint=hint)
+        self.bundle.check_data({**self.bundle.data, "mesh": mesh_fingerprint(points, cells)}, "this mesh", hint=hint)
 
     def hierarchy(self, points: np.ndarray, subject: int | None = None):
         """The point hierarchy of a training subject, or one built for ``points`` (cached; with
         torch, also for the numpy network)."""
         if subject is not None and subject in self.module.hierarchies:
             return self.module.hierarchies[subject]
-        key = _points_key(points)
+        key = points_fingerprint(points)
         known = self.bundle.extra.get("subject_points", {})
         if key in known and int(known[key]) in self.module.hierarchies:  # a training subject's own mesh
             return self.module.hierarchies[int(known[key])]
@@ -440,7 +427,7 @@ class Surrogate:
     def prior(self, mesh, types: np.ndarray):
         """The influence matrix of a mesh and its boundary types (built once, cached), for
         models with ``linear_prior``."""
-        key = (_points_key(mesh.points), hashlib.sha1(np.ascontiguousarray(types, np.int64).tobytes()).hexdigest())
+        key = (points_fingerprint(mesh.points), array_fingerprint(types))
         if key not in self._prior_cache:
             self._prior_cache[key] = linear_prior(mesh, types)
         return self._prior_cache[key]
@@ -451,7 +438,7 @@ class Surrogate:
         (built once per face and bone surfaces, cached)."""
 
         mesh, segments = face_mesh_and_segments(face, segments)
-        key = (_points_key(mesh.points),) + tuple(sorted((name, _points_key(seg.surface.points))
+        key = (points_fingerprint(mesh.points),) + tuple(sorted((name, points_fingerprint(seg.surface.points))
                                                          for name, seg in segments.items()))
         if key not in self._response_cache:
             sliding = self.bundle.data["database"]["sliding"]
@@ -517,7 +504,7 @@ class Surrogate:
         mesh, segments = face_mesh_and_segments(face, segments)
         if not any_mesh:
             self.check_mesh(mesh.points, dict(mesh.cells))
-        elif self.bundle.data.get("mesh") != _mesh_signature(mesh.points, dict(mesh.cells)):
+        elif self.bundle.data.get("mesh") != mesh_fingerprint(mesh.points, dict(mesh.cells)):
             warnings.warn("predicting on a mesh of another topology than the training meshes: on a face remeshed "
                           "by `toolkit mesh`, a network trained on the phantoms was measured less accurate than its "
                           "linear prior alone (docs/own-face.md); train on a database of this face", stacklevel=2)
@@ -688,7 +675,7 @@ def train_surrogate(database, config: SurrogateConfig = SurrogateConfig(), *, ou
     tc = TrainConfig(epochs=config.epochs, batch_size=config.batch_size, lr=config.lr, patience=config.patience,
                      seed=config.seed, device=config.device, max_seconds=config.max_seconds, progress=progress,
                      lr_schedule=config.lr_schedule)
-    signature = {"database": db.config.to_dict(), "mesh": _mesh_signature(db.points[0], db.cells),
+    signature = {"database": db.config.to_dict(), "mesh": mesh_fingerprint(db.points[0], db.cells),
                  "channels": list(channel_names(config.features))}
     # the training budget may grow on resume (TrainConfig.RESUMABLE); everything else must match
     resumable = {k: v for k, v in config.to_dict().items() if k not in TrainConfig.RESUMABLE}
@@ -709,7 +696,7 @@ def train_surrogate(database, config: SurrogateConfig = SurrogateConfig(), *, ou
              "split": {"train": int(train_idx.size), "validation": int(val_idx.size), "test": int(test_idx.size)},
              "test_keys": test_keys, "parameters": int(sum(p.numel() for p in module.net.parameters())),
              "seen_simulations": seen,
-             "subject_points": {_points_key(pts): int(s) for s, pts in db.points.items()},
+             "subject_points": {points_fingerprint(pts): int(s) for s, pts in db.points.items()},
              "arch_nodes": arch_nodes(db).tolist()}
     bundle = ModelBundle(MODEL_KIND, {"surrogate": config.to_dict(), "network": net_config.to_dict()}, signature,
                          {"inputs": scaler}, state, extra)

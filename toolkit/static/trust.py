@@ -52,6 +52,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from toolkit.common.config_diff import jsonable
+from toolkit.common.meshes.fingerprint import mesh_fingerprint
 from toolkit.common.meshes.io import atomic_path
 from toolkit.common.phantoms.phantom import FacePhantom
 from toolkit.common.training.conformal import (
@@ -70,7 +71,6 @@ from toolkit.static.simulate import IncrementReport, face_mesh_and_segments, sim
 from toolkit.static.surrogate import (
     PLAN_PARAMETERS,
     PlanPrediction,
-    _mesh_signature,
     _simulation_identities,
     check_database,
     evaluation_keys,
@@ -606,4 +606,4 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
 
 def _same_topology(model, mesh) -> bool:
 
-    return model.bundle.data.get("mesh") == _mesh_signature(mesh.points, dict(mesh.cells))
+    return model.bundle.data.get("mesh") == mesh_fingerprint(mesh.points, dict(mesh.cells))

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from toolkit.common.config_diff import IncompatibleError, jsonable, require_same
+from toolkit.common.meshes.fingerprint import file_fingerprint
 from toolkit.common.meshes.io import atomic_path
 from toolkit.common.training.scaling import MinMaxScaler
 
@@ -108,9 +109,7 @@ class ModelBundle:
     @staticmethod
     def weights_sha1(directory: str | os.PathLike) -> str:
         """SHA-1 of a model directory's ``model.pt``: which weights a calibration was made for."""
-        import hashlib
-
-        return hashlib.sha1((Path(directory) / "model.pt").read_bytes()).hexdigest()
+        return file_fingerprint(Path(directory) / "model.pt")
 
     @staticmethod
     def has_arrays(directory: str | os.PathLike) -> bool:
