@@ -196,8 +196,8 @@ def stage_models(args, paths: dict) -> pd.DataFrame:
             continue
         config = SurrogateConfig(features=FeatureSpec(**feats), **common)
         result = _pointnet(db_path, name, config, models / name.replace("+", "_"))
-        per_sample[name] = result["per_sample"].mean_error_mm.to_numpy()
-        rows.append({"method": f"PointNet++ {name}", "test": "one subject", **result["metrics"]})
+        per_sample[name] = result.per_sample.mean_error_mm.to_numpy()
+        rows.append({"method": f"PointNet++ {name}", "test": "one subject", **result.metrics})
         print(rows[-1])
     from toolkit.static.surrogate import Surrogate
 
@@ -219,7 +219,7 @@ def stage_models(args, paths: dict) -> pd.DataFrame:
             config = SurrogateConfig(features=FeatureSpec(**feats), split="subjects", test_subjects=held, **common)
             out = models / f"{name.replace('+', '_')}_unseen_subject"
             result = _pointnet(paths["subjects"], "subjects", config, out, held[0])
-            rows.append({"method": f"PointNet++ {name}", "test": unseen, **result["metrics"]})
+            rows.append({"method": f"PointNet++ {name}", "test": unseen, **result.metrics})
             print(rows[-1])
         sdb = StaticDatabase.open(paths["subjects"])
         held_out = sdb.samples.subject.isin(held).to_numpy()

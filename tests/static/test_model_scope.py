@@ -27,7 +27,7 @@ def model(quick_model):
 
 
 def test_the_training_database_is_scored_on_its_test_split(db6, model):
-    m = evaluate_surrogate(model, db6)["metrics"]
+    m = evaluate_surrogate(model, db6).metrics
     assert m["scored"] == "test split of the training database"
     assert m["training_samples_scored"] == 0
     assert m["samples"] == 3 * len(model.bundle.extra["test_keys"])
@@ -40,12 +40,12 @@ def test_another_database_is_scored_without_the_training_simulations(db6, model,
     the metrics say how many."""
     db8 = _database(tmp_path_factory, "db8", plans=8)
     result = evaluate_surrogate(model, db8)
-    m = result["metrics"]
+    m = result.metrics
     seen = len(set(StaticDatabase.open(db6).samples.key) - set(model.bundle.extra["test_keys"]))
     assert m["training_samples_excluded"] == 3 * seen
     assert m["scored"] == f"all samples of another database, {3 * seen} training samples excluded"
     assert m["samples"] == 3 * (8 - seen)
-    assert not set(result["per_sample"].key) - (set(StaticDatabase.open(db8).samples.key)
+    assert not set(result.per_sample.key) - (set(StaticDatabase.open(db8).samples.key)
                                                 - (set(StaticDatabase.open(db6).samples.key)
                                                    - set(model.bundle.extra["test_keys"])))
 
@@ -53,14 +53,14 @@ def test_another_database_is_scored_without_the_training_simulations(db6, model,
 def test_a_database_of_other_plans_is_scored_whole(model, tmp_path_factory):
     """Another seed draws other plans with the same keys (s000-p00000...): nothing is excluded."""
     other = _database(tmp_path_factory, "seed1", plans=2, seed=1)
-    m = evaluate_surrogate(model, other)["metrics"]
+    m = evaluate_surrogate(model, other).metrics
     assert m["training_samples_excluded"] == 0 and m["samples"] == 6
     assert m["scored"].startswith("all samples of another database")
 
 
 def test_requested_simulations_count_the_training_ones(db6, model):
     train_key = sorted(set(StaticDatabase.open(db6).samples.key) - set(model.bundle.extra["test_keys"]))[0]
-    m = evaluate_surrogate(model, db6, keys=[train_key])["metrics"]
+    m = evaluate_surrogate(model, db6, keys=[train_key]).metrics
     assert m["training_samples_scored"] == 3
 
 
@@ -88,7 +88,7 @@ def test_a_bundle_without_its_training_simulations_says_so(db6, model, tmp_path_
         tmp_path_factory.mktemp("old") / "m")
     old = Surrogate.load(out)
     other = _database(tmp_path_factory, "old_other", plans=1, seed=2)
-    m = evaluate_surrogate(old, other)["metrics"]
+    m = evaluate_surrogate(old, other).metrics
     assert "does not record its training simulations" in m["scored"] and m["training_samples_excluded"] is None
     phantom = subject_phantom("coarse", 0)
     # the verdict on a plan comes from the database's sampler settings, which every model records

@@ -24,11 +24,11 @@ def test_training_reaches_the_error_bound(db100, hard_model):
     displacement and ~0.9 mm for the constant field.)"""
     db = StaticDatabase.open(db100)
     result = evaluate_surrogate(hard_model, db)
-    m = result["metrics"]
+    m = result.metrics
     assert m["mean_error_mm"] < 0.5 * m["mean_displacement_mm"]
     train_keys = set(db.samples.key) - set(hard_model.bundle.extra["test_keys"])
     mean_field = np.mean([db.sample(i)["v"] for i in range(len(db)) if db.samples.key[i] in train_keys], axis=0)
-    constant = np.linalg.norm(result["targets"] - mean_field, axis=-1).mean()
+    constant = np.linalg.norm(result.truth - mean_field, axis=-1).mean()
     assert m["mean_error_mm"] < constant
     assert m["inference_ms"] > 0 and m["fe_ms"] > 0
 
@@ -70,9 +70,9 @@ def test_a_linear_prior_model_learns_what_the_influence_matrix_misses(db100, tmp
     db = StaticDatabase.open(db100)
     result = evaluate_surrogate(model, db)
     im = linear_prior(face_hex("coarse").mesh, db.types[0])
-    linear = np.stack([im.predict(db.sample(int(i))["s"]) for i in result["rows"]])
-    linear_error = nodal_errors(linear.reshape(-1, 3), result["targets"].reshape(-1, 3)).mean()
-    m = result["metrics"]
+    linear = np.stack([im.predict(db.sample(int(i))["s"]) for i in result.items])
+    linear_error = nodal_errors(linear.reshape(-1, 3), result.truth.reshape(-1, 3)).mean()
+    m = result.metrics
     assert m["mean_error_mm"] < linear_error and m["mean_error_mm"] < 0.25 * m["mean_displacement_mm"]
 
     s = db.sample(5)

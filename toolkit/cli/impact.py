@@ -209,7 +209,7 @@ def evaluate(args: argparse.Namespace) -> int:
     db = load_database(args.data)
     model.check_database(db)
     check_figure_choices(db, args.nodes, args.frames)
-    ev = evaluate_surrogate(model, db, args.split)
+    ev = evaluate_surrogate(model, db, split=args.split)
     with uninterruptible():
         write_evaluation(ev, db, model, args.out, nodes=args.nodes, frames=args.frames)
     m = ev.metrics

@@ -235,7 +235,7 @@ def evaluate(args: argparse.Namespace) -> int:
     mesh = None if args.no_preview else subject_mesh(args.data, 0)
     with uninterruptible():
         write_evaluation(result, args.out, mesh)
-    m = result["metrics"]
+    m = result.metrics
     print(f"scored: {m['scored']}")
     print(f"{m['samples']} samples: mean error {m['mean_error_mm']:.3f} mm (median {m['median_error_mm']:.3f}, p95 "
           f"{m['p95_error_mm']:.3f}, max {m['max_error_mm']:.3f}); free nodes {m['free_mean_error_mm']:.3f}, lips "

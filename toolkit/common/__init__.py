@@ -11,6 +11,7 @@ Imports nothing from :mod:`toolkit.static` or :mod:`toolkit.impact`.
 from toolkit.common.errors import ConvergenceError, ToolkitError
 from toolkit.common.fidelity import FidelityChoice, FidelityError, choose_fidelity
 from toolkit.common.meshes.axes import AXES, AxesError, check_anatomical_axes, mesh_to_toolkit, to_toolkit
+from toolkit.common.meshes.fingerprint import mesh_fingerprint, points_fingerprint
 from toolkit.common.meshes.io import TimeSeries, TimeSeriesWriter, read, read_time_series, write, write_time_series
 from toolkit.common.meshes.mesh import (
     CELL_TYPES,
@@ -23,6 +24,7 @@ from toolkit.common.meshes.mesh import (
 from toolkit.common.phantoms.mixed_bar import mixed_bar
 from toolkit.common.phantoms.phantom import BoneSegment, FacePhantom, FaceShape, ball, ball_density, face_hex, face_tet
 from toolkit.common.runtime import set_threads
+from toolkit.common.training.evaluation import Evaluation
 
 __all__ = [
     "ToolkitError",
@@ -56,4 +58,7 @@ __all__ = [
     "to_toolkit",
     "mesh_to_toolkit",
     "check_anatomical_axes",
+    "points_fingerprint",
+    "mesh_fingerprint",
+    "Evaluation",
 ]

@@ -5,13 +5,13 @@
 dynamics (``"explicit"``); the pieces (scene, elements, plasticity, contact, integrators) are
 importable. The surrogate side: ``build_database``
 (one simulation per velocity, HDF5), ``train_surrogate`` (the impact paper's LSTM, a stronger one,
-an MLP baseline), ``evaluate_surrogate``, ``predict_scene``, and the answer within a tolerance:
+an MLP baseline), ``evaluate_surrogate`` (an ``Evaluation``), ``predict_scene``, and the answer within a tolerance:
 ``calibrate_surrogate``, ``Calibration``, ``answer`` (the LSTM's or the FE's, a ``TrustedAnswer``). Imports nothing from
 :mod:`toolkit.static`.
 """
 
 from toolkit.impact.dataset import ImpactDatabase, build_database, load_database
-from toolkit.impact.evaluation import evaluate_surrogate
+from toolkit.impact.evaluation import Evaluation, evaluate_surrogate
 from toolkit.impact.explicit import InstabilityError
 from toolkit.impact.quasi_static import ConvergenceError
 from toolkit.impact.scene import (
@@ -56,6 +56,7 @@ __all__ = [
     "SurrogateConfig",
     "CONFIGS",
     "evaluate_surrogate",
+    "Evaluation",
     "predict_scene",
     "Calibration",
     "calibrate_surrogate",

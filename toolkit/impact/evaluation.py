@@ -17,35 +17,18 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from toolkit.common.analysis import metrics
 from toolkit.common.meshes.io import atomic_path
+from toolkit.common.training.evaluation import Evaluation
 from toolkit.impact.dataset import ImpactDatabase, load_database
 from toolkit.impact.surrogate import Surrogate, item_features, item_targets, split_items
 
 __all__ = ["Evaluation", "evaluate_surrogate", "plot_time_series", "plot_fields", "write_evaluation",
            "check_figure_choices"]
-
-
-@dataclass(frozen=True, eq=False)
-class Evaluation:
-    """Metrics of one surrogate on one split of one database.
-
-    Attributes
-    ----------
-    metrics : dict (the ``metrics.json`` keys; mm, MPa, s, ms)
-    items : (I,) test item indices (sim-major: ``item = sim * N + node``)
-    predicted, truth : (I, F, 4) float64 (ux, uy, uz mm, von Mises MPa)
-    """
-
-    metrics: dict
-    items: np.ndarray
-    predicted: np.ndarray
-    truth: np.ndarray
 
 
 def field_metrics(predicted: np.ndarray, truth: np.ndarray) -> dict:
@@ -70,12 +53,14 @@ def field_metrics(predicted: np.ndarray, truth: np.ndarray) -> dict:
     }
 
 
-def evaluate_surrogate(surrogate: Surrogate, db: ImpactDatabase | str | os.PathLike,
+def evaluate_surrogate(surrogate: Surrogate, database: ImpactDatabase | str | os.PathLike, *,
                        split: str | None = None) -> Evaluation:
     """Score ``surrogate`` on the test items of ``split`` (default: the split it was trained
-    with, rebuilt from its seed) of ``db``, which must be the database it was trained on (same
-    face, scene and frames; refused otherwise)."""
-    db = load_database(db) if not isinstance(db, ImpactDatabase) else db
+    with, rebuilt from its seed) of ``database``, which must be the database it was trained on
+    (same face, scene and frames; refused otherwise).
+
+    Returns an :class:`~toolkit.common.training.evaluation.Evaluation` (``per_sample`` None)."""
+    db = load_database(database) if not isinstance(database, ImpactDatabase) else database
     surrogate.check_database(db)
     spec = surrogate.bundle.extra["split"]
     split = split or spec["kind"]

@@ -4,12 +4,13 @@
 (plan, boundary types, assembly, constraints, solvers, Newton/contact) are importable
 for finer control. The surrogate side, named as in :mod:`toolkit.impact`: ``build_database``
 (``DatasetConfig``) and ``load_database``, ``train_surrogate`` (PointNet++, ``SurrogateConfig``),
-``Surrogate.load``, ``evaluate_surrogate``, and the answer within a tolerance:
+``Surrogate.load``, ``evaluate_surrogate`` (an ``Evaluation``), and the answer within a tolerance:
 ``calibrate_surrogate``, ``Calibration``, ``answer`` (the surrogate's or the FE's, a
 ``TrustedAnswer``). Imports nothing from :mod:`toolkit.impact`.
 """
 
 from toolkit.common.fem.solvers import SolverError
+from toolkit.common.training.evaluation import Evaluation
 from toolkit.static.boundary import BoundaryConditions, BoundaryError, NodeType, knn_labels
 from toolkit.static.case import StaticCase, load_case
 from toolkit.static.constraints import Constraints
@@ -70,6 +71,7 @@ __all__ = [
     "Surrogate",
     "SurrogateConfig",
     "evaluate_surrogate",
+    "Evaluation",
     "Calibration",
     "calibrate_surrogate",
     "answer",

@@ -58,6 +58,7 @@ from toolkit.common.training import (
     torch_seeded,
 )
 from toolkit.common.training import train as train_loop
+from toolkit.common.training.evaluation import Evaluation
 from toolkit.static.baselines import InfluenceMatrix
 from toolkit.static.boundary import NodeType
 from toolkit.static.checks import check_plan, with_answer_checks
@@ -760,8 +761,8 @@ def _scored_keys(model: Surrogate, db, keys=None):
 
 
 # ------------------------------------------------------------------ evaluation
-def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_samples: int = 20) -> dict:
-    """Score ``model`` on a database's samples it has not seen.
+def evaluate_surrogate(surrogate: Surrogate, database, *, keys=None, inference_samples: int = 20) -> Evaluation:
+    """Score ``surrogate`` on a database's samples it has not seen.
 
     By default: the model's test simulations when the database is the one it was trained on;
     on another database, every simulation except those the model trained or validated on (the
@@ -770,34 +771,34 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
     database of another resolution, material, sliding model or increment count than the
     training one is refused with :class:`~toolkit.common.config_diff.IncompatibleError`.
 
-    Returns a dict: ``per_sample`` DataFrame (key, subject, increment, errors in mm),
-    ``metrics`` (mean/median/p95/max of the per-sample mean nodal error on all nodes, free
-    nodes, lips; ``inference_ms`` per prediction; ``fe_ms`` FE time per increment; ``scored``
-    which samples were scored, in words; ``training_samples_excluded`` and
-    ``training_samples_scored``, None where unknown), and ``predictions`` ``(m, n, 3)`` mm with
-    ``targets``.
+    Returns an :class:`~toolkit.common.training.evaluation.Evaluation`: ``per_sample`` DataFrame
+    (key, subject, increment, errors in mm), ``metrics`` (mean/median/p95/max of the per-sample
+    mean nodal error on all nodes, free nodes, lips; ``inference_ms`` per prediction; ``fe_ms`` FE
+    time per increment; ``scored`` which samples were scored, in words;
+    ``training_samples_excluded`` and ``training_samples_scored``, None where unknown),
+    ``predicted`` ``(m, n, 3)`` mm with ``truth``, and ``items`` the database rows scored.
     """
     import pandas as pd
 
 
     db = database if isinstance(database, StaticDatabase) else StaticDatabase.open(database)
-    keys, scored, excluded, scored_training = _scored_keys(model, db, keys)
+    keys, scored, excluded, scored_training = _scored_keys(surrogate, db, keys)
     rows = np.flatnonzero(db.samples.key.isin(list(keys)).to_numpy())
     if not rows.size:
         raise ValueError(f"no sample of {db.path} belongs to the requested simulations {sorted(keys)[:5]}...; "
                          f"it holds {db.samples.key.nunique()} simulations")
     subjects = np.unique(db.samples.subject.to_numpy()[rows])
     priors = None
-    if model.config.features.linear_prior:
-        priors = {int(sid): model.prior(db.subject_mesh(int(sid)), db.types[int(sid)]) for sid in subjects}
-    data = _encode_database(_Subset(db, rows), model.config.features, priors)
+    if surrogate.config.features.linear_prior:
+        priors = {int(sid): surrogate.prior(db.subject_mesh(int(sid)), db.types[int(sid)]) for sid in subjects}
+    data = _encode_database(_Subset(db, rows), surrogate.config.features, priors)
     preds = np.empty_like(data.target, dtype=np.float64)
     for sid in np.unique(data.subject):
         idx = np.flatnonzero(data.subject == sid)
-        h = model.hierarchy(db.points[sid], sid)
+        h = surrogate.hierarchy(db.points[sid], sid)
         for start in range(0, idx.size, 16):
             chunk = idx[start:start + 16]
-            preds[chunk] = model.predict(data.features[chunk], data.prescribed[chunk], data.mask[chunk], h,
+            preds[chunk] = surrogate.predict(data.features[chunk], data.prescribed[chunk], data.mask[chunk], h,
                                          None if data.prior is None else data.prior[chunk])
     target = data.target.astype(np.float64)
     err = nodal_errors(preds.reshape(-1, 3), target.reshape(-1, 3)).reshape(target.shape[:2])
@@ -813,11 +814,11 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
         "mean_displacement_mm": np.linalg.norm(target, axis=-1).mean(axis=1)})
     # inference time of one prediction (batch 1, with the linear prior's product), after a warm-up
     sid = int(data.subject[0])
-    h = model.hierarchy(db.points[sid], sid)
+    h = surrogate.hierarchy(db.points[sid], sid)
 
     def one(i):
         prior = priors[sid].predict(data.prescribed[i])[None] if priors is not None else None
-        return model.predict(data.features[i:i + 1], data.prescribed[i:i + 1], data.mask[i:i + 1], h, prior)
+        return surrogate.predict(data.features[i:i + 1], data.prescribed[i:i + 1], data.mask[i:i + 1], h, prior)
 
     one(0)
     times = []
@@ -834,10 +835,10 @@ def evaluate_surrogate(model: Surrogate, database, *, keys=None, inference_sampl
                "mean_displacement_mm": float(per_sample.mean_displacement_mm.mean()),
                "inference_ms": 1e3 * float(np.median(times)),
                "fe_ms": 1e3 * float(db.samples.seconds.to_numpy()[rows].mean()),
-               "train_seconds": float(model.bundle.extra.get("train_seconds", np.nan)),
-               "variant": model.config.features.variant, "scored": scored,
+               "train_seconds": float(surrogate.bundle.extra.get("train_seconds", np.nan)),
+               "variant": surrogate.config.features.variant, "scored": scored,
                "training_samples_excluded": excluded, "training_samples_scored": scored_training}
-    return {"per_sample": per_sample, "metrics": metrics, "predictions": preds, "targets": target, "rows": rows}
+    return Evaluation(metrics, rows, preds, target, per_sample)
 
 
 @dataclass(eq=False)
@@ -854,19 +855,19 @@ class _Subset:
         return self.db.sample(int(self.rows[i]))
 
 
-def write_evaluation(result: dict, out, mesh=None) -> Path:
+def write_evaluation(result: Evaluation, out, mesh=None) -> Path:
     """``metrics.json``, ``per_sample.csv`` and (with a mesh) ``error_map.png`` in ``out``."""
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "metrics.json") as tmp:
-        tmp.write_text(json.dumps(result["metrics"], indent=2))
+        tmp.write_text(json.dumps(result.metrics, indent=2))
     with atomic_path(out / "per_sample.csv") as tmp:
-        result["per_sample"].to_csv(tmp, index=False)
+        result.per_sample.to_csv(tmp, index=False)
     if mesh is not None:
         from toolkit.common.plotting import render
 
-        err = np.linalg.norm(result["predictions"] - result["targets"], axis=-1).mean(axis=0)
+        err = np.linalg.norm(result.predicted - result.truth, axis=-1).mean(axis=0)
         render(mesh, out / "error_map.png", scalars=err, camera="iso", cmap="magma",
                scalar_label="mean nodal error (mm)", title="surrogate error over the test samples")
     return out
