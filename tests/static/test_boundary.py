@@ -242,3 +242,49 @@ def test_a_bone_no_plan_moves_counts_as_fixed():
     z = ph.mesh.points[released_skull, 2]
     lefort_cut = ph.mesh.points[ph.mesh.node_sets["maxilla"], 2].max()
     assert released_skull.size and z.max() < lefort_cut + 10.0  # only next to the Le Fort segment
+
+
+def _two_segment_tet10_block(h: float):
+    """:func:`_two_segment_block` as tet10 (straight edges), its sets holding their corners and
+    the mid-edge nodes whose two corners they hold."""
+    from toolkit.common.meshes.topology import tet10_from_tet4, tet10_mid_edges
+    from toolkit.common.phantoms.phantom import block
+
+    hexes, segments = _two_segment_block(h)
+    tet4 = block([np.linspace(0, 40, round(40 / h) + 1), np.linspace(0, 10, round(10 / h) + 1),
+                  np.linspace(0, 10, 3)], "tet4")
+    assert np.array_equal(tet4.points, hexes.points)
+    points10, tets10 = tet10_from_tet4(tet4.points, tet4.cells["tet4"])
+    mid, a, b = tet10_mid_edges(tets10)
+    sets = {}
+    for name, ids in hexes.node_sets.items():
+        member = np.zeros(points10.shape[0], dtype=bool)
+        member[ids] = True
+        sets[name] = np.concatenate([ids, mid[member[a] & member[b]]])
+    return Mesh(points10, {"tet10": tets10}, node_sets=sets), segments
+
+
+def test_mid_edge_nodes_are_freed_with_a_corner_of_their_edge():
+    """A release band decides node by node: on tet10 it leaves mid-edge nodes attached beside
+    freed corners (the bone would bend their edges). After the rule, every bound mid-edge node
+    has both corners of its type and segment; nodes bound before whose corners agree stay bound;
+    the node sets as read (no band) already agree and are returned as they are, as is a hex mesh."""
+    from toolkit.common.meshes.topology import tet10_mid_edges
+
+    mesh, segments = _two_segment_tet10_block(2.0)
+    bc = BoundaryConditions.from_mesh(mesh, segments)
+    assert bc.with_mid_edges_of_corners(mesh) is bc
+    banded = bc.with_release_bands(mesh, 10.0)
+    mid, a, b = tet10_mid_edges(mesh.cells["tet10"])
+    t, s = banded.types, banded.segment
+    mixed = (t[mid] != 0) & ((t[a] != t[mid]) | (t[b] != t[mid]) | (s[a] != s[mid]) | (s[b] != s[mid]))
+    assert mixed.sum() > 0  # the band leaves such nodes: the rule has work to do
+    out = banded.with_mid_edges_of_corners(mesh)
+    t2, s2 = out.types, out.segment
+    assert not np.any((t2[mid] != 0) & ((t2[a] != t2[mid]) | (t2[b] != t2[mid]) | (s2[a] != s2[mid])
+                                        | (s2[b] != s2[mid])))
+    assert np.array_equal(np.flatnonzero(t2 != t), mid[mixed])
+    assert np.isin(mid[mixed], out.released).all()
+    hexes, hex_segments = _two_segment_block(2.0)
+    hex_bc = BoundaryConditions.from_mesh(hexes, hex_segments).with_release_bands(hexes, 10.0)
+    assert hex_bc.with_mid_edges_of_corners(hexes) is hex_bc

@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from toolkit.common.analysis.surface_distance import closest_points
 from toolkit.common.errors import ToolkitError
 from toolkit.common.meshes.mesh import VOLUME_TYPES, Mesh
-from toolkit.common.meshes.topology import triangulated_boundary
+from toolkit.common.meshes.topology import tet10_mid_edges, triangulated_boundary
 from toolkit.common.phantoms.phantom import BoneSegment
 from toolkit.static.plan import SEGMENTS
 
@@ -155,8 +155,8 @@ class BoundaryConditions:
     segment : (n,) int8 — index into ``segment_names`` for moving and mucosa nodes, else -1
     segment_names : tuple of str
     upper_lip, lower_lip : (k,) int64 — lip-sliding nodes on the upper and lower slit faces
-    released : (r,) int64 — nodes freed by :meth:`with_release_bands` or :meth:`with_freed`
-        (empty otherwise)
+    released : (r,) int64 — nodes freed by :meth:`with_release_bands`, :meth:`with_freed` or
+        :meth:`with_mid_edges_of_corners` (empty otherwise)
     """
 
     types: np.ndarray
@@ -312,6 +312,27 @@ class BoundaryConditions:
         segment[nodes] = -1
         return BoundaryConditions(types, segment, self.segment_names, self.upper_lip, self.lower_lip,
                                   np.union1d(self.released, nodes))
+
+    def with_mid_edges_of_corners(self, mesh: Mesh) -> BoundaryConditions:
+        """Copy in which every ``tet10`` mid-edge node that is fixed, moving or sliding is freed
+        unless both corners of its edge have its type and segment.
+
+        A boundary condition on a quadratic edge is the corners' condition interpolated along it.
+        Node sets and release bands decide node by node, so a mid-edge node can stay attached to
+        its bone while a corner of its edge is free (at the edge of a release band or of an
+        attachment set): the bone then drags the middle of the edge along while the free corner
+        lags, the edge bends and the element's Jacobian turns negative at a corner, whatever
+        the step size. Freeing such a node lets the solve shape the edge as it shapes every free
+        edge. Lip pairs are left as they are. Meshes without ``tet10`` cells are returned as
+        they are."""
+        if "tet10" not in mesh.cells or mesh.n_points != self.n_nodes:
+            return self
+        mid, a, b = tet10_mid_edges(mesh.cells["tet10"])
+        t, s = self.types, self.segment
+        bound = np.isin(t[mid], (NodeType.FIXED, NodeType.MOVING, NodeType.MUCOSA_SLIDING))
+        same = (t[a] == t[mid]) & (t[b] == t[mid]) & (s[a] == s[mid]) & (s[b] == s[mid])
+        loose = mid[bound & ~same]
+        return self.with_freed(loose) if loose.size else self
 
     def _driver_strength(self) -> np.ndarray:
         """Rank of each driver (index = driver) when one of two neighbours must be freed:

@@ -414,6 +414,8 @@ class _Model:
         self.mucosa_offset, self.far_mucosa = offset, mucosa[far]
         if far.any():
             self.bc = self.bc.with_freed(self.far_mucosa)
+        # every node freed node by node (release bands, the cut, far mucosa) frees the middle of its edges
+        self.bc = self.bc.with_mid_edges_of_corners(self.mesh)
         self.offset, self.side = offset[~far], side[~far]
         self.moving = self.bc.nodes(NodeType.MOVING)
         self.fixed = self.bc.nodes(NodeType.FIXED)
@@ -929,13 +931,16 @@ def face_mesh_and_segments(face: Mesh | FacePhantom, segments: Mapping | None = 
 def boundary_conditions(mesh: Mesh, segments: Mapping, sliding: str,
                         options: SimulationOptions | None = None) -> tuple[BoundaryConditions, BoundaryConditions]:
     """The boundary conditions a simulation uses: ``(bc, bc_all)`` where ``bc`` has the release
-    bands and the sliding model applied and ``bc_all`` is as read from the node sets (its lip
-    pairs whatever the sliding model). The surrogate's database and predictions use the same."""
+    bands and the sliding model applied (and the ``tet10`` mid-edge nodes of freed corners freed:
+    :meth:`~toolkit.static.boundary.BoundaryConditions.with_mid_edges_of_corners`) and ``bc_all``
+    is as read from the node sets (its lip pairs whatever the sliding model). The surrogate's
+    database and predictions use the same."""
     options = options or SimulationOptions()
     if sliding not in SLIDING_MODELS:
         raise ValueError(f"unknown sliding model {sliding!r}; expected one of {SLIDING_MODELS}")
     bc_all = BoundaryConditions.from_mesh(mesh, segments, lip_threshold=options.lip_threshold)
-    return bc_all.with_release_bands(mesh, options.release_width).with_sliding(sliding), bc_all
+    bc = bc_all.with_release_bands(mesh, options.release_width).with_sliding(sliding)
+    return bc.with_mid_edges_of_corners(mesh), bc_all
 
 
 def _build_model(face, material, sliding, segments, options: SimulationOptions,
