@@ -29,7 +29,7 @@ The fixtures (a coarse face mesh, static and impact databases and models) are bu
     python benchmarks/bad_inputs.py --only static   # the commands whose name starts so (a trial)
     python benchmarks/bad_inputs.py --interrupts    # Ctrl-C in each long and short command, then rerun, ~9 min
 
-``--interrupts`` runs each long command (``static dataset``, ``impact dataset``, ``static
+``--interrupts`` runs each long command (``static database``, ``impact database``, ``static
 train``, ``impact train``, tiny) once to its end, then afresh once per interrupt time (0.5 s, and
 30, 60 and 90 % of the uninterrupted run), sends Ctrl-C (SIGINT to its process group) at that
 time, counts the finished simulations (records in the database and its shards) or epochs (the
@@ -68,7 +68,7 @@ IMPACT = ["--resolution", "coarse", "--order", "1", "--ball", "rigid"]
 #: the quickest impact runs: explicit dynamics with mass scaling 100
 EXPLICIT = ["--integrator", "explicit", "--mass-scaling", "100"]
 #: modules each command imports before it can check its input
-MODULES = {"simulate": "toolkit.cli, toolkit.{workflow}", "dataset": "toolkit.cli, toolkit.{workflow}",
+MODULES = {"simulate": "toolkit.cli, toolkit.{workflow}", "database": "toolkit.cli, toolkit.{workflow}",
            "train": "toolkit.cli, toolkit.{workflow}, toolkit.{workflow}.surrogate, torch",
            "evaluate": "toolkit.cli, toolkit.{workflow}, toolkit.{workflow}.surrogate, torch",
            "predict": "toolkit.cli, toolkit.{workflow}, toolkit.{workflow}.surrogate, torch",
@@ -88,16 +88,16 @@ def build_fixtures() -> None:
     FIXTURES.mkdir(parents=True, exist_ok=True)
     steps = [
         ("face.inp", ["phantom", "face-hex", "--resolution", "coarse", "--out", "face.inp"]),
-        ("static.h5", ["static", "dataset", "--resolution", "coarse", "--plans", "3", "--workers", "0",
+        ("static.h5", ["static", "database", "--resolution", "coarse", "--plans", "3", "--workers", "0",
                        "--out", "static.h5"]),
-        ("static_none.h5", ["static", "dataset", "--resolution", "coarse", "--plans", "3", "--seed", "5",
+        ("static_none.h5", ["static", "database", "--resolution", "coarse", "--plans", "3", "--seed", "5",
                             "--sliding", "none", "--workers", "0", "--out", "static_none.h5"]),
         ("smodel/model.pt", ["static", "train", "--data", "static.h5", "--epochs", "1", "--network", "tiny",
                              "--out", "smodel"]),
-        ("impact.h5", ["impact", "dataset", *IMPACT, *EXPLICIT,
+        ("impact.h5", ["impact", "database", *IMPACT, *EXPLICIT,
                        "--velocities", "30,40", "--held-out", "35", "--workers", "0", "--out", "impact.h5"]),
         ("imodel/model.pt", ["impact", "train", "--data", "impact.h5", "--epochs", "1", "--out", "imodel"]),
-        ("impact_no_held.h5", ["impact", "dataset", *IMPACT, *EXPLICIT, "--velocities", "30",
+        ("impact_no_held.h5", ["impact", "database", *IMPACT, *EXPLICIT, "--velocities", "30",
                                "--held-out", "", "--workers", "0", "--out", "impact_no_held.h5"]),
     ]
     for target, args in steps:
@@ -188,8 +188,8 @@ def catalogue() -> list[Case]:
         Case(cmd, "--mesh without --plan", ["--mesh", "{F}/face.inp", "--no-preview", "--out", "o"], ["--plan"]),
     ]
 
-    # static dataset
-    cmd = "static dataset"
+    # static database
+    cmd = "static database"
     base = ["--resolution", "coarse", "--workers", "0"]
     cases += [
         Case(cmd, "--plans 0", [*base, "--plans", "0", "--out", "d.h5"], ["--plans"]),
@@ -307,8 +307,8 @@ def catalogue() -> list[Case]:
         Case(cmd, "--out under /proc", [*IMPACT, "--integrator", "quasi-static", "--out", "/proc/x"], ["/proc/x"]),
     ]
 
-    # impact dataset
-    cmd = "impact dataset"
+    # impact database
+    cmd = "impact database"
     base = [*IMPACT, *EXPLICIT, "--workers", "0"]
     cases += [
         Case(cmd, "empty velocity list", [*base, "--velocities", "", "--out", "d.h5"], ["--velocities"]),
@@ -476,8 +476,8 @@ def run_case(case: Case) -> dict:
 #: the long commands, run tiny; "{F}" is the fixtures folder. Ctrl-C reaches the whole process
 #: group (the command and its worker processes), as in a terminal.
 LONG = {
-    "static dataset": ["static", "dataset", "--resolution", "coarse", "--plans", "24", "--out", "db.h5"],
-    "impact dataset": ["impact", "dataset", *IMPACT, *EXPLICIT,
+    "static database": ["static", "database", "--resolution", "coarse", "--plans", "24", "--out", "db.h5"],
+    "impact database": ["impact", "database", *IMPACT, *EXPLICIT,
                        "--velocities", ",".join(str(v) for v in range(20, 51, 2)), "--out", "db.h5"],
     "static train": ["static", "train", "--data", "{F}/static.h5", "--network", "tiny", "--epochs", "400",
                      "--out", "m"],
@@ -487,7 +487,7 @@ LONG = {
 
 def finished(command: str, cwd: Path) -> tuple[int, int | None]:
     """(finished simulations or epochs on disk, the planned count when the file records it)."""
-    if command.endswith("dataset"):
+    if command.endswith("database"):
         from toolkit.common.training.database import database_status
 
         db = cwd / "db.h5"

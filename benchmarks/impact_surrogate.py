@@ -69,7 +69,7 @@ def _scene(args):
 def stage_database(args, db_path: Path) -> pd.DataFrame:
     from toolkit.common.papers import BALL_VELOCITIES
     from toolkit.common.training.database import read_failures, read_index
-    from toolkit.impact.dataset import build_database
+    from toolkit.impact.database import build_database
 
     t0 = time.perf_counter()
     report = build_database(db_path, BALL_VELOCITIES, None, _scene(args), workers=args.workers)
@@ -236,7 +236,7 @@ def main(argv=None) -> int:
     import torch
 
     from toolkit.common.runtime import set_threads
-    from toolkit.impact.dataset import load_database
+    from toolkit.impact.database import load_database
 
     set_threads(None)
     WORK.mkdir(parents=True, exist_ok=True)

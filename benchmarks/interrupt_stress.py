@@ -1,6 +1,6 @@
 """Ctrl-C at random times in a database run on worker processes: how often it hangs.
 
-Each try starts ``toolkit static dataset --resolution coarse --plans 300 --workers 1`` in its
+Each try starts ``toolkit static database --resolution coarse --plans 300 --workers 1`` in its
 own process group (as a terminal does), sends SIGINT to the whole group (the worker included) at
 a time drawn uniformly from ``[--earliest, --latest]`` seconds, and waits ``--grace`` seconds for
 the command to end. A try that has not ended by then is a hang: its process tree is killed and
@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, write_result
 
-COMMAND = ["static", "dataset", "--resolution", "coarse", "--plans", "300", "--seed", "1", "--workers", "1",
+COMMAND = ["static", "database", "--resolution", "coarse", "--plans", "300", "--seed", "1", "--workers", "1",
            "--out", "db.h5"]
 
 

@@ -4,7 +4,7 @@ The phantom's surfaces (:func:`toolkit.mesh.phantom.phantom_surfaces`), or with 
 surfaces of the head CT in ``tests/data/headsq`` (:func:`toolkit.mesh.ct.ct_surfaces`, its condyles
 as the proximal segments' pivots), are meshed by ``toolkit mesh`` (:func:`toolkit.mesh.mesh_face`)
 at ``--size`` and ``--order``, written with their bone surfaces, and
-``toolkit static dataset --mesh`` (:func:`toolkit.static.dataset.build_database`) runs ``--plans``
+``toolkit static database --mesh`` (:func:`toolkit.static.database.build_database`) runs ``--plans``
 sampled plans of each ``--modes`` on it, as a user would. Per simulation: status, reason, time,
 the release band it used and the cut nodes it freed (the retries a plan may need, stored with its
 own boundary types). Writes ``benchmarks/results/meshed_database.csv``; a rerun resumes on the mesh
@@ -53,7 +53,7 @@ def main(argv=None):
     from toolkit.common.training.database import read_failures
     from toolkit.mesh import mesh_face
     from toolkit.mesh.phantom import phantom_surfaces, write_surfaces
-    from toolkit.static.dataset import DatasetConfig, build_database
+    from toolkit.static.database import DatabaseConfig, build_database
 
     set_threads(1)
     face = "ct" if args.ct else args.resolution
@@ -80,7 +80,7 @@ def main(argv=None):
     rows = []
     for mode in args.modes:
         path = work / f"{mode}.h5"
-        config = DatasetConfig.for_mesh(work / "face.vtu", bones, condyles=condyles, plans=args.plans, mode=mode,
+        config = DatabaseConfig.for_mesh(work / "face.vtu", bones, condyles=condyles, plans=args.plans, mode=mode,
                                         seed=args.seed)
         if not args.report_only:
             build_database(path, config, workers=1)

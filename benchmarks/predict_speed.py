@@ -59,7 +59,7 @@ def prepare(resolution: str, folder: Path) -> Path:
     model = folder / "model"
     if not (model / "model.pt").exists():
         folder.mkdir(parents=True, exist_ok=True)
-        _run(_toolkit("static", "dataset", "--resolution", resolution, "--plans", "4", "--workers", "0",
+        _run(_toolkit("static", "database", "--resolution", resolution, "--plans", "4", "--workers", "0",
                       "--out", "db.h5"), folder)
         _run(_toolkit("static", "train", "--data", "db.h5", "--out", "model", "--epochs", "1"), folder)
     return model

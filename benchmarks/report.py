@@ -534,7 +534,7 @@ def _bad_inputs(data):
 
 def _interrupts(data):
     df = data["bad_inputs_interrupts"][0]
-    unit = df["command"].map(lambda c: "simulations" if c.endswith("dataset") else "epochs")
+    unit = df["command"].map(lambda c: "simulations" if c.endswith("database") else "epochs")
     out = df.assign(command=[f"`toolkit {c}`" for c in df["command"]], unit=unit,
                     before=[f"{b} of {f}" for b, f in zip(df["done_before"], df["full"])],
                     after=[f"{a} of {f}" for a, f in zip(df["done_after_rerun"], df["full"])],
@@ -1215,7 +1215,7 @@ BLOCKS = {b.name: b for b in (
           "holes, change the anatomy the sliding follows).",
           (SOURCES["segmentation_damage"], SOURCES["segmentation_damage_3mm"]), _segmentation_damage),
     Block("meshed_database", "Learning databases on a meshed face",
-          "`toolkit static dataset --mesh` on faces meshed by `toolkit mesh` (the paper phantom's surfaces, and "
+          "`toolkit static database --mesh` on faces meshed by `toolkit mesh` (the paper phantom's surfaces, and "
           "the head CT's from `toolkit ct`): sampled plans of each mode, with the simulation's retries (wider "
           "release band, freed cut nodes) stored per plan.",
           (SOURCES["meshed_database"], SOURCES["meshed_database_ct"], SOURCES["meshed_database_ct_tet10"]),
@@ -1248,7 +1248,7 @@ BLOCKS = {b.name: b for b in (
           "interrupt and after the rerun, whether any was lost, and whether the rerun completes the job.",
           (SOURCES["bad_inputs_interrupts"],), _interrupts),
     Block("impact_database", "The impact learning database, quasi-static",
-          "`toolkit impact dataset`'s defaults: the skull-held yielding scene on the paper face (tet10, deformable "
+          "`toolkit impact database`'s defaults: the skull-held yielding scene on the paper face (tet10, deformable "
           "ball, 0.36 s) at the impact paper's six velocities and the held-out 23, 35 and 47 mm/s, on the "
           "quasi-static integrator, one process; per velocity its load steps and time, and the whole build.",
           (SOURCES["impact_surrogate_yield_quasistatic"],), _impact_database),
@@ -1256,7 +1256,7 @@ BLOCKS = {b.name: b for b in (
           "Kernels the toolkit leans on, each in a fresh interpreter limited to that many threads "
           "(`toolkit.set_threads`), median seconds.", (SOURCES["threads"],), _threads),
     Block("interrupt_stress", "Ctrl-C at random times in a database run",
-          "`toolkit static dataset --resolution coarse --plans 300 --workers 1`, started afresh for each try in its "
+          "`toolkit static database --resolution coarse --plans 300 --workers 1`, started afresh for each try in its "
           "own process group and sent SIGINT (to the worker too) at a time drawn uniformly over its first seconds, "
           "when the worker may be anywhere in a simulation (its METIS ordering included); a try that has not ended "
           "a minute later counts as hung.", (SOURCES["interrupt_stress"],), _interrupt_stress),

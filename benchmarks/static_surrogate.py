@@ -60,11 +60,11 @@ SUBJECT_VARIANTS = {"explicit+extra": dict(variant="explicit", extra_channels=Tr
 
 
 def stage_database(args) -> dict:
-    from toolkit.static.dataset import DatasetConfig, build_database, read_samples
+    from toolkit.static.database import DatabaseConfig, build_database, read_samples
 
     out = {}
-    for name, cfg in (("one", DatasetConfig(args.resolution, 1, args.plans, args.mode, seed=args.seed)),
-                      ("subjects", DatasetConfig(args.resolution, args.subjects, args.subject_plans, args.mode,
+    for name, cfg in (("one", DatabaseConfig(args.resolution, 1, args.plans, args.mode, seed=args.seed)),
+                      ("subjects", DatabaseConfig(args.resolution, args.subjects, args.subject_plans, args.mode,
                                                  seed=args.seed))):
         if name == "subjects" and args.subjects < 2:
             continue
@@ -88,7 +88,7 @@ def _larger_budget(model, config) -> bool:
 
 
 def _pointnet(db_path, name, config, out: Path, subject: int = 0) -> dict:
-    from toolkit.static.dataset import StaticDatabase, subject_phantom
+    from toolkit.static.database import StaticDatabase, subject_phantom
     from toolkit.static.surrogate import Surrogate, evaluate_surrogate, train_surrogate, write_evaluation
 
     model = None
@@ -117,7 +117,7 @@ def _baselines(db, test_rows, train_rows) -> dict:
     ``test_rows`` (the influence matrix and sliding response of each sample's own face)."""
     from toolkit.common.analysis.metrics import nodal_errors
     from toolkit.static.baselines import LinearPlusPOD, PODRegression
-    from toolkit.static.dataset import PLAN_FEATURES, subject_phantom
+    from toolkit.static.database import PLAN_FEATURES, subject_phantom
     from toolkit.static.sliding_response import SlidingResponse
     from toolkit.static.surrogate import linear_prior
 
@@ -182,7 +182,7 @@ def _baselines(db, test_rows, train_rows) -> dict:
 
 def stage_models(args, paths: dict) -> pd.DataFrame:
     from toolkit.common.analysis.metrics import wilcoxon_paired
-    from toolkit.static.dataset import StaticDatabase
+    from toolkit.static.database import StaticDatabase
     from toolkit.static.features import FeatureSpec
     from toolkit.static.surrogate import SurrogateConfig
 

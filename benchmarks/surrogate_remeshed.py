@@ -50,11 +50,11 @@ def add_training_arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def stage_database(args) -> Path:
-    from toolkit.static.dataset import DatasetConfig, build_database
+    from toolkit.static.database import DatabaseConfig, build_database
 
     WORK.mkdir(parents=True, exist_ok=True)
     path = WORK / f"static_paper_subjects{args.suffix}.h5"
-    build_database(path, DatasetConfig("paper", args.subjects, args.plans, "sagittal", seed=args.seed),
+    build_database(path, DatabaseConfig("paper", args.subjects, args.plans, "sagittal", seed=args.seed),
                    workers=args.workers)
     return path
 
@@ -93,11 +93,11 @@ def face_database_path(args) -> Path:
 def stage_face_model(args, face_file: Path, bones: dict, phantom):
     """A database of ``--face-plans`` plans on the remeshed face itself (the phantom's condyles, which
     lie outside its tissue) and the default PointNet++ trained on it within ``--face-minutes``."""
-    from toolkit.static.dataset import DatasetConfig, build_database
+    from toolkit.static.database import DatabaseConfig, build_database
     from toolkit.static.surrogate import Surrogate, SurrogateConfig, train_surrogate
 
     db = face_database_path(args)
-    config = DatasetConfig.for_mesh(face_file, bones, phantom.condyles, plans=args.face_plans, mode="sagittal",
+    config = DatabaseConfig.for_mesh(face_file, bones, phantom.condyles, plans=args.face_plans, mode="sagittal",
                                     seed=args.seed)
     build_database(db, config, workers=args.workers)
     out = WORK / f"remeshed_face_model{args.suffix}"
@@ -111,7 +111,7 @@ def prior_only(model, mesh, segments, plan, increments: int, sliding: str) -> tu
     """The linear influence-matrix solution of ``mesh`` increment by increment, as the network's
     prior sees it: cumulative displacement ``(n, 3)`` mm, seconds, and the seconds the matrix took
     to build (once per mesh; the model's cache shares it with the network)."""
-    from toolkit.static.dataset import bone_increment
+    from toolkit.static.database import bone_increment
     from toolkit.static.simulate import boundary_conditions
 
     bc, _ = boundary_conditions(mesh, segments, sliding)

@@ -139,7 +139,7 @@ def beyond_ranges(factor_lo: float, factor_hi: float):
 
 def make_cases(args, subjects: list[int]) -> list[dict]:
     from toolkit.common.phantoms.phantom import face_hex
-    from toolkit.static.dataset import subject_phantom
+    from toolkit.static.database import subject_phantom
     from toolkit.static.plan import PHYSIOLOGICAL_RANGES, sample_plans
 
     cases = []
@@ -168,7 +168,7 @@ def make_cases(args, subjects: list[int]) -> list[dict]:
 
 def case_face(case):
     from toolkit.common.phantoms.phantom import face_hex
-    from toolkit.static.dataset import subject_phantom
+    from toolkit.static.database import subject_phantom
 
     return face_hex("paper", case["shape"]) if case["shape"] is not None else subject_phantom("paper", case["subject"])
 
@@ -302,7 +302,7 @@ def main(argv=None):
 
     from toolkit.common.runtime import set_threads
     from toolkit.common.training.conformal import calibrate, min_calibration_cases
-    from toolkit.static.dataset import StaticDatabase
+    from toolkit.static.database import StaticDatabase
     from toolkit.static.trust import (
         SCALE_FLOOR_MM,
         SCALES,

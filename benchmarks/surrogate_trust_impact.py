@@ -76,7 +76,7 @@ def velocities(kind: str, n: int, seed: int) -> list[float]:
 
 
 def database(path: Path, vs, held, sc):
-    from toolkit.impact.dataset import build_database, load_database
+    from toolkit.impact.database import build_database, load_database
 
     report = build_database(path, vs, held, sc, workers=0, progress=True)
     if report.failed:
@@ -182,7 +182,7 @@ def main(args, argv=None):
     aim_scene = sc.with_ball(target_offset=(0.0, 0.0, OTHER_AIM_MM))
     aim_db = database(WORK / f"trust_impact_aim_{tag}.h5", case_v["aim"], [], aim_scene)
     from toolkit.common.training.database import read_failures
-    from toolkit.impact.dataset import velocity_key
+    from toolkit.impact.database import velocity_key
 
     rows, warmed = [], {}
     for kind, vs in case_v.items():

@@ -198,13 +198,13 @@ def test_static_simulate_from_a_mesh_file_and_plan(tmp_path):
 
 
 @pytest.mark.long  # a Dask cluster's start-up / a factorization of a 3D grid: ~8 s each
-def test_static_dataset_on_a_local_dask_cluster(tmp_path, capsys):
+def test_static_database_on_a_local_dask_cluster(tmp_path, capsys):
     """`--dask local` runs the simulations on a LocalCluster and fills the same database index
     as in-process generation."""
     pytest.importorskip("distributed")
-    from toolkit.static.dataset import read_samples
+    from toolkit.static.database import read_samples
 
-    common = ["static", "dataset", "--resolution", "coarse", "--plans", "2"]
+    common = ["static", "database", "--resolution", "coarse", "--plans", "2"]
     assert main([*common, "--workers", "1", "--dask", "local", "--out", str(tmp_path / "dask.h5")]) == 0
     assert main([*common, "--workers", "0", "--out", str(tmp_path / "local.h5")]) == 0
     a, b = read_samples(tmp_path / "dask.h5"), read_samples(tmp_path / "local.h5")
@@ -215,9 +215,9 @@ def test_static_dataset_on_a_local_dask_cluster(tmp_path, capsys):
 OUT_COMMANDS = [
     ["static", "simulate"], ["static", "train", "--data", "db.h5"], ["static", "evaluate", "--model", "m", "--data",
                                                                         "db.h5"],
-    ["static", "predict", "--model", "m"], ["static", "dataset", "--plans", "2"], ["impact", "simulate"],
+    ["static", "predict", "--model", "m"], ["static", "database", "--plans", "2"], ["impact", "simulate"],
     ["impact", "train", "--data", "db.h5"], ["impact", "evaluate", "--model", "m", "--data", "db.h5"],
-    ["impact", "predict", "--model", "m", "--velocity", "30"], ["impact", "dataset"], ["demo"],
+    ["impact", "predict", "--model", "m", "--velocity", "30"], ["impact", "database"], ["demo"],
     ["phantom", "face-tet4"],
 ]
 
@@ -235,11 +235,11 @@ def test_an_unwritable_output_is_refused_before_any_computation(command, tmp_pat
 
     for module, name in [("static.simulate", "simulate"), ("impact.simulate", "simulate"),
                          ("static.surrogate", "train_surrogate"), ("impact.surrogate", "train_surrogate"),
-                         ("static.dataset", "build_database"), ("impact.dataset", "build_database")]:
+                         ("static.database", "build_database"), ("impact.database", "build_database")]:
         monkeypatch.setattr(importlib.import_module(f"toolkit.{module}"), name, ran)
     existing = tmp_path / "face.inp"
     existing.write_text("results of an earlier run")
-    writes_a_file = command[0] == "phantom" or "dataset" in command
+    writes_a_file = command[0] == "phantom" or "database" in command
     for out in ["/proc/x", str(tmp_path if writes_a_file else existing)]:
         assert main([*command, "--out", out]) == 2, out
         err = capsys.readouterr().err
@@ -430,14 +430,14 @@ def test_counts_and_rates_are_checked_as_the_options_are_read(argv, expected, ca
 
 
 def test_an_empty_velocity_list_is_refused_not_replaced_by_the_default(monkeypatch, capsys):
-    """``impact dataset --velocities ''`` is refused: it does not start the default nine runs."""
+    """``impact database --velocities ''`` is refused: it does not start the default nine runs."""
     import importlib
 
     def ran(*args, **kwargs):
         raise AssertionError("the database build ran")
 
-    monkeypatch.setattr(importlib.import_module("toolkit.impact.dataset"), "build_database", ran)
-    assert main(["impact", "dataset", "--velocities", "", "--out", "unused.h5"]) == 2
+    monkeypatch.setattr(importlib.import_module("toolkit.impact.database"), "build_database", ran)
+    assert main(["impact", "database", "--velocities", "", "--out", "unused.h5"]) == 2
     assert "--velocities gives no velocity" in capsys.readouterr().err
 
 
@@ -486,10 +486,10 @@ def test_a_write_that_fails_midway_leaves_no_result(tmp_path, monkeypatch, capsy
 
 
 @pytest.mark.parametrize("argv, option", [
-    (["static", "dataset", "--plans", "0", "--out", "db.h5"], "--plans"),
+    (["static", "database", "--plans", "0", "--out", "db.h5"], "--plans"),
     (["impact", "simulate", "--velocity", "-30", "--out", "o"], "--velocity"),
     (["phantom", "face-hex", "--mouth-open", "-5", "--out", "f.vtu"], "--mouth-open"),
-    (["impact", "dataset", "--ball", "rigid", "--velocities", "30,-40", "--out", "d.h5"], "--velocities"),
+    (["impact", "database", "--ball", "rigid", "--velocities", "30,-40", "--out", "d.h5"], "--velocities"),
 ])
 def test_a_library_error_names_the_option_the_user_typed(tmp_path, monkeypatch, capsys, argv, option):
     """The library names its parameter (``plans``, ``ball velocity``, ``mouth_open``); the command
@@ -501,8 +501,8 @@ def test_a_library_error_names_the_option_the_user_typed(tmp_path, monkeypatch, 
     assert "--ball" not in err  # typed, but not what the error is about
 
 
-@pytest.mark.parametrize("argv", [["static", "dataset", "--resolution", "coarse", "--plans", "2"],
-                                  ["impact", "dataset", "--resolution", "coarse", "--ball", "rigid"]])
+@pytest.mark.parametrize("argv", [["static", "database", "--resolution", "coarse", "--plans", "2"],
+                                  ["impact", "database", "--resolution", "coarse", "--ball", "rigid"]])
 def test_a_bad_worker_count_is_refused_before_the_database_file_is_made(tmp_path, capsys, argv):
     out = tmp_path / "d.h5"
     assert main([*argv, "--workers", "-1", "--out", str(out)]) == 2

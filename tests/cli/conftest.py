@@ -12,14 +12,14 @@ def models(tmp_path_factory):
     from dataclasses import replace
 
     from toolkit.impact import yielding_scene
-    from toolkit.impact.dataset import build_database as build_impact_database
+    from toolkit.impact.database import build_database as build_impact_database
     from toolkit.impact.surrogate import CONFIGS
     from toolkit.impact.surrogate import train_surrogate as train_impact
-    from toolkit.static.dataset import DatasetConfig, build_database
+    from toolkit.static.database import DatabaseConfig, build_database
     from toolkit.static.surrogate import SurrogateConfig, train_surrogate
 
     root = tmp_path_factory.mktemp("interrupts")
-    build_database(root / "static.h5", DatasetConfig(resolution="coarse", plans=3), workers=0, progress=False)
+    build_database(root / "static.h5", DatabaseConfig(resolution="coarse", plans=3), workers=0, progress=False)
     train_surrogate(root / "static.h5", SurrogateConfig(network="tiny", coarse_radii=True, epochs=1),
                     out=root / "smodel", progress=False)
     scene = yielding_scene().with_face(resolution="coarse").with_ball(rigid=True)

@@ -66,7 +66,7 @@ def test_impact_evaluate_checks_its_figure_options_before_writing(option, value,
 
 
 def test_impact_evaluation_writes_nothing_for_a_node_that_is_not_a_test_item(models, tmp_path):
-    from toolkit.impact.dataset import load_database
+    from toolkit.impact.database import load_database
     from toolkit.impact.evaluation import evaluate_surrogate, write_evaluation
     from toolkit.impact.surrogate import Surrogate
 

@@ -78,7 +78,7 @@ def test_a_database_run_on_worker_processes(tmp_path):
     simulations finished by then and says it is not complete."""
     from toolkit.common.training.database import database_status
 
-    args = ["static", "dataset", "--resolution", "coarse", "--plans", "8", "--workers", "1", "--out", "db.h5"]
+    args = ["static", "database", "--resolution", "coarse", "--plans", "8", "--workers", "1", "--out", "db.h5"]
     assert_interrupted(*interrupted(args, tmp_path, AFTER_FIRST_JOB))
     status = database_status(tmp_path / "db.h5")
     assert status.records >= 1 and not status.complete and status.pending == 0

@@ -157,15 +157,15 @@ def test_an_impact_scene_converts_and_checks_its_mesh(tmp_path):
 
 
 def test_a_static_database_on_a_mesh_converts_and_checks_it(tmp_path):
-    """``DatasetConfig.for_mesh(..., axes=)``: the subject is refused in the wrong axes and read
+    """``DatabaseConfig.for_mesh(..., axes=)``: the subject is refused in the wrong axes and read
     back in the toolkit's with them; the configuration of a face in the toolkit's axes has no
     ``axes`` key (as databases made without one)."""
-    from toolkit.static.dataset import DatasetConfig, database_subject
+    from toolkit.static.database import DatabaseConfig, database_subject
 
     ph = face_hex("coarse")
     io.write(tmp_path / "face_lps.vtu", mesh_to_toolkit(ph.mesh, "LPS"))
     with pytest.raises(AxesError, match="--axes LPS"):
-        database_subject(DatasetConfig.for_mesh(tmp_path / "face_lps.vtu", plans=1), 0)
-    config = DatasetConfig.for_mesh(tmp_path / "face_lps.vtu", axes="LPS", plans=1)
+        database_subject(DatabaseConfig.for_mesh(tmp_path / "face_lps.vtu", plans=1), 0)
+    config = DatabaseConfig.for_mesh(tmp_path / "face_lps.vtu", axes="LPS", plans=1)
     assert np.array_equal(database_subject(config, 0).mesh.points, ph.mesh.points)
-    assert config.to_dict()["axes"] == "LPS" and "axes" not in DatasetConfig().to_dict()
+    assert config.to_dict()["axes"] == "LPS" and "axes" not in DatabaseConfig().to_dict()

@@ -11,7 +11,7 @@ from toolkit.common import papers
 from toolkit.common.fem.materials import LinearElastic, NeoHookean, TransverselyIsotropic
 from toolkit.common.phantoms.phantom import ball_density
 from toolkit.impact import plasticity, scene
-from toolkit.impact.dataset import PAPER_VELOCITIES
+from toolkit.impact.database import PAPER_VELOCITIES
 from toolkit.static.plan import PHYSIOLOGICAL_RANGES
 
 # the impact paper's yield tables (MPa, plastic strain)

@@ -1,4 +1,4 @@
-"""A tiny impact learning database shared by the dataset and surrogate tests: the skull-held
+"""A tiny impact learning database shared by the database and surrogate tests: the skull-held
 yielding scene on the coarse face with the fastest fidelity (tet4, rigid ball, mass scaling 100),
 12 frames over 0.36 s, the impact paper's six velocities and one held-out velocity (35 mm/s); built once
 per session in this process (~5 s)."""
@@ -20,7 +20,7 @@ def tiny_scene():
 
 @pytest.fixture(scope="session")
 def tiny_db_path(tmp_path_factory):
-    from toolkit.impact.dataset import build_database
+    from toolkit.impact.database import build_database
 
     path = tmp_path_factory.mktemp("impact-db") / "tiny.h5"
     report = build_database(path, TINY_VELOCITIES, TINY_HELD_OUT, tiny_scene(), workers=0, progress=False)
@@ -30,6 +30,6 @@ def tiny_db_path(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def tiny_db(tiny_db_path):
-    from toolkit.impact.dataset import load_database
+    from toolkit.impact.database import load_database
 
     return load_database(tiny_db_path)

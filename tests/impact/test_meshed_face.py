@@ -90,9 +90,9 @@ def test_the_order_check_holds_in_python(meshed):
         face_mesh(Scene().with_face(mesh=str(meshed)))
 
 
-def test_dataset_takes_the_mesh_and_refuses_a_missed_aim_before_the_database(meshed, tmp_path, capsys):
+def test_database_takes_the_mesh_and_refuses_a_missed_aim_before_the_database(meshed, tmp_path, capsys):
     db = tmp_path / "db.h5"
-    argv = ["impact", "dataset", "--mesh", str(meshed), "--ball", "rigid", "--velocities", "20", "--held-out", "",
+    argv = ["impact", "database", "--mesh", str(meshed), "--ball", "rigid", "--velocities", "20", "--held-out", "",
             "--duration", "0.05", *EXPLICIT, "--workers", "0", "--out", str(db)]
     assert main(argv + ["--target", "0,0,1000"]) == 2
     assert "misses the face" in capsys.readouterr().err and not db.exists()
@@ -108,8 +108,8 @@ def test_an_answer_within_a_tolerance_on_a_meshed_face(meshed, tmp_path, capsys)
     scene = ["--mesh", str(meshed), "--ball", "rigid", "--duration", "0.05", *EXPLICIT,
              "--workers", "0"]
     train, cal, model = tmp_path / "train.h5", tmp_path / "cal.h5", tmp_path / "model"
-    assert main(["impact", "dataset", *scene, "--velocities", "20,30,40", "--held-out", "", "--out", str(train)]) == 0
-    assert main(["impact", "dataset", *scene, "--velocities", "21,23,25,27,29,32,34,36,38", "--held-out", "",
+    assert main(["impact", "database", *scene, "--velocities", "20,30,40", "--held-out", "", "--out", str(train)]) == 0
+    assert main(["impact", "database", *scene, "--velocities", "21,23,25,27,29,32,34,36,38", "--held-out", "",
                  "--out", str(cal)]) == 0
     assert main(["impact", "train", "--data", str(train), "--out", str(model), "--config", "baseline",
                  "--epochs", "3"]) == 0

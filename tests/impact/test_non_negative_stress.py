@@ -13,7 +13,7 @@ torch = pytest.importorskip("torch")
 
 from toolkit.common.errors import AnswerError  # noqa: E402
 from toolkit.common.training import MinMaxScaler, ModelBundle, torch_seeded  # noqa: E402
-from toolkit.impact.dataset import SceneInputs  # noqa: E402
+from toolkit.impact.database import SceneInputs  # noqa: E402
 from toolkit.impact.networks import build_network  # noqa: E402
 from toolkit.impact.surrogate import (  # noqa: E402
     CONFIGS,

@@ -259,7 +259,7 @@ def test_a_ball_driven_through_the_skull_is_refused_before_any_step(tmp_path, mo
     from dataclasses import replace
 
     from toolkit.impact import SceneError, yielding_scene
-    from toolkit.impact.dataset import build_database
+    from toolkit.impact.database import build_database
     from toolkit.impact.simulate import check_travel
 
     sim = importlib.import_module("toolkit.impact.simulate")

@@ -15,7 +15,7 @@ from toolkit.cli import main  # noqa: E402
 from toolkit.common.config_diff import IncompatibleError  # noqa: E402
 from toolkit.common.meshes import io  # noqa: E402
 from toolkit.impact import Scene  # noqa: E402
-from toolkit.impact.dataset import build_database, load_database  # noqa: E402
+from toolkit.impact.database import build_database, load_database  # noqa: E402
 from toolkit.impact.evaluation import evaluate_surrogate, field_metrics  # noqa: E402
 from toolkit.impact.surrogate import CONFIGS, Surrogate, split_items, train_surrogate  # noqa: E402
 

@@ -14,7 +14,7 @@ from toolkit.cli import main  # noqa: E402
 from toolkit.common.meshes import io  # noqa: E402
 from toolkit.common.training.conformal import conformal_rank  # noqa: E402
 from toolkit.impact import trust  # noqa: E402
-from toolkit.impact.dataset import build_database, load_database  # noqa: E402
+from toolkit.impact.database import build_database, load_database  # noqa: E402
 from toolkit.impact.simulate import simulate  # noqa: E402
 from toolkit.impact.surrogate import CONFIGS, Surrogate, train_surrogate  # noqa: E402
 
@@ -83,7 +83,7 @@ def test_too_few_unseen_velocities_are_refused(model_dir, tiny_db_path):
     """The training database holds one velocity the model did not see: a 90 % bound needs 9,
     and the error says how to build a calibration database."""
     model = Surrogate.load(model_dir)
-    with pytest.raises(ValueError, match=r"holds 1 simulation.*at least 9.*toolkit impact dataset --velocities"):
+    with pytest.raises(ValueError, match=r"holds 1 simulation.*at least 9.*toolkit impact database --velocities"):
         trust.calibrate_surrogate(model, tiny_db_path, progress=False)
     with pytest.raises(ValueError, match="scale"):
         trust.calibrate_surrogate(model, tiny_db_path, scale="ensemble", progress=False)

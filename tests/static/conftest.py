@@ -2,7 +2,7 @@
 
 import pytest
 
-from toolkit.static.dataset import DatasetConfig, build_database
+from toolkit.static.database import DatabaseConfig, build_database
 from toolkit.static.features import FeatureSpec
 from toolkit.static.surrogate import SurrogateConfig, train_surrogate
 
@@ -11,7 +11,7 @@ from toolkit.static.surrogate import SurrogateConfig, train_surrogate
 def db6(tmp_path_factory):
     """6 sagittal plans on the coarse face: 18 samples (~2 s)."""
     path = tmp_path_factory.mktemp("db6") / "db6.h5"
-    build_database(path, DatasetConfig(resolution="coarse", plans=6), workers=0, progress=False)
+    build_database(path, DatabaseConfig(resolution="coarse", plans=6), workers=0, progress=False)
     return path
 
 
@@ -27,7 +27,7 @@ def quick_model(db6, tmp_path_factory):
 def db100(tmp_path_factory):
     """34 sagittal plans on the coarse face: 102 samples (~15 s)."""
     path = tmp_path_factory.mktemp("surrogate") / "db.h5"
-    build_database(path, DatasetConfig(resolution="coarse", plans=34), workers=0, progress=False)
+    build_database(path, DatabaseConfig(resolution="coarse", plans=34), workers=0, progress=False)
     return path
 
 

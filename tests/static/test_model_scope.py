@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from toolkit.common.config_diff import IncompatibleError
-from toolkit.static.dataset import DatasetConfig, StaticDatabase, build_database, subject_phantom
+from toolkit.static.database import DatabaseConfig, StaticDatabase, build_database, subject_phantom
 from toolkit.static.plan import PHYSIOLOGICAL_RANGES, PlanRangeWarning, SurgicalPlan, default_plan, sample_plans
 from toolkit.static.surrogate import evaluate_surrogate
 
 
 def _database(tmp_path_factory, name, **kw):
     path = tmp_path_factory.mktemp("scope") / f"{name}.h5"
-    build_database(path, DatasetConfig(resolution="coarse", **kw), workers=0, progress=False)
+    build_database(path, DatabaseConfig(resolution="coarse", **kw), workers=0, progress=False)
     return path
 
 

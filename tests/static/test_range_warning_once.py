@@ -4,7 +4,7 @@ the toolkit's own lines."""
 
 import warnings
 
-from toolkit.static.dataset import subject_phantom
+from toolkit.static.database import subject_phantom
 from toolkit.static.plan import PlanRangeWarning, SurgicalPlan
 from toolkit.static.simulate import simulate
 

@@ -9,7 +9,7 @@ from toolkit.common.phantoms.phantom import face_hex
 from toolkit.static import default_plan
 from toolkit.static.baselines import InfluenceMatrix
 from toolkit.static.constraints import Constraints
-from toolkit.static.dataset import bone_increment
+from toolkit.static.database import bone_increment
 from toolkit.static.plan import SurgicalPlan
 from toolkit.static.problem import StaticProblem, solve_with_lip_contact
 from toolkit.static.simulate import material_assignment

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from toolkit.common.config_diff import IncompatibleError
-from toolkit.static.dataset import DatasetConfig, StaticDatabase, build_database
+from toolkit.static.database import DatabaseConfig, StaticDatabase, build_database
 from toolkit.static.features import FeatureSpec
 from toolkit.static.surrogate import Surrogate, SurrogateConfig, evaluate_surrogate, train_surrogate
 
@@ -143,7 +143,7 @@ def test_a_model_refuses_what_it_was_not_built_for(db6, quick_model, tmp_path):
     that name the difference."""
     hard_model = quick_model
     paper = tmp_path / "paper.h5"
-    build_database(paper, DatasetConfig(resolution="paper", plans=1), workers=0, progress=False)
+    build_database(paper, DatabaseConfig(resolution="paper", plans=1), workers=0, progress=False)
     with pytest.raises(IncompatibleError, match="resolution: stored 'coarse', asked 'paper'.*--resolution coarse"):
         evaluate_surrogate(hard_model, paper)
     from toolkit.common import face_hex
@@ -186,7 +186,7 @@ def _load_as(model, tmp_path, kind):
     return ModelBundle.load(out, kind=kind)
 
 
-def test_cli_dataset_train_evaluate_predict(tmp_path):
+def test_cli_database_train_evaluate_predict(tmp_path):
     """The four static surrogate commands as a new user runs them: a 3-plan coarse database,
     one epoch, metrics.json with the documented keys, and a prediction written like
     `toolkit static simulate` (reference mesh with displacement, post-operative face,
@@ -195,7 +195,7 @@ def test_cli_dataset_train_evaluate_predict(tmp_path):
     from toolkit.common.meshes import io
 
     db, model, ev, pred = tmp_path / "db.h5", tmp_path / "model", tmp_path / "eval", tmp_path / "pred"
-    assert main(["static", "dataset", "--resolution", "coarse", "--plans", "3", "--workers", "0",
+    assert main(["static", "database", "--resolution", "coarse", "--plans", "3", "--workers", "0",
                  "--out", str(db)]) == 0
     assert main(["static", "train", "--data", str(db), "--out", str(model), "--epochs", "2", "--network", "tiny",
                  "--lr-schedule", "cosine", "--variant", "explicit", "--no-linear-prior"]) == 0

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from toolkit.static import load_case
-from toolkit.static.dataset import StaticDatabase, plan_features
+from toolkit.static.database import StaticDatabase, plan_features
 from toolkit.static.plan import SurgicalPlan
 from toolkit.static.simulate import simulate
 from toolkit.static.sliding_response import SlidingResponse

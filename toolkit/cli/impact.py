@@ -101,7 +101,7 @@ def simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
+def add_database_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--velocities", type=floats, default=None,
                         help="training velocities, mm/s, comma-separated (default: the impact paper's "
                              "20,26,32,38,44,50)")
@@ -117,11 +117,11 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
     add_database_run(parser, "velocities")
 
 
-def dataset(args: argparse.Namespace) -> int:
+def database(args: argparse.Namespace) -> int:
     from toolkit.common.outputs import check_output_file
     from toolkit.common.papers import BALL_VELOCITIES
     from toolkit.common.training.database import read_index
-    from toolkit.impact.dataset import build_database
+    from toolkit.impact.database import build_database
     from toolkit.impact.scene import yielding_scene
 
     check_output_file(args.out, what="database file")
@@ -145,7 +145,7 @@ def dataset(args: argparse.Namespace) -> int:
 
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", required=True, type=Path, help="database (.h5) from `toolkit impact dataset`")
+    parser.add_argument("--data", required=True, type=Path, help="database (.h5) from `toolkit impact database`")
     parser.add_argument("--out", required=True, type=Path, help="model directory")
     parser.add_argument("--config", default="strong", choices=CONFIG_NAMES,
                         help="a stronger LSTM (strong, the best measured), the impact paper's per-output LSTM "
@@ -201,7 +201,7 @@ def evaluate(args: argparse.Namespace) -> int:
 
     check_output_dir(args.out)
     torch_threads(args)
-    from toolkit.impact.dataset import load_database
+    from toolkit.impact.database import load_database
     from toolkit.impact.evaluation import check_figure_choices, evaluate_surrogate, write_evaluation
     from toolkit.impact.surrogate import Surrogate
 
@@ -410,12 +410,12 @@ COMMANDS = {
         add_arguments=add_simulate_arguments, run=simulate,
         interrupted="{out} holds nothing from this run, or summary.json with \"status\": \"interrupted\" and the "
                     "frames finished so far (readable); rerun the same command to run it whole"),
-    "dataset": Command(
+    "database": Command(
         help="build the learning database (one simulation per velocity)",
         description="Simulate the scene at every training and held-out velocity and store the per-node "
                     "displacement and von Mises time series in one resumable HDF5 file (rerun to resume; failures "
                     "are recorded). Default scene: the face held by the skull, 0.36 s (yielding_scene).",
-        add_arguments=add_dataset_arguments, run=dataset, interrupted=SIMULATIONS_KEPT),
+        add_arguments=add_database_arguments, run=database, interrupted=SIMULATIONS_KEPT),
     "train": Command(
         help="train a surrogate on a database",
         description="Train the impact paper's LSTM, the stronger LSTM or the non-recurrent baseline; writes "

@@ -111,7 +111,7 @@ def condyles(text: str):
     return two_points(text, "--condyles", "52.9,-18,21.6:-52.9,-18,21.6")
 
 
-def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
+def add_database_arguments(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--resolution", default="coarse", choices=RESOLUTIONS, help="phantom resolution")
     source.add_argument("--mesh", type=Path,
@@ -141,9 +141,9 @@ def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
     add_database_run(parser, "simulations")
 
 
-def dataset(args: argparse.Namespace) -> int:
+def database(args: argparse.Namespace) -> int:
     from toolkit.common.outputs import check_output_file
-    from toolkit.static.dataset import DatasetConfig, build_database
+    from toolkit.static.database import DatabaseConfig, build_database
 
     check_output_file(args.out, what="database file")
     settings = dict(subjects=args.subjects, plans=args.plans, mode=args.mode, increments=args.increments,
@@ -154,11 +154,11 @@ def dataset(args: argparse.Namespace) -> int:
             given = "--bone" if args.bone else "--condyles" if args.condyles else f"--axes {args.axes}"
             raise ValueError(f"{given} applies to a meshed face; give --mesh FACE.vtu, or leave it out for the "
                              "phantoms")
-        config = DatasetConfig(resolution=args.resolution, **settings)
+        config = DatabaseConfig(resolution=args.resolution, **settings)
     else:
-        from toolkit.static.dataset import database_subject
+        from toolkit.static.database import database_subject
 
-        config = DatasetConfig.for_mesh(args.mesh, bones(args.bone), args.condyles, args.units, args.axes, **settings)
+        config = DatabaseConfig.for_mesh(args.mesh, bones(args.bone), args.condyles, args.units, args.axes, **settings)
         database_subject(config, 0)  # reads the mesh and places the plans: its errors before any output
     with dask_client(args.dask, args.workers) as client:
         report = build_database(args.out, config, executor=client, workers=args.workers, retry_failed=args.retry_failed)
@@ -170,7 +170,7 @@ def dataset(args: argparse.Namespace) -> int:
 
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", required=True, type=Path, help="database (.h5) from `toolkit static dataset`")
+    parser.add_argument("--data", required=True, type=Path, help="database (.h5) from `toolkit static database`")
     parser.add_argument("--out", required=True, type=Path, help="model directory")
     parser.add_argument("--variant", default="hard", choices=["explicit", "implicit", "hard"],
                         help="boundary types as inputs with exact boundary values (hard, the most accurate measured), "
@@ -226,7 +226,7 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 def evaluate(args: argparse.Namespace) -> int:
     from toolkit.common.outputs import check_output_dir
-    from toolkit.static.dataset import subject_mesh
+    from toolkit.static.database import subject_mesh
     from toolkit.static.surrogate import Surrogate, evaluate_surrogate, write_evaluation
 
     check_output_dir(args.out)
@@ -408,7 +408,7 @@ def _coarse_radii(path) -> bool:
     config = json.loads(Database.open_attrs(Path(path)).get("config", "{}"))
     if config.get("mesh") is None:
         return config.get("resolution", "paper") == "coarse"
-    from toolkit.static.dataset import subject_mesh
+    from toolkit.static.database import subject_mesh
 
     return subject_mesh(path, 0).n_points < COARSE_NODES
 
@@ -421,12 +421,12 @@ COMMANDS = {
                     "and preview.png.",
         add_arguments=add_simulate_arguments, run=simulate,
         interrupted=NOTHING_WRITTEN + " (the files are written after the last increment)"),
-    "dataset": Command(
-        help="generate the surrogate's learning database",
+    "database": Command(
+        help="build the surrogate's learning database",
         description="Simulate sampled plans on phantom subjects or on a meshed face (--mesh); every increment is "
                     "a learning sample (the PointNet++ paper). Resumable: a rerun skips finished simulations; "
                     "failures are recorded with their reason. Ctrl-C loses no finished simulation.",
-        add_arguments=add_dataset_arguments, run=dataset, interrupted=SIMULATIONS_KEPT),
+        add_arguments=add_database_arguments, run=database, interrupted=SIMULATIONS_KEPT),
     "train": Command(
         help="train the PointNet++ surrogate on a database",
         description="Train PointNet++ (the PointNet++ paper) on a static database; writes model.pt and config.json "

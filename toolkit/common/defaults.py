@@ -2,7 +2,7 @@
 Python API alike.
 
 :func:`toolkit.static.load_case`, :func:`toolkit.static.simulate`,
-:class:`toolkit.static.dataset.DatasetConfig` and ``toolkit static simulate|dataset`` take
+:class:`toolkit.static.database.DatabaseConfig` and ``toolkit static simulate|database`` take
 :data:`STATIC_SIMULATION` when an option is neither given nor chosen by a tolerance;
 :func:`toolkit.mesh.mesh_face` and ``toolkit mesh`` take :data:`MESH`. The impact workflow's defaults are
 its dataclasses' (:class:`toolkit.impact.scene.Fidelity`, :func:`toolkit.impact.default_scene`),

@@ -156,7 +156,7 @@ def interrupt_after(unit: str, count: int | None, *, group: bool = False) -> Non
     Parameters
     ----------
     unit : ``"job"`` (a job :func:`~toolkit.common.training.database.run_jobs` has stored, its record or its
-        failure: a simulation of ``static dataset`` or ``impact dataset``) or ``"frame"`` (a frame
+        failure: a simulation of ``static database`` or ``impact database``) or ``"frame"`` (a frame
         :func:`toolkit.impact.simulate` has finished, and written when it has an output folder) or
         ``"increment"`` (an increment of a static simulation has reached equilibrium)
     count : units counted from this call, >= 1; ``None`` removes the trigger

@@ -10,7 +10,7 @@ an MLP baseline), ``evaluate_surrogate`` (an ``Evaluation``), ``predict_scene``,
 :mod:`toolkit.static`.
 """
 
-from toolkit.impact.dataset import ImpactDatabase, build_database, load_database
+from toolkit.impact.database import ImpactDatabase, build_database, load_database
 from toolkit.impact.evaluation import Evaluation, evaluate_surrogate
 from toolkit.impact.explicit import InstabilityError
 from toolkit.impact.quasi_static import ConvergenceError

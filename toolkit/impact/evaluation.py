@@ -24,7 +24,7 @@ import numpy as np
 from toolkit.common.analysis import metrics
 from toolkit.common.meshes.io import atomic_path
 from toolkit.common.training.evaluation import Evaluation
-from toolkit.impact.dataset import ImpactDatabase, load_database
+from toolkit.impact.database import ImpactDatabase, load_database
 from toolkit.impact.surrogate import Surrogate, item_features, item_targets, split_items
 
 __all__ = ["Evaluation", "evaluate_surrogate", "plot_time_series", "plot_fields", "write_evaluation",

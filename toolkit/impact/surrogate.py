@@ -62,7 +62,7 @@ from toolkit.common.training import (
     train,
 )
 from toolkit.impact.checks import answer_checks
-from toolkit.impact.dataset import ImpactDatabase, SceneInputs, load_database
+from toolkit.impact.database import ImpactDatabase, SceneInputs, load_database
 from toolkit.impact.scene import Scene
 from toolkit.impact.simulate import ball_start, face_mesh, write_preview, write_summary
 
@@ -188,7 +188,7 @@ def resolve_config(config: SurrogateConfig | str) -> SurrogateConfig:
 def item_features(inputs, velocities, features: str = "paper") -> np.ndarray:
     """Inputs of every item, ``(S * N, F, k)`` float32 in ``FEATURES[features]`` order (sim-major).
 
-    inputs : :class:`~toolkit.impact.dataset.SceneInputs` (points (N, 3) mm, fixed (N,), times (F,) s,
+    inputs : :class:`~toolkit.impact.database.SceneInputs` (points (N, 3) mm, fixed (N,), times (F,) s,
         the ball's path); velocities : (S,) mm/s
     """
     names = FEATURES[features]
@@ -235,7 +235,7 @@ def split_items(db: ImpactDatabase, split: str, seed: int) -> dict[str, np.ndarr
     else:
         if not db.held_out.any():
             raise ValueError(f"{db.path} has no held-out velocity; build it with held-out velocities "
-                             "(toolkit impact dataset --held-out ...) or use the random split")
+                             "(toolkit impact database --held-out ...) or use the random split")
         pool, test = training, np.flatnonzero(db.held_out[sim_of_item])
     tr, va = split_groups(pool, (1.0 - VALIDATION_FRACTION, VALIDATION_FRACTION), seed + 1)
     return {"train": pool[tr], "val": pool[va], "test": test}
@@ -397,7 +397,7 @@ class Surrogate:
 
     def predict(self, velocity: float, inputs):
         """Whole-face prediction at ``velocity`` mm/s for the scene's ``inputs``
-        (:class:`~toolkit.impact.dataset.SceneInputs`): ``(displacement (F, N, 3) mm,
+        (:class:`~toolkit.impact.database.SceneInputs`): ``(displacement (F, N, 3) mm,
         von_mises (F, N) MPa, >= 0)``; warns :class:`ExtrapolationWarning` outside the trained range."""
         if self.extrapolation(velocity)["outside"] is True:
             lo, hi = self.velocity_range

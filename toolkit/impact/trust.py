@@ -24,7 +24,7 @@ inputs whatever the estimate says.
 
 The FE that answers is the scene's quasi-static path (``Fidelity.integrator = "quasi-static"``),
 the cheaper of the two integrators: for a database built quasi-static
-(``toolkit impact dataset --integrator quasi-static``) it is the FE the model learned, and for a
+(``toolkit impact database --integrator quasi-static``) it is the FE the model learned, and for a
 database of explicit runs it differs from it by the integrators' difference, which
 ``benchmarks/impact_ladder.py`` measures.
 
@@ -53,7 +53,7 @@ from toolkit.common.training.conformal import (
 )
 from toolkit.common.training.decision import check_tolerance, decide
 from toolkit.impact.checks import answer_checks
-from toolkit.impact.dataset import ImpactDatabase, SceneInputs, _scene_config, load_database
+from toolkit.impact.database import ImpactDatabase, SceneInputs, _scene_config, load_database
 from toolkit.impact.scene import Scene
 from toolkit.impact.simulate import face_mesh, simulate, write_summary
 from toolkit.impact.surrogate import ExtrapolationWarning, Prediction
@@ -199,7 +199,7 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
     if cases_i.size < need:
         raise ValueError(f"{db.path} holds {cases_i.size} simulation(s) at velocities the model did not train on; a "
                          f"bound at {coverage:.0%} needs at least {need}: build a calibration database at other "
-                         "velocities of the same scene (`toolkit impact dataset --velocities ... --out CAL.h5`, then "
+                         "velocities of the same scene (`toolkit impact database --velocities ... --out CAL.h5`, then "
                          "--data CAL.h5 --train-data TRAIN.h5) or lower --coverage")
     fields = None
     if scale == "interpolation":

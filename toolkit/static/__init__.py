@@ -3,7 +3,7 @@
 ``simulate(phantom, plan)`` runs the increments with mucosa and lip sliding; the pieces
 (plan, boundary types, assembly, constraints, solvers, Newton/contact) are importable
 for finer control. The surrogate side, named as in :mod:`toolkit.impact`: ``build_database``
-(``DatasetConfig``) and ``load_database``, ``train_surrogate`` (PointNet++, ``SurrogateConfig``),
+(``DatabaseConfig``) and ``load_database``, ``train_surrogate`` (PointNet++, ``SurrogateConfig``),
 ``Surrogate.load``, ``evaluate_surrogate`` (an ``Evaluation``), and the answer within a tolerance:
 ``calibrate_surrogate``, ``Calibration``, ``answer`` (the surrogate's or the FE's, a
 ``TrustedAnswer``). Imports nothing from :mod:`toolkit.impact`.
@@ -14,7 +14,7 @@ from toolkit.common.training.evaluation import Evaluation
 from toolkit.static.boundary import BoundaryConditions, BoundaryError, NodeType, knn_labels
 from toolkit.static.case import StaticCase, load_case
 from toolkit.static.constraints import Constraints
-from toolkit.static.dataset import DatasetConfig, StaticDatabase, build_database, load_database
+from toolkit.static.database import DatabaseConfig, StaticDatabase, build_database, load_database
 from toolkit.static.plan import (
     PHYSIOLOGICAL_RANGES,
     SEGMENTS,
@@ -63,7 +63,7 @@ __all__ = [
     "solve_with_lip_contact",
     "ConvergenceError",
     "SolverError",
-    "DatasetConfig",
+    "DatabaseConfig",
     "build_database",
     "load_database",
     "StaticDatabase",

@@ -35,7 +35,7 @@ import scipy.sparse as sp
 
 from toolkit.common.fem.solvers import superlu
 from toolkit.static.constraints import Constraints
-from toolkit.static.dataset import bone_increment
+from toolkit.static.database import bone_increment
 from toolkit.static.plan import PlanRangeWarning, SurgicalPlan
 from toolkit.static.problem import StaticProblem
 from toolkit.static.simulate import SimulationOptions, _build_model, _sliding_constraints, _State
@@ -120,7 +120,7 @@ class SlidingResponse:
 
     def increment(self, bone: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
         """Displacement ``(n, 3)`` mm of one increment whose bones move each bone-driven node by
-        ``bone (n, 3)`` mm (:func:`~toolkit.static.dataset.bone_increment`; other rows ignored),
+        ``bone (n, 3)`` mm (:func:`~toolkit.static.database.bone_increment`; other rows ignored),
         with the lip gaps of the current positions ``x (n, 3)`` mm (default: none, every pair
         starts tied; pass the positions the increment starts from)."""
         bone = np.asarray(bone, dtype=float)

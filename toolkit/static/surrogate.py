@@ -1,7 +1,7 @@
 """The static surrogate (the PointNet++ paper): PointNet++ trained on the FE database, its evaluation and
 its prediction of a surgical plan.
 
-:func:`train_surrogate` reads a :class:`~toolkit.static.dataset.StaticDatabase`, encodes
+:func:`train_surrogate` reads a :class:`~toolkit.static.database.StaticDatabase`, encodes
 every sample (:mod:`toolkit.static.features`), scales the inputs to [0, 1] (the scaler is
 saved with the model) and the targets by one factor (so that exact boundary values stay
 exact), splits by simulation (70/10/20: the increments of one plan never straddle two
@@ -62,7 +62,7 @@ from toolkit.common.training.evaluation import Evaluation
 from toolkit.static.baselines import InfluenceMatrix
 from toolkit.static.boundary import NodeType
 from toolkit.static.checks import check_plan, with_answer_checks
-from toolkit.static.dataset import PLAN_FEATURES, DatasetConfig, StaticDatabase, bone_increment, jaw_side
+from toolkit.static.database import PLAN_FEATURES, DatabaseConfig, StaticDatabase, bone_increment, jaw_side
 from toolkit.static.features import FeatureSpec, channel_names, encode
 from toolkit.static.plan import (
     PHYSIOLOGICAL_RANGES,
@@ -79,7 +79,7 @@ from toolkit.static.sliding_response import SlidingResponse
 if TYPE_CHECKING:  # pragma: no cover
     import torch
 
-    from toolkit.static.dataset import StaticDatabase
+    from toolkit.static.database import StaticDatabase
     from toolkit.static.pointnet2 import PointHierarchy, PointNet2
     from toolkit.static.pointnet2_inference import HierarchyArrays, PointNet2Inference
 
@@ -191,7 +191,7 @@ def linear_prior(mesh, types: np.ndarray):
 
 
 #: the plan parameters whose range over the plans a model trained or validated on it records, in the order of
-#: :data:`toolkit.static.dataset.PLAN_FEATURES` (without its increment fraction)
+#: :data:`toolkit.static.database.PLAN_FEATURES` (without its increment fraction)
 PLAN_PARAMETERS = tuple(f"{seg}.{kind}_{axis}_{unit}" for seg in ("lefort", "distal")
                         for kind, unit in (("translation", "mm"), ("rotation", "deg")) for axis in "xyz")
 #: database settings a model is scored on only when they equal its training database's
@@ -226,7 +226,7 @@ def plan_extrapolation(plan, hull: dict, arch: np.ndarray | None = None) -> dict
 
 def training_hull(database: dict) -> dict:
     """:func:`~toolkit.static.plan.sampling_hull` of a training database's settings (its
-    ``DatasetConfig`` as a dict: ``mode``, ``max_jaw_closing_mm``), physiological ranges."""
+    ``DatabaseConfig`` as a dict: ``mode``, ``max_jaw_closing_mm``), physiological ranges."""
 
     return sampling_hull(database.get("mode", "sagittal"), PHYSIOLOGICAL_RANGES, database.get("max_jaw_closing_mm"))
 
@@ -501,7 +501,7 @@ class Surrogate:
         """
 
         t0 = time.perf_counter()
-        data = DatasetConfig(**self.bundle.data["database"])
+        data = DatabaseConfig(**self.bundle.data["database"])
         mesh, segments = face_mesh_and_segments(face, segments)
         if not any_mesh:
             self.check_mesh(mesh.points, dict(mesh.cells))
@@ -620,13 +620,13 @@ def _check_training_inputs(db, config: SurrogateConfig) -> None:
         absent = [s for s in config.test_subjects if s not in subjects]
         if absent:
             raise ValueError(f"test_subjects {absent} are not in the database {db.path}: it holds subjects "
-                             f"{subjects} (build more with `toolkit static dataset --subjects N`)")
+                             f"{subjects} (build more with `toolkit static database --subjects N`)")
         if not set(subjects) - set(config.test_subjects):
             raise ValueError(f"test_subjects {list(config.test_subjects)} are every subject of the database "
                              f"{db.path} ({subjects}): hold some out, not all")
     if config.features.material_channels and db.config.poisson_range is None:
         raise ValueError("material_channels needs a database whose simulations vary Poisson's ratio "
-                         "(DatasetConfig.poisson_range; command line: toolkit static dataset --poisson-range LO HI); "
+                         "(DatabaseConfig.poisson_range; command line: toolkit static database --poisson-range LO HI); "
                          f"this one uses {TISSUE_NU} throughout")
 
 
@@ -721,7 +721,7 @@ def check_database(model: Surrogate, db) -> None:
     asked = db.config.to_dict()
     require_same({k: trained_on.get(k) for k in MUST_MATCH}, {k: asked[k] for k in MUST_MATCH},
                  f"database {db.path}: the model's training database",
-                 hint="Score the model on a database generated with its settings (`toolkit static dataset "
+                 hint="Score the model on a database generated with its settings (`toolkit static database "
                       + " ".join(f"--{k} {trained_on.get(k)}" for k in MUST_MATCH) + "`)")
     model.check_mesh(db.points[0], db.cells)
 

@@ -66,7 +66,7 @@ from toolkit.common.training.decision import check_tolerance, decide
 from toolkit.common.training.extrapolation import describe_extrapolation
 from toolkit.static.baselines import LinearPlusPOD, PODRegression
 from toolkit.static.checks import with_answer_checks
-from toolkit.static.dataset import PLAN_FEATURES, DatasetConfig, StaticDatabase, plan_features
+from toolkit.static.database import PLAN_FEATURES, DatabaseConfig, StaticDatabase, plan_features
 from toolkit.static.simulate import IncrementReport, face_mesh_and_segments, simulate
 from toolkit.static.surrogate import (
     PLAN_PARAMETERS,
@@ -229,7 +229,7 @@ def _baseline_trajectory(model, residual, face, plan, segments=None):
     """The face's SlidingResponse, the baseline's cumulative displacement ``(increments + 1, n, 3)``
     mm and each increment's bone motion ``(increments, n, 3)`` mm (see :func:`baseline_prediction`)."""
 
-    increments = DatasetConfig(**model.bundle.data["database"]).increments
+    increments = DatabaseConfig(**model.bundle.data["database"]).increments
     response = model.sliding_response(face, segments)
     with warnings.catch_warnings():  # the plan warned of its range where it was built
         warnings.simplefilter("ignore")
@@ -247,7 +247,7 @@ def baseline_prediction(model, residual, face, plan, segments=None):
     element quality, ``prescribed`` each increment's bone motion (moving nodes)."""
 
     t0 = time.perf_counter()
-    data = DatasetConfig(**model.bundle.data["database"])
+    data = DatabaseConfig(**model.bundle.data["database"])
     response, U, bones = _baseline_trajectory(model, residual, face, plan, segments)
     mesh = face_mesh_and_segments(face, segments)[0]
     U = with_exact_attachment(U, mesh.points, response.bc, plan)
@@ -320,8 +320,9 @@ def calibrate_surrogate(model, database, *, coverage: float = 0.9, scale: str = 
                          "database too (training=...; command line: --train-data DB.h5)")
     need = min_calibration_cases(coverage)
     if len(keys) < need:
-        raise ValueError(f"{len(keys)} held-out simulation(s) in {db.path} ({how}); a bound at {coverage:.0%} needs "
-                         f"at least {need}: generate more plans (`toolkit static dataset --plans`) or lower --coverage")
+        raise ValueError(f"{len(keys)} held-out simulation(s) in {db.path} ({how}); a bound at {coverage:.0%} "
+                         f"needs at least {need}: generate more plans (`toolkit static database --plans`) or lower "
+                         "--coverage")
     # the baseline: each seen simulation's sliding response, and the regression of what it misses
     rows = np.flatnonzero(train_db.samples.key.isin(seen_keys).to_numpy())
     seen_data = train_db.arrays(rows)
@@ -566,7 +567,7 @@ def answer(model, face, plan, tolerance_mm: float, *, segments=None, calibration
     if coverage is not None:
         calibration = calibration.at(coverage)
     calibration = calibration.for_tolerance(tolerance_mm)
-    data = DatasetConfig(**model.bundle.data["database"])
+    data = DatabaseConfig(**model.bundle.data["database"])
     mesh, segments = face_mesh_and_segments(face, segments)
     same = _same_topology(model, mesh)
     ood = out_of_distribution(calibration, mesh, plan, material, same_topology=same)

@@ -571,7 +571,7 @@ def _acquire_lock(db: Database):
 def check_complete(path: str | os.PathLike, command: str) -> DatabaseStatus:
     """Refuse a database holding no record (:class:`DatabaseError`), warn
     (:class:`IncompleteDatabaseWarning`) on an interrupted one; ``command`` is the remedy's
-    command (e.g. ``"`toolkit static dataset` with the same options"``)."""
+    command (e.g. ``"`toolkit static database` with the same options"``)."""
     status = database_status(path)
     if status.records == 0:
         if not status.complete:

@@ -13,10 +13,10 @@ import pandas.testing as pd_testing
 import pytest
 
 from toolkit.common.training.database import DatabaseError, IncompleteDatabaseWarning
-from toolkit.static.dataset import DatasetConfig, StaticDatabase, build_database, read_samples
+from toolkit.static.database import DatabaseConfig, StaticDatabase, build_database, read_samples
 
-dataset_module = importlib.import_module("toolkit.static.dataset")
-CONFIG = DatasetConfig(resolution="coarse", subjects=2, plans=2, seed=3)
+database_module = importlib.import_module("toolkit.static.database")
+CONFIG = DatabaseConfig(resolution="coarse", subjects=2, plans=2, seed=3)
 
 
 @pytest.fixture(scope="module")
@@ -110,13 +110,13 @@ def test_rerun_resumes_and_an_interrupted_run_gives_the_same_database(small_db, 
         build_database(path, CONFIG, executor=Interrupting(), progress=False)
     from toolkit.common.training.database import Database
 
-    assert len(Database(path, dataset_module.DATABASE_KIND, dataset_module.DATABASE_VERSION, CONFIG.to_dict())
+    assert len(Database(path, database_module.DATABASE_KIND, database_module.DATABASE_VERSION, CONFIG.to_dict())
                .keys()) == 2
     copy = tmp_path / "copy" / "cut.h5"
     copy.parent.mkdir()
     shutil.copyfile(path, copy)
     with pytest.warns(IncompleteDatabaseWarning, match=r"interrupted database .*cut\.h5: 2 of 4 simulations done; "
-                                                       r"rerun `toolkit static dataset` with the same options"):
+                                                       r"rerun `toolkit static database` with the same options"):
         partial = StaticDatabase.open(copy)
     assert len(partial) == 6
     report = build_database(path, CONFIG, workers=0, progress=False)
@@ -135,10 +135,10 @@ def test_an_interrupt_before_any_simulation_leaves_a_database_that_says_so(tmp_p
     def interrupted(params):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(dataset_module, "simulate_job", interrupted)
+    monkeypatch.setattr(database_module, "simulate_job", interrupted)
     path = tmp_path / "empty.h5"
     with pytest.raises(KeyboardInterrupt):
-        build_database(path, DatasetConfig(resolution="coarse", plans=2), workers=0, progress=False)
+        build_database(path, DatabaseConfig(resolution="coarse", plans=2), workers=0, progress=False)
     with pytest.raises(DatabaseError, match=r"interrupted database .*empty\.h5: 0 of 2 simulations done; rerun"):
         StaticDatabase.open(path)
 
@@ -150,14 +150,14 @@ def test_more_plans_and_subjects_grow_the_database_with_the_same_first_ones(smal
     then adds its face and plans."""
     grown = tmp_path / "grown.h5"
     shutil.copyfile(small_db, grown)
-    bigger = DatasetConfig(resolution="coarse", subjects=2, plans=3, seed=3)
+    bigger = DatabaseConfig(resolution="coarse", subjects=2, plans=3, seed=3)
     report = build_database(grown, bigger, workers=0, progress=False)
     assert sorted(report.done) == ["s000-p00002", "s001-p00002"] and len(report.skipped) == 4
     a, b = StaticDatabase.open(small_db), StaticDatabase.open(grown)
     assert b.config == bigger and len(b) == 18
     for key in a.samples.key.unique():
         np.testing.assert_array_equal(a._U[key], b._U[key])
-    fresh = {job.key: job.params["motions"] for job in dataset_module._jobs(bigger)}
+    fresh = {job.key: job.params["motions"] for job in database_module._jobs(bigger)}
     with h5py.File(grown) as f:
         for key, motions in fresh.items():
             assert json.loads(f["records"][key].attrs["params"])["motions"] == motions
@@ -165,12 +165,12 @@ def test_more_plans_and_subjects_grow_the_database_with_the_same_first_ones(smal
     assert len(build_database(grown, CONFIG, workers=0, progress=False).skipped) == 4
     assert StaticDatabase.open(grown).config.plans == 3
     # a third subject: its face and its 3 plans are added, the rest kept
-    more = DatasetConfig(resolution="coarse", subjects=3, plans=3, seed=3)
+    more = DatabaseConfig(resolution="coarse", subjects=3, plans=3, seed=3)
     report = build_database(grown, more, workers=0, progress=False)
     assert sorted(report.done) == [f"s002-p{p:05d}" for p in range(3)] and len(report.skipped) == 6
     c = StaticDatabase.open(grown)
     assert c.config == more and len(c) == 27 and sorted(c.points) == [0, 1, 2]
-    np.testing.assert_array_equal(c.points[2], dataset_module.subject_phantom("coarse", 2).mesh.points)
+    np.testing.assert_array_equal(c.points[2], database_module.subject_phantom("coarse", 2).mesh.points)
     np.testing.assert_array_equal(c.points[1], b.points[1])
 
 
@@ -196,15 +196,15 @@ def test_failures_are_recorded_and_foreign_files_refused(tmp_path, monkeypatch):
     """A simulation that raises is recorded with its reason, listed in /samples as failed and
     skipped on the next run; a corrupt file, a database of another kind and one made with
     another configuration are refused naming the problem."""
-    real = dataset_module.simulate_job
+    real = database_module.simulate_job
 
     def flaky(params):
         if params["plan"] == 1:
             raise RuntimeError("inverted elements (test)")
         return real(params)
 
-    monkeypatch.setattr(dataset_module, "simulate_job", flaky)
-    cfg = DatasetConfig(resolution="coarse", plans=2)
+    monkeypatch.setattr(database_module, "simulate_job", flaky)
+    cfg = DatabaseConfig(resolution="coarse", plans=2)
     path = tmp_path / "f.h5"
     report = build_database(path, cfg, workers=0, progress=False)
     assert list(report.failed) == ["s000-p00001"] and "inverted elements (test)" in report.failed["s000-p00001"]
@@ -212,7 +212,7 @@ def test_failures_are_recorded_and_foreign_files_refused(tmp_path, monkeypatch):
     assert table.status.str.startswith("failed").sum() == 1
     assert len(build_database(path, cfg, workers=0, progress=False).skipped) == 2
     with pytest.raises(ValueError, match="increments: stored 3, asked 2"):
-        build_database(path, DatasetConfig(resolution="coarse", plans=2, increments=2), workers=0, progress=False)
+        build_database(path, DatabaseConfig(resolution="coarse", plans=2, increments=2), workers=0, progress=False)
     (tmp_path / "junk.h5").write_bytes(b"not hdf5 at all")
     with pytest.raises(DatabaseError, match="cannot read"):
         StaticDatabase.open(tmp_path / "junk.h5")

@@ -254,14 +254,14 @@ def load_database(path: str | os.PathLike) -> ImpactDatabase:
     import h5py
 
     path = Path(path)
-    Database.verified_attrs(path, DATABASE_KIND, DATABASE_VERSION, "build one with `toolkit impact dataset`")
-    check_complete(path, "`toolkit impact dataset` with the same options")
+    Database.verified_attrs(path, DATABASE_KIND, DATABASE_VERSION, "build one with `toolkit impact database`")
+    check_complete(path, "`toolkit impact database` with the same options")
     with h5py.File(path, "r") as f:
         shared = f["shared"]
         scene = Scene.from_dict(_tomllib_loads(shared.attrs["scene_toml"]))
         keys = list(f["records"].keys())
         if not keys:
-            raise ValueError(f"{path} holds no finished simulation yet; run `toolkit impact dataset` to fill it")
+            raise ValueError(f"{path} holds no finished simulation yet; run `toolkit impact database` to fill it")
         params = {k: json.loads(f["records"][k].attrs["params"]) for k in keys}
         keys.sort(key=lambda k: params[k]["velocity"])
         times = f["records"][keys[0]]["time"][()]

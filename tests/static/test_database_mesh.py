@@ -1,4 +1,4 @@
-"""A learning database on a meshed face (``toolkit static dataset --mesh``), and train, evaluate and
+"""A learning database on a meshed face (``toolkit static database --mesh``), and train, evaluate and
 predict on it from the command line, as a user with their own face would run them."""
 
 import json
@@ -10,7 +10,7 @@ from toolkit.cli import main
 from toolkit.common import face_hex, read, write
 from toolkit.mesh import mesh_face
 from toolkit.mesh.phantom import phantom_surfaces, write_surfaces
-from toolkit.static.dataset import DatasetConfig, StaticDatabase, database_subject, read_samples, subject_mesh
+from toolkit.static.database import DatabaseConfig, StaticDatabase, database_subject, read_samples, subject_mesh
 from toolkit.static.plan import sample_plans
 from toolkit.static.surrogate import Surrogate
 from toolkit.static.trust import Calibration, baseline_prediction
@@ -37,7 +37,7 @@ def face(tmp_path_factory):
 def database(face):
     """The meshed face's 4-plan database (~16 s on an Intel Xeon): the tests that use it are long."""
     out = face["folder"] / "db.h5"
-    assert main(["static", "dataset", "--mesh", str(face["mesh"]), *face["bones"], face["condyles"], "--plans", "4",
+    assert main(["static", "database", "--mesh", str(face["mesh"]), *face["bones"], face["condyles"], "--plans", "4",
                  "--workers", "0", "--out", str(out)]) == 0
     return out
 
@@ -60,7 +60,7 @@ def test_database_holds_the_meshed_face_and_its_plans(face, database):
     anatomy = database_subject(db.config, 0)
     np.testing.assert_allclose(anatomy.segments["distal"].pivot, face_hex("coarse").segments["distal"].pivot)
     first = sample_plans(1, np.random.default_rng([0, 0]), phantom=anatomy)[0]
-    from toolkit.static.dataset import plan_features
+    from toolkit.static.database import plan_features
 
     np.testing.assert_allclose(db.samples[db.samples.plan == 0].sort_values("increment")[
         ["lefort_tx", "lefort_ty", "lefort_tz", "distal_tx", "distal_ty", "distal_tz"]].to_numpy(),
@@ -184,7 +184,7 @@ def test_a_changed_mesh_file_is_refused_on_resume(face, database, tmp_path):
     mesh = tmp_path / "face.vtu"
     shutil.copy(face["mesh"], mesh)
     out = tmp_path / "db.h5"
-    args = ["static", "dataset", "--mesh", str(mesh), "--plans", "1", "--workers", "0", "--out", str(out)]
+    args = ["static", "database", "--mesh", str(mesh), "--plans", "1", "--workers", "0", "--out", str(out)]
     assert main(args) == 0
     m = read(mesh)
     write(mesh, type(m)(m.points + 0.1, m.cells, node_sets=m.node_sets, element_sets=m.element_sets))
@@ -201,7 +201,7 @@ def test_a_changed_mesh_file_is_refused_on_resume(face, database, tmp_path):
 def test_bad_mesh_database_options_are_refused_before_any_output(face, tmp_path, capsys, extra, message):
     out = tmp_path / "db.h5"
     try:
-        code = main(["static", "dataset", "--mesh", str(face["mesh"]), "--plans", "1", *extra, "--out", str(out)])
+        code = main(["static", "database", "--mesh", str(face["mesh"]), "--plans", "1", *extra, "--out", str(out)])
     except SystemExit as exc:  # argparse's own refusal of an option's value
         code = exc.code
     assert code == 2 and message in capsys.readouterr().err and not out.exists()
@@ -209,10 +209,10 @@ def test_bad_mesh_database_options_are_refused_before_any_output(face, tmp_path,
 
 def test_mesh_options_without_a_mesh_are_refused(face, tmp_path, capsys):
     out = tmp_path / "db.h5"
-    assert main(["static", "dataset", face["bones"][0], "--plans", "1", "--out", str(out)]) == 2
+    assert main(["static", "database", face["bones"][0], "--plans", "1", "--out", str(out)]) == 2
     assert "give --mesh" in capsys.readouterr().err and not out.exists()
 
 
 def test_a_mesh_database_config_has_one_subject():
     with pytest.raises(ValueError, match="one subject"):
-        DatasetConfig(mesh="/face.vtu", subjects=2)
+        DatabaseConfig(mesh="/face.vtu", subjects=2)

@@ -1,6 +1,6 @@
 """The impact learning database: what a record holds (and that it agrees with the simulation it
 came from), resuming, refusing another scene, recorded failures, local processes, a Dask
-LocalCluster, and the `toolkit impact dataset` command."""
+LocalCluster, and the `toolkit impact database` command."""
 
 import json
 
@@ -13,7 +13,7 @@ from toolkit.cli import main
 from toolkit.common.config_diff import IncompatibleError
 from toolkit.common.training.database import read_failures, read_index
 from toolkit.impact import simulate
-from toolkit.impact.dataset import build_database, default_held_out, load_database, velocity_key
+from toolkit.impact.database import build_database, default_held_out, load_database, velocity_key
 from toolkit.impact.simulate import face_mesh, fixed_nodes
 
 from .conftest import TINY_HELD_OUT, TINY_VELOCITIES, tiny_scene
@@ -72,17 +72,17 @@ def test_resume_adds_only_missing_velocities_and_refuses_another_scene(tmp_path)
 def test_a_failing_simulation_is_recorded_and_the_others_kept(tmp_path, monkeypatch):
     """A simulation that stops (here the 50 mm/s one raises an instability) is recorded as a
     failure with its reason, while 20 mm/s finishes; a rerun skips both."""
-    from toolkit.impact import dataset
+    from toolkit.impact import database
     from toolkit.impact.explicit import InstabilityError
 
-    real = dataset.SimulationWorker.__call__
+    real = database.SimulationWorker.__call__
 
     def unstable_at_50(self, params):
         if params["velocity"] == 50.0:
             raise InstabilityError("inverted element 12 (test)", 0.51, "face", 12, "a shorter duration")
         return real(self, params)
 
-    monkeypatch.setattr(dataset.SimulationWorker, "__call__", unstable_at_50)
+    monkeypatch.setattr(database.SimulationWorker, "__call__", unstable_at_50)
     scene = tiny_scene()
     path = tmp_path / "db.h5"
     report = build_database(path, [20.0, 50.0], [], scene, workers=0, progress=False)
@@ -111,11 +111,11 @@ def test_local_processes_and_a_dask_local_cluster_fill_the_same_database(tmp_pat
     np.testing.assert_array_equal(a.displacement, b.displacement)
 
 
-def test_dataset_command(tmp_path, capsys):
-    """`toolkit impact dataset` with velocities, held-out velocities and fidelity options builds the
+def test_database_command(tmp_path, capsys):
+    """`toolkit impact database` with velocities, held-out velocities and fidelity options builds the
     database, prints the per-velocity yield table, and refuses a file that is not an impact database."""
     out = tmp_path / "db.h5"
-    argv = ["impact", "dataset", "--velocities", "30,50", "--held-out", "40", "--resolution", "coarse",
+    argv = ["impact", "database", "--velocities", "30,50", "--held-out", "40", "--resolution", "coarse",
             "--ball", "rigid", "--order", "1", *EXPLICIT, "--duration", "0.36", "--workers", "0",
             "--out", str(out)]
     assert main(argv) == 0
@@ -135,16 +135,16 @@ def test_dataset_command(tmp_path, capsys):
 def test_an_interrupted_database_is_usable_at_once_and_the_rerun_finishes_it(tmp_path, monkeypatch):
     """Ctrl-C during the 40 mm/s simulation (after 30 mm/s finished): a copy of the .h5 alone
     loads the 30 mm/s simulation with a warning "interrupted database ...: 1 of 2 simulations
-    done; rerun `toolkit impact dataset` with the same options to finish it"; a Ctrl-C during
+    done; rerun `toolkit impact database` with the same options to finish it"; a Ctrl-C during
     the very first simulation leaves a file whose loading is refused with "0 of 1"; the rerun of
     the same build finishes the first and then loads without a warning."""
     import shutil
     import warnings
 
     from toolkit.common.training.database import DatabaseError, IncompleteDatabaseWarning
-    from toolkit.impact import dataset
+    from toolkit.impact import database
 
-    real = dataset.SimulationWorker.__call__
+    real = database.SimulationWorker.__call__
 
     def interrupted_at_40(self, params):
         if params["velocity"] == 40.0:
@@ -153,17 +153,17 @@ def test_an_interrupted_database_is_usable_at_once_and_the_rerun_finishes_it(tmp
 
     scene = tiny_scene()
     path = tmp_path / "db.h5"
-    monkeypatch.setattr(dataset.SimulationWorker, "__call__", interrupted_at_40)
+    monkeypatch.setattr(database.SimulationWorker, "__call__", interrupted_at_40)
     with pytest.raises(KeyboardInterrupt):
         build_database(path, [30.0, 40.0], [], scene, workers=0, progress=False)
     with pytest.raises(KeyboardInterrupt):
         build_database(tmp_path / "empty.h5", [40.0], [], scene, workers=0, progress=False)
-    monkeypatch.setattr(dataset.SimulationWorker, "__call__", real)
+    monkeypatch.setattr(database.SimulationWorker, "__call__", real)
     copy = tmp_path / "copy" / "db.h5"
     copy.parent.mkdir()
     shutil.copyfile(path, copy)
     with pytest.warns(IncompleteDatabaseWarning, match=r"interrupted database .*db\.h5: 1 of 2 simulations done; "
-                                                       r"rerun `toolkit impact dataset` with the same options"):
+                                                       r"rerun `toolkit impact database` with the same options"):
         assert load_database(copy).velocities.tolist() == [30.0]
     with pytest.raises(DatabaseError, match=r"empty\.h5: 0 of 1 simulations done; rerun"):
         load_database(tmp_path / "empty.h5")
@@ -177,11 +177,11 @@ def test_an_interrupted_database_is_usable_at_once_and_the_rerun_finishes_it(tmp
 
 def test_a_database_in_a_missing_folder_is_refused_before_any_simulation(tmp_path, monkeypatch):
     from toolkit.common.training.database import DatabaseError
-    from toolkit.impact import dataset
+    from toolkit.impact import database
 
     def never(self, params):
         raise AssertionError("simulated although the output cannot be written")
 
-    monkeypatch.setattr(dataset.SimulationWorker, "__call__", never)
+    monkeypatch.setattr(database.SimulationWorker, "__call__", never)
     with pytest.raises(DatabaseError, match=r"cannot write next to the database .*nowhere.*db\.h5"):
         build_database(tmp_path / "nowhere" / "db.h5", [30.0], [], tiny_scene(), workers=0, progress=False)

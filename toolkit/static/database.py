@@ -3,7 +3,7 @@
 Each *simulation* runs one plan of :func:`~toolkit.static.plan.sample_plans` on one
 *subject* (a face phantom: subject 0 is the default :class:`~toolkit.common.phantoms.phantom.FaceShape`,
 subject k > 0 is ``FaceShape.sample(k)``; or the one subject of a database on a meshed face,
-``DatasetConfig.for_mesh``, whose plans are placed by :func:`~toolkit.static.anatomy.face_anatomy`),
+``DatabaseConfig.for_mesh``, whose plans are placed by :func:`~toolkit.static.anatomy.face_anatomy`),
 and each of its increments is one learning *sample*, as in the PointNet++ paper:
 
 - the starting mesh ``x (n, 3)`` mm: the face at the start of the increment;
@@ -30,7 +30,7 @@ parameters, largest input displacement, solver diagnostics), both read as DataFr
 :func:`read_samples` also rebuilds ``/samples`` of an interrupted run from its records).
 
 Generation runs on any ``concurrent.futures``-style executor (local processes by default,
-a ``dask.distributed.Client`` for a cluster); CLI ``toolkit static dataset``.
+a ``dask.distributed.Client`` for a cluster); CLI ``toolkit static database``.
 
 Resuming and growing: rerunning :func:`build_database` on an existing file skips the finished
 simulations; after an interrupt the file already holds every finished one (and its
@@ -89,7 +89,7 @@ from toolkit.static.stiffness import MaterialAssignment
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
 
-__all__ = ["DatasetConfig", "build_database", "load_database", "StaticDatabase", "read_samples", "subject_phantom",
+__all__ = ["DatabaseConfig", "build_database", "load_database", "StaticDatabase", "read_samples", "subject_phantom",
            "database_subject",
            "subject_mesh", "bone_increment", "plan_features",
            "jaw_side", "material_for", "simulate_job",
@@ -105,7 +105,7 @@ PLAN_FEATURES = ("lefort_tx", "lefort_ty", "lefort_tz", "lefort_rx", "lefort_ry"
 
 
 @dataclass(frozen=True)
-class DatasetConfig:
+class DatabaseConfig:
     """What a database holds.
 
     Attributes
@@ -189,7 +189,7 @@ class DatasetConfig:
 
     @classmethod
     def for_mesh(cls, mesh: str | os.PathLike, bones=None, condyles=None, units: str = "mm",
-                 axes: str = "toolkit", **settings) -> DatasetConfig:
+                 axes: str = "toolkit", **settings) -> DatabaseConfig:
         """A database on a meshed face: ``mesh`` and ``bones`` (segment -> surface file) are
         recorded by absolute path and content hash; ``settings`` are the other attributes."""
         bones = dict(bones or {})
@@ -209,12 +209,12 @@ def subject_phantom(resolution: str, subject: int):
 
 
 @lru_cache(maxsize=4)
-def database_subject(config: DatasetConfig, subject: int):
+def database_subject(config: DatabaseConfig, subject: int):
     """What the database's ``subject`` is simulated on: the phantom of :func:`subject_phantom`,
     or the meshed face's :class:`~toolkit.static.anatomy.FaceAnatomy` (both have ``mesh`` and
     ``segments``)."""
     if config.mesh is None:
-        assert config.resolution is not None  # a phantom database has one (DatasetConfig checks it)
+        assert config.resolution is not None  # a phantom database has one (DatabaseConfig checks it)
         return subject_phantom(config.resolution, subject)
 
     for path, sha1 in ((config.mesh, config.mesh_sha1), *((p, h) for _, p, h in config.bones)):
@@ -249,7 +249,7 @@ def plan_features(plan, increments: int) -> np.ndarray:
     return np.array(rows)
 
 
-def _jobs(config: DatasetConfig) -> list[Job]:
+def _jobs(config: DatabaseConfig) -> list[Job]:
 
     jobs = []
     for subject in range(config.subjects):
@@ -279,7 +279,7 @@ def material_for(material: str, poisson: float | None, mesh):
 def simulate_job(params: dict) -> Record:
     """Worker: run one simulation of the database (picklable, module level)."""
 
-    cfg = DatasetConfig(**params["config"])
+    cfg = DatabaseConfig(**params["config"])
     phantom = database_subject(cfg, int(params["subject"]))
     face = phantom if cfg.mesh is None else phantom.mesh
     motions = {k: v for k, v in params["motions"].items() if k != "force"}
@@ -331,7 +331,7 @@ def bone_increment(x: np.ndarray, bc, step, previous=None) -> np.ndarray:
     return out
 
 
-def _shared(config: DatasetConfig, first_subject: int = 0) -> dict:
+def _shared(config: DatabaseConfig, first_subject: int = 0) -> dict:
     """Arrays common to the database: topology, node sets, each subject's points and types
     (only the subjects from ``first_subject`` on, without topology and sets, when > 0)."""
     out = {}
@@ -364,9 +364,9 @@ def subject_mesh(path: str | os.PathLike, subject: int = 0):
     import h5py
 
 
-    config = DatasetConfig(**json.loads(Database.open_attrs(Path(path)).get("config", "{}")))
+    config = DatabaseConfig(**json.loads(Database.open_attrs(Path(path)).get("config", "{}")))
     if config.mesh is None:
-        assert config.resolution is not None  # a phantom database has one (DatasetConfig checks it)
+        assert config.resolution is not None  # a phantom database has one (DatabaseConfig checks it)
         return subject_phantom(config.resolution, subject).mesh
     with h5py.File(path, "r") as f:
         sh = f["shared"]
@@ -377,7 +377,7 @@ def subject_mesh(path: str | os.PathLike, subject: int = 0):
                 cell_data=group["cell_data"])
 
 
-def _add_subjects(path: Path, config: DatasetConfig, first_subject: int) -> None:
+def _add_subjects(path: Path, config: DatabaseConfig, first_subject: int) -> None:
     """Add the shared arrays of subjects ``first_subject`` .. ``config.subjects - 1`` (copy-on-write)."""
     import shutil
 
@@ -395,14 +395,14 @@ def _add_subjects(path: Path, config: DatasetConfig, first_subject: int) -> None
 _SHAPE_FIELDS = ("face_width", "face_height", "tissue_thickness", "lip_protrusion", "mouth_open", "nose_height")
 
 
-def build_database(path: str | os.PathLike, config: DatasetConfig, *, executor=None, workers: int = 1,
+def build_database(path: str | os.PathLike, config: DatabaseConfig, *, executor=None, workers: int = 1,
                    retry_failed: bool = False, progress: bool = True) -> RunReport:
     """Create or complete the database at ``path`` (resumes: finished simulations are skipped).
 
     Parameters
     ----------
     path : ``.h5`` file
-    config : DatasetConfig (an existing file made with another configuration is refused)
+    config : DatabaseConfig (an existing file made with another configuration is refused)
     executor : ``concurrent.futures`` executor or ``dask.distributed.Client``; default a pool of
         ``workers`` local processes (``workers=0``: in this process)
     retry_failed : rerun simulations recorded as failed
@@ -417,7 +417,7 @@ def build_database(path: str | os.PathLike, config: DatasetConfig, *, executor=N
         return _generate(Path(path), config, stored, executor, workers, retry_failed, progress)
 
 
-def _generate(path: Path, config: DatasetConfig, stored: dict, executor, workers, retry_failed, progress) -> RunReport:
+def _generate(path: Path, config: DatabaseConfig, stored: dict, executor, workers, retry_failed, progress) -> RunReport:
     if Path(path).exists():
         Database(path, DATABASE_KIND, DATABASE_VERSION, stored, grows=_GROWS).check()
         before = json.loads(Database.open_attrs(Path(path)).get("config", "{}"))
@@ -439,7 +439,7 @@ def _generate(path: Path, config: DatasetConfig, stored: dict, executor, workers
 
 #: configuration keys a static database grows along (more plans and subjects from the same random streams)
 _GROWS = ("plans", "subjects")
-_REMEDY = "`toolkit static dataset` with the same options"
+_REMEDY = "`toolkit static database` with the same options"
 
 
 def _write_samples(path: Path) -> None:
@@ -521,7 +521,7 @@ def read_samples(path: str | os.PathLike):
     with h5py.File(path, "r") as f:
         if "records" not in f:
             raise ValueError(f"{path} has no /records group: it is not a static database; "
-                             f"create one with `toolkit static dataset`")
+                             f"create one with `toolkit static database`")
         stored = set(f["records"].keys()) | set(f["failures"].keys())
         has_samples = "samples" in f
     table = read_index(path, "samples") if has_samples else None
@@ -544,7 +544,7 @@ class StaticDatabase:
     Attributes
     ----------
     path : the file
-    config : DatasetConfig it was made with
+    config : DatabaseConfig it was made with
     samples : DataFrame, one row per successful increment (:func:`read_samples`)
     points : subject -> (n, 3) pre-operative points, mm
     types : subject -> (n,) boundary types (a simulation that needed a wider release band or freed
@@ -554,7 +554,7 @@ class StaticDatabase:
     """
 
     path: Path
-    config: DatasetConfig
+    config: DatabaseConfig
     samples: pd.DataFrame
     points: dict
     types: dict
@@ -574,10 +574,10 @@ class StaticDatabase:
 
         path = Path(path)
         if not path.exists():
-            raise FileNotFoundError(f"database {str(path)!r} does not exist; create it with `toolkit static dataset`")
+            raise FileNotFoundError(f"database {str(path)!r} does not exist; create it with `toolkit static database`")
         attrs = Database.verified_attrs(path, DATABASE_KIND, DATABASE_VERSION,
-                                        "create one with `toolkit static dataset`")
-        config = DatasetConfig(**json.loads(attrs["config"]))
+                                        "create one with `toolkit static database`")
+        config = DatabaseConfig(**json.loads(attrs["config"]))
         check_complete(path, _REMEDY)
         samples = read_samples(path)
         samples = samples[samples.status == "ok"].reset_index(drop=True)
