@@ -216,3 +216,28 @@ def test_mesh_options_without_a_mesh_are_refused(face, tmp_path, capsys):
 def test_a_mesh_database_config_has_one_subject():
     with pytest.raises(ValueError, match="one subject"):
         DatabaseConfig(mesh="/face.vtu", subjects=2)
+
+
+def test_far_mucosa_keeps_each_sliding_nodes_own_offset(face):
+    """Freeing the mucosa far from its bone frees the middle of their edges too; every node left
+    sliding keeps its own pre-operative offset (recomputed here node by node), and every bound
+    mid-edge node has both corners bound alike."""
+    import importlib
+
+    from toolkit.common.meshes.topology import tet10_mid_edges
+    from toolkit.static.boundary import NodeType
+
+    sim = importlib.import_module("toolkit.static.simulate")
+    subject = database_subject(DatabaseConfig.for_mesh(face["mesh"], {n: face["files"][n] for n in SEGMENTS},
+                                                      condyles=face_hex("coarse").condyles), 0)
+    everything = sim._build_model(subject.mesh, "linear", "mucosa+lip", subject.segments, sim.SimulationOptions())
+    limit = float(np.median(everything.mucosa_offset))
+    model = sim._build_model(subject.mesh, "linear", "mucosa+lip", subject.segments,
+                             sim.SimulationOptions(max_mucosa_offset=limit))
+    assert model.far_mucosa.size > 0.3 * everything.mucosa.size
+    np.testing.assert_allclose(model.offset, model._offsets(model.mucosa)[0], atol=1e-12)
+    assert np.all(model.offset <= limit)
+    t, s = model.bc.types, model.bc.segment
+    mid, a, b = tet10_mid_edges(subject.mesh.cells["tet10"])
+    bound = np.isin(t[mid], (NodeType.FIXED, NodeType.MOVING, NodeType.MUCOSA_SLIDING))
+    assert np.all(~bound | ((t[a] == t[mid]) & (t[b] == t[mid]) & (s[a] == s[mid]) & (s[b] == s[mid])))

@@ -408,18 +408,19 @@ class _Model:
     def __post_init__(self):
         self.quality0 = element_quality(self.mesh, self.mesh.points)
         self.rims = {name: rim_edges(surf.cells["tri3"]) for name, surf in self.surfaces.items()}
+        # every node freed node by node (release bands, the cut, far mucosa) frees the middle of its edges
+        self.bc = self.bc.with_mid_edges_of_corners(self.mesh)
         mucosa = self.bc.nodes(NodeType.MUCOSA_SLIDING)
         offset, side = self._offsets(mucosa)
         far = offset > self.options.max_mucosa_offset
         self.mucosa_offset, self.far_mucosa = offset, mucosa[far]
         if far.any():
-            self.bc = self.bc.with_freed(self.far_mucosa)
-        # every node freed node by node (release bands, the cut, far mucosa) frees the middle of its edges
-        self.bc = self.bc.with_mid_edges_of_corners(self.mesh)
-        self.offset, self.side = offset[~far], side[~far]
+            self.bc = self.bc.with_freed(self.far_mucosa).with_mid_edges_of_corners(self.mesh)
         self.moving = self.bc.nodes(NodeType.MOVING)
         self.fixed = self.bc.nodes(NodeType.FIXED)
         self.mucosa = self.bc.nodes(NodeType.MUCOSA_SLIDING)
+        sliding = np.isin(mucosa, self.mucosa)  # the offsets of the nodes still sliding, in their order
+        self.offset, self.side = offset[sliding], side[sliding]
         self.edge_followers = _edge_followers(self.mesh, self.mucosa)
         # what regulation may move: free nodes off the skin (the prediction) and off the lip pairs,
         # and mucosa nodes along their bone (they are put back on it exactly afterwards)
@@ -950,7 +951,7 @@ def _build_model(face, material, sliding, segments, options: SimulationOptions,
     mesh, segments = face_mesh_and_segments(face, segments)
     bc, bc_all = boundary_conditions(mesh, segments, sliding, options)
     if freed is not None:
-        bc = bc.with_freed(freed)
+        bc = bc.with_freed(freed).with_mid_edges_of_corners(mesh)
     materials = material_assignment(material, mesh)
     surfaces = {name: segments[name].surface for name in bc.segment_names}
     return _Model(mesh, materials, bc, bc_all, surfaces, options, total_lagrangian=not materials.is_linear)
