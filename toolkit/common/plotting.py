@@ -4,7 +4,7 @@ Rendering works on a headless machine and in CI: VTK is pointed at its EGL
 (Mesa) render window when there is no X display (see
 :func:`toolkit.common.runtime.configure_headless_rendering`); the Debian packages
 ``libegl1`` and ``libgl1-mesa-dri`` provide it (``.ci/run`` installs them when
-missing). On a 2-core AMD EPYC: ~0.5 s a frame.
+missing).
 
 Matplotlib figures are built with :class:`matplotlib.figure.Figure` (no pyplot
 state, no GUI backend), so they work headless and display in Jupyter.

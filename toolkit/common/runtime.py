@@ -79,8 +79,8 @@ def set_threads(n: int | None = None) -> int:
 def configure_headless_rendering() -> None:
     """Make VTK render off-screen through EGL (Mesa) when no X display exists.
 
-    Must run before pyvista/vtk create their first render window. On a 2-core AMD EPYC
-    without a display: 0.55 s a frame, no warning. Respects a user's own
+    Must run before pyvista/vtk create their first render window. Without a display VTK then
+    renders off-screen with no warning. Respects a user's own
     ``VTK_DEFAULT_OPENGL_WINDOW``.
     """
     if not os.environ.get("DISPLAY"):

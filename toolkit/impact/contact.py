@@ -572,9 +572,8 @@ class SurfaceContact(_PenaltyContact):
     Search: a cheap rejection first, keeping only slaves inside the master's current bounding box
     inflated by ``margin`` (default: the largest search depth ``search_fraction * max h``, so an
     open master surface still finds slaves behind it); nothing else is computed when none are.
-    Otherwise a cKDTree of the current triangle centroids is rebuilt at every call (O(m log m),
-    about a millisecond for a few thousand triangles) and queried for the candidates only, so the
-    search never lags the deformation.
+    Otherwise a cKDTree of the current triangle centroids is rebuilt at every call (O(m log m))
+    and queried for the candidates only, so the search never lags the deformation.
 
     Parameters
     ----------

@@ -25,8 +25,8 @@ axes, exact whatever the step size.
 Two implementations of the same update: :meth:`J2Plasticity.update_numpy` (batched numpy and
 LAPACK ``eigh``, the readable reference) and the compiled per-point kernel :func:`_j2_points`
 (numba; a cyclic Jacobi eigen-decomposition started from the previous step's principal
-directions), which :meth:`J2Plasticity.update` runs when numba is installed: ~0.4 us instead
-of ~2.5 us per point. The tests hold them equal to round-off.
+directions), which :meth:`J2Plasticity.update` runs when numba is installed: the faster of the
+two. The tests hold them equal to round-off.
 
 The impact paper's materials (:data:`PAPER_FACE`, :data:`PAPER_BALL`) read its yield tables,
 printed without units, as MPa. The face's initial yield stress (0.015 MPa) equals its Young's
@@ -572,7 +572,7 @@ class J2Plasticity(IsotropicModuli):
     """Isotropic Hencky elasticity with J2 plasticity and tabulated isotropic hardening.
 
     :meth:`update` runs a compiled per-point kernel (:func:`_j2_points`, a Jacobi
-    eigen-decomposition instead of LAPACK's batched ``eigh``; ~20x faster) when numba is
+    eigen-decomposition instead of LAPACK's batched ``eigh``; much faster) when numba is
     available, and the vectorized numpy reference (:meth:`update_numpy`) otherwise; the two
     agree to round-off (tested).
 
@@ -689,8 +689,8 @@ class J2Plasticity(IsotropicModuli):
         """The consistent tangent ``dP/dF (n, 3, 3, 3, 3)`` MPa at the points of ``update``
         (returned by :meth:`update`), without doing the update again: equal bit for bit to
         :meth:`tangent`'s at the same ``F`` and state. A Newton iteration has just updated the
-        material to judge its residual: on the paper impact face this saves an update (~17 ms
-        of the tangent's ~43 ms). Needs the compiled update's ``return_mapping`` (else
+        material to judge its residual: this saves the update that :meth:`tangent` would do
+        again. Needs the compiled update's ``return_mapping`` (else
         ValueError: call :meth:`tangent`)."""
         if update.return_mapping is None:
             raise ValueError("this update holds no return_mapping (numpy update); call J2Plasticity.tangent(F, state)")

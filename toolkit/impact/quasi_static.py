@@ -2,10 +2,10 @@
 
 Why: the impact paper's ball moves at 20-50 mm/s, about 1 % of the tissue's shear-wave speed
 (~2,200 mm/s), so the face is in equilibrium with the ball at every instant and inertia is
-negligible (the explicit runs measure kinetic energy at ~2 % of the internal energy even with
-10x mass scaling). Explicit central differences must still resolve the stress waves (~20,000
-stable steps for tet10 at nu = 0.49); a quasi-static solve takes as few load steps as the
-nonlinearity allows.
+negligible (the explicit runs of ``benchmarks/impact_ladder.py`` measure the kinetic energy, even
+with mass scaling, as a small share of the internal energy). Explicit central differences must
+still resolve the stress waves (many stable steps for tet10 at nu = 0.49, which the ladder
+counts); a quasi-static solve takes as few load steps as the nonlinearity allows.
 
 Each load step ``t -> t + h``:
 
@@ -23,9 +23,9 @@ Each load step ``t -> t + h``:
    preconditioned by the factorization of a tangent a few iterations old whose contact part is
    brought up to date exactly (the contact tangent is the solver's ``local`` term:
    :mod:`toolkit.common.fem.woodbury`). The consistent tangent keeps Newton fast
-   once the skin slides under the ball (coarse face, deformable ball, 1.8 s: 67
-   iterations in 37 steps; the symmetric secant ``k_t |t| / |t_trial| (I - n n^T)`` takes 199 in
-   38). The iteration is the shared
+   once the skin slides under the ball (on the coarse face with the deformable ball it needs
+   far fewer iterations than the symmetric secant ``k_t |t| / |t_trial| (I - n n^T)``). The
+   iteration is the shared
    :func:`toolkit.common.fem.newton.newton` with the
    :class:`~toolkit.common.fem.newton.SecantOnDirection` line search (the step along the
    correction where ``r . dx`` vanishes, which stops a correction where a contact engages).
@@ -40,8 +40,8 @@ Each load step ``t -> t + h``:
    relative force test. It looks at a solved correction, not at the residual over the tangent's
    diagonal: a stiff ball translating before contact has a large diagonal, so a residual of
    1e-3 N passes that cheaper test while its net force, times the ball's travel, books
-   spurious external work (82 % energy balance error in the first frame of a 0.3 s coarse run,
-   0.7 % with the solved test).
+   spurious external work (a large energy balance error in the first frame of a coarse run,
+   where the solved test leaves a small one).
 4. **Adaptive steps**: a step that does not converge in ``max_iterations``, inverts an element
    or breaks the material update is cut in half; one that converges in at most
    ``easy_iterations`` lets the next grow by ``growth`` up to the initial step. Steps end
@@ -108,8 +108,8 @@ LINE_SEARCHES = {"secant": SecantOnDirection, "residual": ResidualDecrease}
 
 @dataclass(frozen=True)
 class QuasiStaticOptions:
-    """Load stepping and Newton controls of :func:`run_quasistatic`. Figures: the paper face
-    with the deformable ball, 1.8 s at 30 mm/s, one core of a 2-core AMD EPYC.
+    """Load stepping and Newton controls of :func:`run_quasistatic`. The defaults' reasons are
+    measured on the paper face with the deformable ball, 1.8 s at 30 mm/s (docs/solvers.md).
 
     Attributes
     ----------
@@ -127,18 +127,18 @@ class QuasiStaticOptions:
         :data:`~toolkit.common.fem.solvers.REUSED_DIRECT_MAX_ENTRIES` (the paper face included),
         with MKL PARDISO where the ``pardiso`` extra is installed, else SuperLU
     linear_tolerance : relative residual of the Krylov solves (an inexact Newton); default 1e-3:
-        GMRES leaves the soft modes unsolved at 1e-2 (coarse face: 129 Newton iterations at 1e-2,
-        67 at 1e-3, 69 at 1e-6)
+        GMRES leaves the soft modes unsolved at 1e-2 (on the coarse face Newton then needs many
+        more iterations; a tighter tolerance saves none)
     linear_target : share of the Newton target left to a correction's linear solve, which stops at
         ``max(linear_tolerance, min(0.1, linear_target * tolerance * scale / |r|))`` (an
-        Eisenstat-Walker forcing term); 0: always ``linear_tolerance``; default 0.1: 481 GMRES
-        iterations against 620 at 0
+        Eisenstat-Walker forcing term); 0: always ``linear_tolerance``; default 0.1: fewer GMRES
+        iterations than 0
     line_search : ``"secant"`` (:class:`~toolkit.common.fem.newton.SecantOnDirection`, the zero of
         ``r . dx`` along the correction; default) or ``"residual"``
         (:class:`~toolkit.common.fem.newton.ResidualDecrease`), which cycles at the paper face's
         first touch
     single_precision_factor : float32 factors, used as the Krylov solver's preconditioner
-        (``LinearSolver``'s ``single_precision``); default True: half the factorization time, the
+        (``LinearSolver``'s ``single_precision``); default True: less factorization time, the
         same Newton iterations
     factorize_ahead : factorize the tangent on a worker thread and precondition with it this many
         Newton iterations later (``LinearSolver``'s ``factorize_ahead``; 0: only when a reuse
@@ -147,14 +147,13 @@ class QuasiStaticOptions:
         Krylov iterations (its factor is still nearly exact); default 2
     stick_on_reversal : a slave whose slip direction reversed since the previous correction is
         linearized on the Coulomb law's stick piece (:meth:`StepContact.linearize`); default True:
-        84 Newton iterations against 145
+        fewer Newton iterations
     symmetric_factor : factorize the symmetric part of each tangent by PARDISO's LDL^T, friction's
         skew part taken by the Woodbury correction (``LinearSolver``'s ``symmetric_factor``);
-        default True: refactorization 0.39 s against 0.77-0.88 s for LU
+        default True: a faster refactorization than LU's
     correction_threshold : the contact correction leaves dofs whose change is below this fraction
         of the largest to GMRES (:class:`~toolkit.common.fem.woodbury.LocalCorrection`'s
         ``threshold``); default 0.01: fewer GMRES iterations than 0.05 with the symmetric factor
-        (477 against 643)
     """
 
     steps: int = 36
@@ -279,9 +278,9 @@ class StepContact:
         sees a friction force that is a step function of its position. The slipping tangent
         has no stiffness along the slip, so each correction throws the slave across the band to
         where the soft tissue alone balances the Coulomb limit, the direction reverses and the
-        next correction throws it back: a slowly damped two-cycle (paper face, deformable ball,
-        t = 0.8 s: 10 Newton iterations for one skin node, the residual falling by 15 % per
-        iteration). The stick piece's model lands it inside the band, where it either sticks
+        next correction throws it back: a slowly damped two-cycle (on the paper face with the
+        deformable ball, Newton iterations spent on one skin node, the residual falling little
+        per iteration). The stick piece's model lands it inside the band, where it either sticks
         or slips on consistently."""
         held = np.linalg.norm(state.tangential_force, axis=1)
         directions = np.where(state.slipping[:, None], state.tangential_force, 0.0) \

@@ -91,12 +91,13 @@ class FaceSpec:
 
     - ``"band"`` (the impact paper): only node set ``fixed_set`` (the lower band) is fixed. The face is
       then a free flap: the ball turns it about the band almost rigidly, and the tissue never
-      yields (its first yield, 0.015 MPa = E, needs a Hencky equivalent strain of ~1; the flap
-      reaches ~0.4 at the band, 0.0058 MPa at 30 mm/s on the paper face).
+      yields (its first yield, 0.015 MPa = E, needs a Hencky equivalent strain of ~1, far beyond
+      what the flap reaches at the band).
     - ``"skull"``: the bone-side surface (node set ``bone``) is fixed too, as the skull and
       teeth hold the soft tissue. The ball then crushes the 17-21 mm of tissue in front of the
-      maxilla; it yields once the ball has travelled ~12-13 mm past the first touch and the
-      ball's path meets the skull after ~21 mm (see :func:`yielding_scene`). A scene whose
+      maxilla; it yields once the ball has travelled part of that past the first touch
+      (docs/impact.md, "A scene that yields") and the ball's path meets the skull after ~21 mm
+      (see :func:`yielding_scene`). A scene whose
       ball would travel farther than the tissue allows is refused before it runs
       (:func:`toolkit.impact.simulate.check_travel`).
     """
@@ -143,8 +144,8 @@ class BallSpec:
         most anterior skin point (the nose tip of the phantom)
     target_offset : (3,) mm added to the target. The default aims 30 mm above the nose tip: a
         110 mm ball is twice as tall as the phantom, so aimed at the nose it sweeps the fixed
-        chin band after ~58 mm of travel and crushes tissue against it (elements invert at
-        ~53 mm with the band at 10%); 30 mm higher its path never meets the fixed nodes, so
+        chin band after ~58 mm of travel and crushes tissue against it until elements invert;
+        30 mm higher its path never meets the fixed nodes, so
         the impact paper's fastest ball (50 mm/s x 1.8 s = 90 mm) can run, and it first touches the
         upper nose. :func:`toolkit.impact.simulate.build_model` warns
         (:class:`~toolkit.impact.simulate.SceneGeometryWarning`) when a path reaches fixed nodes.
@@ -465,8 +466,8 @@ def yielding_scene(velocity: float = 50.0) -> Scene:
     the infraorbital region first). The soft tissue in front of the bone is only ~21 mm thick
     along the ball's path, so a skull-held face cannot follow the impact paper's 1.8 s (36-90 mm of
     travel); 0.36 s keeps the impact paper's fastest ball (50 mm/s, 18 mm) clear of the skull. The tissue
-    yields after ~12-13 mm of travel, so over 0.36 s the balls from ~35 mm/s up yield and the
-    slower ones stay elastic: the database holds both regimes.
+    yields after part of that travel (docs/impact.md, "A scene that yields"), so over 0.36 s the
+    faster balls yield and the slower ones stay elastic: the database holds both regimes.
     """
     scene = Scene(duration=YIELDING_DURATION, n_frames=36).with_ball(velocity=velocity)
     return scene.with_face(support="skull")
@@ -482,8 +483,9 @@ def meshed_scene(mesh: str | os.PathLike, units: str = "mm", velocity: float = p
     Why the bones and not the mesh's ``fixed`` set: a meshed face has no lower band, and its
     ``fixed`` set (the truncation cuts) reaches the skin at the top front edge, in the path of a
     110 mm ball at any height: on the coarse meshed phantom the ball aimed by default meets it
-    after 0.5 mm of travel, and held by its bones the path meets the bone after 21.2 mm, as on the
-    skull-held phantom (:func:`toolkit.impact.simulate.check_travel` keeps 19.1 mm of it).
+    almost at once, while held by its bones the path meets the bone after about as much travel as
+    on the skull-held phantom (:func:`toolkit.impact.simulate.check_travel` keeps the ball short of
+    it).
     """
     scene = yielding_scene(velocity).with_face(mesh=str(mesh), units=units, axes=axes, fixed_set="bone")
     order = mesh_order(mesh, units)

@@ -130,9 +130,9 @@ def _path_clearance(scene: Scene, fixed_points: np.ndarray, centre0: np.ndarray)
 
 
 #: share of the tissue between the ball's first touch and the skull that stays between them at the
-#: longest travel :func:`travel_limit` allows. On the coarse skull-held face the ball's path meets the
-#: bone after 21.2 mm and a 50 mm/s ball inverts an element after 26.6 mm (explicit, tet4, mass
-#: scaling 100); a tenth of the 20.7 mm of tissue keeps the limit (19.1 mm) short of both.
+#: longest travel :func:`travel_limit` allows. On the coarse skull-held face a tenth keeps the limit
+#: short both of where the ball's path meets the bone and of where a 50 mm/s ball inverts an
+#: element (explicit, tet4, mass scaling 100).
 COMPRESSED_TISSUE_FRACTION = 0.1
 
 

@@ -18,8 +18,7 @@ Configurations (:data:`CONFIGS`):
 - ``strong`` (the default of :func:`train_surrogate`): one multi-output LSTM with the ``ball``
   inputs and an MSE loss, chosen by measurement (``benchmarks/impact_surrogate.py --sweep``;
   README), its learning rate decayed on a cosine over the training budget (paper database,
-  random split: displacement RMSE 0.024 mm after 14 min, against 0.027 mm after 12 min at a
-  constant rate);
+  random split: a lower displacement RMSE than at a constant rate, in a similar training time);
 - ``baseline``: a multilayer perceptron applied to each frame independently (no
   recurrence), with the same inputs and loss as ``strong``.
 

@@ -3,7 +3,7 @@
 Elements: ``a V / s^3 + b A / s^2`` for a closed tissue surface of volume ``V`` mm^3 and area
 ``A`` mm^2 at edge length ``s`` mm, the bulk and the boundary layer of a face (a shell ~10-20 mm
 thick, so the boundary term matters). ``a``, ``b`` are fitted to fTetWild's meshes of the paper
-phantom's surfaces at 7, 5, 4 and 3 mm (7,781-60,120 elements; the fit is within 17 % of each,
+phantom's surfaces at 7, 5, 4 and 3 mm (their element counts, against which the fit is checked:
 ``benchmarks/mesh_convergence.py``). fTetWild keeps the input surface's triangles, so a surface
 finer than ``s`` (a CT's voxel-sized triangles) gives more elements than this.
 
@@ -11,10 +11,10 @@ Memory, the larger of two stages:
 
 - the simulation of a plan on the tet10 face: :data:`SIMULATION_BASE_GIB` plus
   :data:`SIMULATION_GIB_PER_ELEMENT` per element (a line through the peak resident memory of the
-  default plan at those four sizes: 0.7-2.7 GiB); a tet4 face needs less, and is given the same
-  figure as a bound;
-- the mesher: :data:`MESHER_KIB_PER_ELEMENT` per final element (fTetWild at 0.5 mm on the paper
-  phantom's surfaces, about 10 million elements, held 18 GB when it was killed).
+  default plan at those four sizes, ``benchmarks/mesh_convergence.py``); a tet4 face needs less,
+  and is given the same figure as a bound;
+- the mesher: :data:`MESHER_KIB_PER_ELEMENT` per final element (set from fTetWild's memory at
+  0.5 mm on the paper phantom's surfaces, a mesh of millions of elements).
 """
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ __all__ = ["SizeEstimate", "estimate_size", "available_memory_gib", "finest_fitt
 
 #: elements per ``V / s^3`` and per ``A / s^2`` (fitted, see the module)
 BULK, BOUNDARY = 6.69, 4.57
-#: nodes per element: tet10 1.50 (3 mm) to 1.77 (7 mm) on the paper phantom, 1.57 on the head CT; tet4 0.23
+#: nodes per element (tet4, tet10): within the range of the paper phantom's meshes at 3-7 mm and the
+#: head CT's (``benchmarks/mesh_convergence.py``, ``benchmarks/real_ct.py``)
 NODES_PER_ELEMENT = {1: 0.23, 2: 1.6}
 SIMULATION_BASE_GIB = 0.38
 SIMULATION_GIB_PER_ELEMENT = 3.8e-5

@@ -301,8 +301,8 @@ def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = MESH
         (:class:`~toolkit.common.meshes.axes.AxesError`, naming the ``axes`` that fits) before meshing
     max_hole_edges : holes of the tissue surface bounded by up to this many edges are closed
     threads : threads the mesher may use (fTetWild). fTetWild's mesh differs from run to run even
-        on one thread (the coarse phantom at 10 mm: 4,193-4,558 tet10 nodes in four runs); keep the
-        written mesh, not the command, as the record of a patient's model
+        on one thread (its node count among them); keep the written mesh, not the command, as the
+        record of a patient's model
     memory_gib : the memory meshing and then simulating a plan may take, GiB (default: what the
         system has available now). Before meshing, the size's elements, nodes and memory are
         estimated from the tissue's volume and area (:mod:`toolkit.mesh.budget`; in ``report``

@@ -108,7 +108,8 @@ class MotionRange:
 #: Validation (:meth:`SurgicalPlan.validate`) checks the upper bounds; :func:`sample_plans`
 #: draws uniformly between the bounds. The proximal segments have no stated range: they
 #: rotate about their condyle to follow the distal one, which at the edge of the distal
-#: range takes up to ~20 degrees (400 sampled plans), so their bound is twice the distal angle.
+#: range takes more than the distal angle but less than twice it in sampled plans, so their
+#: bound is twice the distal angle.
 PHYSIOLOGICAL_RANGES: Mapping[str, MotionRange] = MappingProxyType(
     {"lefort": MotionRange(papers.LEFORT_TRANSLATION_MM, papers.LEFORT_ROTATION_DEG),
      "distal": MotionRange(papers.DISTAL_TRANSLATION_MM, papers.DISTAL_ROTATION_DEG),
@@ -778,9 +779,9 @@ def sample_plans(n: int, seed: int | np.random.Generator, mode: str = "sagittal"
     proximal segments follow the distal one about their condyles.
 
     The two movements are drawn independently, so some pairs would drive the mandibular
-    teeth through the maxillary ones (up to ~24 mm at the edges of the ranges). A plan
-    whose :func:`jaw_closing` exceeds ``max_jaw_closing_mm`` is drawn again (rejection;
-    about a fifth of the sagittal draws at 10 mm); ``None`` keeps every draw.
+    teeth through the maxillary ones (by more than a crown's height at the edges of the
+    ranges). A plan whose :func:`jaw_closing` exceeds ``max_jaw_closing_mm`` is drawn again
+    (rejection); ``None`` keeps every draw.
 
     Parameters
     ----------

@@ -19,9 +19,9 @@ back-substitution per lip pair, once), so an increment costs one back-substituti
 dense solve per active-set iteration.
 
 The baseline of :mod:`toolkit.static.trust` adds a regression of what this response misses. On
-one increment of the coarse phantom the response alone is four times more accurate than the
-influence matrix (:class:`~toolkit.static.baselines.InfluenceMatrix`, mucosa and lips free), and
-with the regression twice as accurate as the influence matrix with it (``docs/surrogates.md``).
+one increment of the coarse phantom the response alone is more accurate than the influence
+matrix (:class:`~toolkit.static.baselines.InfluenceMatrix`, mucosa and lips free), and with the
+regression more accurate than the influence matrix with it (``docs/surrogates.md``).
 """
 
 from __future__ import annotations

@@ -111,9 +111,9 @@ class SurrogateConfig:
     """How a surrogate is built and trained.
 
     The default is the most accurate configuration measured (``benchmarks/static_surrogate.py``:
-    hard boundary values with the linear prior, 0.48 mm mean nodal error on the held-out plans of
-    the coarse 30-plan benchmark against 1.13 mm for the PointNet++ paper's explicit inputs);
-    ``features="paper"`` trains the PointNet++ paper's inputs.
+    hard boundary values with the linear prior, a lower mean nodal error on the held-out plans
+    than the PointNet++ paper's explicit inputs); ``features="paper"`` trains the PointNet++
+    paper's inputs.
 
     Attributes
     ----------

@@ -34,7 +34,7 @@ calibration plans, is within :data:`AUTO_BOUND_SLACK` of the narrowest. The boun
 belongs to the answer given. ``network``, ``baseline`` and a named scale restrict the choice.
 Either choice is made on the calibration plans themselves, so the coverage of the chosen pair is
 that of the best of (at most) four calibrated bounds, slightly optimistic for few plans. On the
-paper phantom subjects, at 0.5 mm and above the baseline with the constant scale answers
+paper phantom subjects the baseline with the constant scale answers at the looser tolerances
 (``benchmarks/surrogate_trust.py``); the network is then not run at all.
 
 The calibration is saved beside the model (``calibration.json`` and ``calibration.npz``).

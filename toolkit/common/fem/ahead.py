@@ -2,8 +2,8 @@
 older factor (SuperLU, PARDISO and CHOLMOD release the GIL, so the worker runs on a second core).
 
 A factor made on the worker is freed on the worker: scipy's SuperLU objects freed on another
-thread than the one that made them keep their memory (scipy issue #15921; a paper impact run
-grows to 13.4 GB otherwise)."""
+thread than the one that made them keep their memory (scipy issue #15921; otherwise a paper
+impact run's memory grows with every factor it frees)."""
 
 from __future__ import annotations
 
@@ -86,9 +86,9 @@ class FactorizeAhead:
     def spare_alongside(self, A: sp.csr_matrix, symmetric: bool, near_nullspace) -> None:
         """At the first PARDISO factorization of a solver that factorizes ahead: the worker, idle
         until then, factorizes the same system beside the foreground and keeps it as the spare
-        that the first factor made ahead refactorizes (paper impact face: 0.75 s instead of
-        1.25 s with the analysis, where the worker is furthest behind the solves). Either factor
-        is the same, whichever thread finishes first."""
+        that the first factor made ahead refactorizes (a refactorization skips the symbolic
+        analysis, and this is where the worker is furthest behind the solves). Either factor is
+        the same, whichever thread finishes first."""
         if self._worker is not None or self.maker.kind(A) != "pardiso":
             return
         if self.maker.options.ordering == "nd":

@@ -1,14 +1,13 @@
 """The geometric coarse space of a quadratic mesh: its corner nodes' linear field (p-multigrid).
 
-Smoothed aggregation (pyamg) converges slowly on quadratic tetrahedra: on a ``toolkit mesh``
-face of 24k tet10 nodes (nu = 0.47) conjugate gradients need 53 iterations to 1e-9, on one of
-90k nodes 72, against about 25 on the phantom's trilinear hexahedra. The coarse space that suits
+Smoothed aggregation (pyamg) converges slowly on quadratic tetrahedra: on a tet10 ``toolkit
+mesh`` face (nu = 0.47) conjugate gradients need many more iterations than on the phantom's
+trilinear hexahedra, and more as the mesh is refined. The coarse space that suits
 them is the linear element on their corner nodes: a mid-edge node takes the mean of its edge's
 two corners, which reproduces every linear field, the rigid-body modes among them. With this
 interpolation as the first coarsening and smoothed aggregation on the corner-node system from
-there, CG needs 25 and 37 iterations (``benchmarks/static_solvers.py``, rows ``meshed-5mm`` and
-``meshed-3mm``); alone on one core of a 2-core Intel Xeon, one solve of the 24k-node face took
-2.1 s against 7.8 s.
+there, CG needs fewer iterations and less time per solve (``benchmarks/static_solvers.py``, rows
+``meshed-5mm`` and ``meshed-3mm``).
 
 :func:`corner_interpolation` builds the interpolation once per mesh; :func:`reduced_coarse_space`
 carries it into the reduced variables of a set of constraints (``u = T v + u0``) for

@@ -1,18 +1,17 @@
 """Factor backends: SuperLU on METIS nested dissection, MKL PARDISO, CHOLMOD where installed, and
 pyamg's smoothed aggregation, each behind :func:`factorize`.
 
-Which one (:func:`choose_method`; figures from ``benchmarks/static_solvers.py``, one core of a
-2-core AMD EPYC):
+Which one (:func:`choose_method`; the time and memory of each are measured by
+``benchmarks/static_solvers.py``, its table in docs/solvers.md):
 
 - ``"superlu"``: scipy's direct solver in symmetric mode (diagonal pivots), on METIS's
   nested-dissection ordering of ``A + A^T`` (:func:`superlu`; SuperLU's own minimum degree
   as ``ordering="mmd"``); installs everywhere; fast while the factor stays small (the thin
-  phantom shell up to ~10^4 dofs; a bulky 26k-dof tet block: 1.3 s and 560 MiB, against
-  6.7 s and 1.0 GiB with minimum degree), hopeless when it does not (the fine phantom with
-  minimum degree: > 3 min, > 5 GB).
+  phantom shell; a bulky tet block, in less time and memory than with minimum degree),
+  hopeless when it does not (the fine phantom with minimum degree).
 - ``"pardiso"``: Intel MKL PARDISO (:mod:`toolkit.common.fem.pardiso`; the ``pardiso``
-  extra) on the same ordering: on the paper impact face (float32) factorization 1.1 s and
-  back-solve 0.021 s against SuperLU's 1.7 s and 0.030 s. ``auto`` takes it where a caller
+  extra) on the same ordering: on the paper impact face (float32) it factorizes and
+  back-solves faster than SuperLU. ``auto`` takes it where a caller
   asks for it (``direct="pardiso"``, the quasi-static impact path) and MKL is installed.
 - ``"amg"``: pyamg smoothed aggregation (rigid-body near-nullspace), a preconditioner for
   conjugate gradients.
@@ -39,15 +38,14 @@ __all__ = ["Factor", "Refactorizable", "SolverError", "SuperLUFactor", "CholmodF
            "amg_hierarchy", "choose_method", "METHODS", "DIRECT", "AUTO_DIRECT_MAX_ENTRIES",
            "REUSED_DIRECT_MAX_ENTRIES"]
 
-#: entries of the factor below which ``auto`` factorizes (SuperLU): ~30 M entries ~ 0.5 GB,
-#: a few seconds; the paper phantom is ~4 M, the fine phantom ~2 G, a 26k-dof bulky tet mesh
-#: ~40 M (``benchmarks/static_solvers.py``)
+#: entries of the factor below which ``auto`` factorizes (SuperLU): ~30 M entries ~ 0.5 GB; the
+#: paper phantom's factor lies below it, the fine phantom's and a bulky tet mesh's above (their
+#: estimates: ``benchmarks/static_solvers.py``)
 AUTO_DIRECT_MAX_ENTRIES = 30_000_000
 #: the same limit for a solver that reuses its factorization over many systems (the quasi-static
-#: impact path's Newton iterations): on the paper face with the deformable ball (54k dofs,
-#: estimate 64 M, SuperLU L+U 58 M entries, 1.9 GB, 15 s) one factorization reused as a CG
-#: preconditioner runs a 2-step probe in 55 s against 176 s for AMG-CG, whose hierarchy the
-#: contact springs spoil (12 set-ups in 14 solves, 8.6 s per solve)
+#: impact path's Newton iterations), which the paper face with the deformable ball stays below:
+#: there one factorization reused as a CG preconditioner is faster than AMG-CG, whose hierarchy
+#: the contact springs spoil (it is set up again at most solves; docs/solvers.md)
 REUSED_DIRECT_MAX_ENTRIES = 150_000_000
 METHODS = ("auto", "superlu", "pardiso", "amg", "cholmod")
 #: the direct solvers ``auto`` may choose
@@ -88,13 +86,13 @@ class Refactorizable(Factor, Protocol):
 class SuperLUFactor:
     """SuperLU factorization of an SPD ``A`` (m, m), or one with a dominant SPD part.
 
-    Symmetric mode with diagonal pivots (4x faster than partial pivoting on the paper impact
+    Symmetric mode with diagonal pivots (faster than partial pivoting on the paper impact
     face, same fill). ``ordering``: ``"nd"``, METIS nested dissection
     (:func:`~toolkit.common.fem.ordering.fill_reducing_order`); ``"mmd"``, SuperLU's minimum
     degree on ``A + A^T``; or a permutation ``(m,)`` computed earlier (for a matrix of the same
-    pattern, or nearly). Paper impact face with the deformable ball (54k dofs, float32): L+U 39 M
-    entries with ``"nd"`` against 58 M with ``"mmd"``, factorization 1.3 s against 2.9 s (ordering
-    included), back-solve 0.029 s against 0.036 s. ``single``: factorize ``A`` in float32, an
+    pattern, or nearly). On the paper impact face with the deformable ball ``"nd"`` gives fewer
+    L+U entries than ``"mmd"``, and a faster factorization (ordering included) and back-solve.
+    ``single``: factorize ``A`` in float32, an
     approximate inverse (half the memory traffic of a back-solve); otherwise in ``A``'s dtype.
 
     Attributes
@@ -186,10 +184,9 @@ def amg_hierarchy(A: sp.spmatrix, near_nullspace: np.ndarray | None = None, coar
     nodes), or a function of no argument that makes it (or returns None: none): the first coarsening is its prolongation
     (Galerkin product), smoothed aggregation coarsens the corner-node system from there, and every
     level smooths by two forward Gauss-Seidel sweeps before the coarse correction and two backward
-    after it (a symmetric cycle; on a 90k-node tet10 face 31 iterations and 10.9 s against 34 and
-    13.3 s with one symmetric sweep each side). The coarsest level is solved by SuperLU (a
-    dense pseudo-inverse of a 1,650-dof coarsest level cost 2.8 s per hierarchy on a 24k-node
-    tet10 face)."""
+    after it (a symmetric cycle; on a tet10 face fewer iterations and less time than one
+    symmetric sweep each side). The coarsest level is solved by SuperLU, not by pyamg's dense
+    pseudo-inverse, whose cost grows with the cube of the coarsest level's size."""
     import pyamg
     from pyamg.multilevel import MultilevelSolver
     from pyamg.relaxation.smoothing import change_smoothers

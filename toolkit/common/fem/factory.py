@@ -121,8 +121,8 @@ class FactorMaker:
         """The nested-dissection ordering of ``A``'s size, computed for the first system of that
         size: it serves every later one, as they share the mesh's pattern (the increments of a
         static simulation, on one shared dict). Contact couplings added later cost little fill
-        (paper impact face: 41.7 M entries against 39.7 M with their own ordering), and ordering
-        each system would cost 0.2 s, most of it holding the GIL."""
+        against an ordering of their own, and ordering each system would cost time, most of it
+        holding the GIL."""
         perm = self._orderings.get(A.shape[0])
         if perm is None:
             perm = self._orderings[A.shape[0]] = fill_reducing_order(A)

@@ -3,8 +3,9 @@
 The phantom's orbicularis oris fibres run superior-inferior along the face's surface
 (``fibre_direction``, built with the grid). A meshed or hand-made face gets the same rule stated
 without a grid: each element's fibre is the superior axis (+z) projected onto the tangent plane of
-the nearest skin face. Over the coarse phantom's lip muscle this rule lies within 7 degrees of
-the phantom's own fibres at the median and 22 degrees at worst.
+the nearest skin face. Over the coarse phantom's lip muscle this rule stays close to the
+phantom's own fibres (``tests/common/test_fibres.py`` bounds the angle between them, at the
+median and at worst).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Optional compilation of the explicit solver's per-point and per-element loops with numba.
 
 An explicit step touches every integration point once, and the J2 update needs a 3x3
-eigen-decomposition there: numpy's batched ``eigh`` costs ~2 us per point, a compiled
-Jacobi sweep ~0.1 us. :data:`HAVE_NUMBA` says whether numba is importable; without it
+eigen-decomposition there: numpy's batched ``eigh`` costs many times what a compiled
+Jacobi sweep does per point. :data:`HAVE_NUMBA` says whether numba is importable; without it
 the numpy implementations (always kept as the readable reference) are used.
 ``TOOLKIT_JIT=0`` in the environment disables compilation (for debugging or comparison).
 

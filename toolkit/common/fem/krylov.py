@@ -28,7 +28,7 @@ def gmres(A, b, x0, M, rtol: float, maxiter: int, first: np.ndarray | None = Non
     residual ``|b - A x|`` over the Krylov space, so it stops when that residual is below
     ``rtol |b|``. (scipy's ``gmres`` preconditions on the left and judges the preconditioned
     residual, which a stale factorization makes a poor proxy: with one restart cycle it fails
-    61 of 93 reuses on the coarse impact face, which this one solves in 3 iterations each.)
+    most reuses on the coarse impact face, which this one solves in a few iterations each.)
     ``first``: ``M^-1 b`` when already known (``x0`` must then be None). Returns
     ``(x, iterations)``, ``x`` None after ``maxiter`` iterations."""
     if first is not None and x0 is not None:

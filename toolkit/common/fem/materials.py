@@ -120,7 +120,7 @@ class LinearMaterial(Protocol):
 
 def det_and_inverse_transpose(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``det F`` ``(...)`` and ``F^-T`` ``(..., 3, 3)`` of ``F (..., 3, 3)`` in closed form (the
-    cofactors over the determinant, a few times faster than ``np.linalg`` on many small
+    cofactors over the determinant, faster than ``np.linalg`` on many small
     matrices); ``F^-T`` is not finite where ``det F = 0``."""
     r0, r1, r2 = F[..., 0, :], F[..., 1, :], F[..., 2, :]
     cof = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=-2)  # rows of det * F^-T

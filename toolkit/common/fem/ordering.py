@@ -18,7 +18,7 @@ def fill_reducing_order(A: sp.spmatrix) -> np.ndarray:
 
     An ``A`` of ``3 k`` unknowns is taken as ``k`` nodes of 3 dofs (node-major, as every
     pattern of :mod:`toolkit.common.fem.assembly` is): the ordering of the node graph, each
-    node's dofs kept together, which is half the cost of ordering the dof graph for the same
+    node's dofs kept together, which costs less than ordering the dof graph for the same
     fill. (Another layout still gets a valid, only poorer, ordering.)
     """
 

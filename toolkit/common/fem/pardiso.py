@@ -2,12 +2,11 @@
 
 MKL comes from the ``mkl`` wheel (the ``pardiso`` extra: ``pip install
 "facial-biomech-toolkit[pardiso]"``); without it :func:`available` is False and ``auto``
-keeps SuperLU. Measured on the paper impact face's tangent with the deformable ball (54k
-dofs, unsymmetric with slipping friction, the METIS nested-dissection ordering of
-:func:`~toolkit.common.fem.ordering.fill_reducing_order`, 39.5 M factor entries), one core of a
-2-core AMD EPYC: float32 factorization 1.1 s (0.25 s of it the symbolic analysis), back-solve
-0.021 s; SuperLU on the same ordering: 1.7 s and 0.030 s. In float64: 1.9 s and 0.030 s.
-PARDISO's own METIS ordering gives the same fill here (39.9 M).
+keeps SuperLU. On the paper impact face's tangent with the deformable ball (unsymmetric with
+slipping friction, the METIS nested-dissection ordering of
+:func:`~toolkit.common.fem.ordering.fill_reducing_order`), PARDISO in float32 factorizes and
+back-solves faster than SuperLU on the same ordering. PARDISO's own METIS ordering gives about
+the same fill there.
 
 The library runs on MKL's sequential threading layer (chosen at the first factorization, only
 for MKL, which nothing else here loads: numpy and scipy use OpenBLAS), so it starts no OpenMP
@@ -105,14 +104,13 @@ class PardisoFactor:
     ordering : (m,) the fill-reducing permutation (new position ``k`` holds unknown
         ``ordering[k]``, as :func:`~toolkit.common.fem.ordering.fill_reducing_order` returns);
         None lets PARDISO run METIS itself (the same fill on the paper impact face)
-    single : factorize in float32: an approximate inverse for a Krylov preconditioner
-        (relative residual ~1e-3 on the paper impact face), half the time of float64
+    single : factorize in float32: an approximate inverse for a Krylov preconditioner, not a
+        solver on its own, in less time than float64
     symmetric : factorize the symmetric part ``S = (A + A^T) / 2`` by LDL^T (PARDISO's real
         symmetric indefinite type, 1x1 diagonal pivots with the same perturbation), and solve
-        ``S x = b``: ``A`` itself when it is symmetric. Half the work and the entries of LU:
-        the paper impact tangent (float32) refactorizes in 0.39 s against 0.77-0.88 s for LU,
-        21.5 M entries against 46.7 M; a back-solve reads L twice and so takes as long (16 ms
-        against 17 ms, 3.5 ms against 3.3 ms a column of 50). For an unsymmetric ``A`` the
+        ``S x = b``: ``A`` itself when it is symmetric. About half the work and the entries of
+        LU (the paper impact tangent's: docs/solvers.md); a back-solve reads L twice and so
+        takes about as long as LU's. For an unsymmetric ``A`` the
         factor is a preconditioner, whose skew part a caller corrects for
         (:mod:`toolkit.common.fem.woodbury` where that part is local, as friction's is).
 
@@ -175,10 +173,10 @@ class PardisoFactor:
     def refactorize(self, A: sp.spmatrix, droppable: sp.spmatrix | None = None,
                     max_left: int | None = None) -> sp.csr_matrix | None:
         """Factorize ``A`` in place of the matrix this factor holds, on its analysed pattern:
-        PARDISO's numerical phase only (paper impact face: 0.75 s against 1.0 s with the
-        analysis). Entries of ``A`` outside that pattern are left out of the factor when they
-        are entries of ``droppable`` (a term the caller corrects for) and at most ``max_left``
-        of them (default: any number); otherwise nothing changes and None is returned.
+        PARDISO's numerical phase only (no symbolic analysis). Entries of ``A`` outside that
+        pattern are left out of the factor when they are entries of ``droppable`` (a term the
+        caller corrects for) and at most ``max_left`` of them (default: any number); otherwise
+        nothing changes and None is returned.
         Returns the entries left out ``(m, m)`` CSR (empty when none): the factor is of ``A``
         minus them (of ``(A + A^T) / 2`` minus them for a :attr:`symmetric` factor, whose
         left-out entries come in both triangles). Never call it on a factor another thread
@@ -271,8 +269,8 @@ def symmetric_upper(A: sp.spmatrix) -> sp.csr_matrix:
     stays that of the matrices it refactorizes).
 
     Compiled for a structurally symmetric ``A`` (every FE tangent, contact couplings included):
-    ~27 ms on the paper impact tangent (4.2 M entries) against 390 ms with scipy's sparse
-    arithmetic, which a worker thread would spend holding the GIL. Any other pattern takes
+    much faster than scipy's sparse arithmetic, which a worker thread would spend holding the
+    GIL. Any other pattern takes
     that arithmetic."""
     A = _sorted_csr(A)
     if use_jit():

@@ -81,8 +81,8 @@ class SolverOptions:
         builds a hierarchy for every new matrix. A hierarchy costs a few CG iterations to build,
         and one made for another reduction of the same stiffness (a lip pair tied or released, the
         mucosa constrained) preconditions worse than a new one: on the phantom's surfaces meshed
-        at 3 mm (tet10, 255k dofs) a reused hierarchy took 17-28 CG iterations or gave up after
-        40 where a new one took 7-13 (``benchmarks/static_meshed_speed.py``)
+        at 3 mm (tet10) a reused hierarchy needs more CG iterations than a new one, or gives up
+        (``benchmarks/static_meshed_speed.py``)
     max_reuse_iterations : Krylov (CG or GMRES) iterations after which a reuse is abandoned for a
         new factorization; default 60
     reuse_rtol : relative residual of the Krylov solves on a reused direct factorization; default
@@ -94,10 +94,10 @@ class SolverOptions:
         (:data:`AUTO_DIRECT_MAX_ENTRIES`; :data:`REUSED_DIRECT_MAX_ENTRIES` where many systems
         share a factorization)
     single_precision : SuperLU or PARDISO factorize in float32 and the factor only preconditions
-        (every solve iterates to ``rtol``, later ones to ``reuse_rtol``): paper impact face with the
-        deformable ball (54k dofs, minimum-degree ordering), factorization 3.1 s against 5.6 s,
-        back-solve 0.035 s against 0.056 s; a float32 direct solve alone leaves a relative residual
-        of 3e-3 there. Other methods ignore it
+        (every solve iterates to ``rtol``, later ones to ``reuse_rtol``): on the paper impact face
+        with the deformable ball the float32 factorization and back-solve take less time than
+        float64's, and a float32 direct solve alone leaves too large a relative residual to serve
+        as the answer. Other methods ignore it
     ordering : SuperLU's fill-reducing ordering (:data:`ORDERINGS`); default ``nd``
     factorize_ahead : 0 factorizes only when a reuse fails. ``L > 0`` also factorizes a reused
         system on a worker thread (one at a time) and preconditions with that factor from the
@@ -118,8 +118,8 @@ class SolverOptions:
         (0: every dof the change touches); default 0.05
     max_left_out : a retired PARDISO factor is refactorized for a new system (no new analysis)
         when the entries it must leave out, all of the ``local`` term, number at most this
-        fraction of that term's entries; default 1 (paper impact run: 35 of 38 factors made ahead
-        are refactorizations, 0.85 s against 1.2 s each beside the solves)
+        fraction of that term's entries; default 1 (in a paper impact run most factors made ahead
+        are then refactorizations, each cheaper than a new factorization beside the solves)
     """
 
     method: str = "auto"

@@ -3,12 +3,12 @@ dofs and changes a lot (Sherman-Morrison-Woodbury): penalty contact in a Newton 
 
 The quasi-static impact path preconditions each Newton system with the factorization of a
 tangent a few iterations old (:class:`~toolkit.common.fem.solvers.LinearSolver` reuses it, and
-factorizes newer ones on a second thread). Penalty contact puts 5-9 N/mm on a few dozen
-dofs (paper face: 15 at first touch, 150 at the end, of 54k), a hundred times the tissue's
-stiffness there, and those entries change at every iteration (contact set, stick and slip).
-Measured on the paper face's Newton systems 30-45 with factors 2 and 3 systems old: 516 GMRES
-iterations to the linear tolerance with the factor as it is, 233 with a factor whose contact
-part is the current one, and 233 with this correction, which needs no new factorization.
+factorizes newer ones on a second thread). Penalty contact puts stiff springs on few of the
+paper face's dofs (docs/solvers.md), far stiffer than the tissue there, and those entries change
+at every iteration (contact set, stick and slip). On the paper face, with factors a few systems
+old, GMRES needs as few iterations to the linear tolerance with this correction as with a factor
+whose contact part is the current one, and far fewer than with the factor as it is; the
+correction needs no new factorization.
 
 With ``F`` the factor of ``A_F = K_F + C_F`` and the system ``A = K + C``, the preconditioner
 is the exact inverse of ``A_F + E_R D E_R^T``: ``D`` is ``C - C_F`` on the dofs ``R`` where it
@@ -17,10 +17,9 @@ columns), so only the material part ``K - K_F`` and the small contact changes st
 
     M^-1 r = y - W (I + D G)^-1 D y_R,   y = F^-1 r,   W = F^-1 E_R,   G = W_R
 
-Each column of ``W`` costs a back-solve (done in batches, ~5 ms a column on the paper face)
-and is kept for the factor's life, so a contact zone that moves little costs little. The
-threshold trades columns for Krylov iterations (paper run, factorizing 3 solves ahead: 0.02:
-900 iterations, 1,198 columns; 0.05: 976, 874; 0.1: 1,138, 786).
+Each column of ``W`` costs a back-solve (done in batches) and is kept for the factor's life,
+so a contact zone that moves little costs little. The threshold trades columns for Krylov
+iterations: a lower one makes more columns and fewer iterations.
 """
 
 from __future__ import annotations
@@ -68,7 +67,7 @@ class LocalCorrection:
                                  rhs: np.ndarray | None) -> tuple[Callable | None, np.ndarray | None]:
         """:meth:`preconditioner` and ``M^-1 rhs`` (``rhs`` (n,), a Krylov solve's first
         application), whose back-solve joins that of the new columns in one multi-right-hand-side
-        call (a column costs ~5 ms on the paper impact face, a lone back-solve ~22 ms). The second
+        call (a column in a batch costs a fraction of a lone back-solve). The second
         is None when ``rhs`` is, when nothing is corrected, or when no column is new."""
         delta = _difference(local, self.local, self.n)
         if delta.nnz == 0:

@@ -36,10 +36,9 @@ def off_bone(phantom: FacePhantom, median: float = 2.5, p90: float = 8.0, max_of
     phantom : a FacePhantom (hexahedral, tetrahedral or mixed: the mesh is not changed)
     median, p90 : mm, median and 90th percentile of the vertex offsets (log-normal); the
         mucosa nodes' distances to the moved surfaces are smaller (a node's closest point is on
-        the nearest of the neighbouring vertices' offsets): with the defaults the ``paper``
-        phantom's mucosa lies 2.3 mm (median), 3.4 mm (90th percentile) and at most 4.3 mm off
-        its bone, and a 5 mm mandibular advance inverts elements at the first increment when
-        the mucosa is projected onto the bone
+        the nearest of the neighbouring vertices' offsets; ``benchmarks/off_bone.py`` reports
+        them on the ``paper`` phantom), and with the defaults a 5 mm mandibular advance inverts
+        elements at the first increment when the mucosa is projected onto the bone
     max_offset : mm, the largest vertex offset
     seed : random seed or Generator of the offsets
 
