@@ -485,6 +485,50 @@ def test_a_write_that_fails_midway_leaves_no_result(tmp_path, monkeypatch, capsy
     assert sorted(p.name for p in out.iterdir()) == []
 
 
+def _limited_run(tmp_path, max_file_bytes: int, *argv: str) -> subprocess.CompletedProcess:
+    """``python -m toolkit ARGV`` in ``tmp_path`` whose writes beyond ``max_file_bytes`` per file
+    fail for real (``ulimit -f``: EFBIG from the kernel, as a full disk gives ENOSPC)."""
+    import resource
+    import signal
+
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails instead of killing the process
+        resource.setrlimit(resource.RLIMIT_FSIZE, (max_file_bytes, max_file_bytes))
+
+    return subprocess.run([sys.executable, "-m", "toolkit", *argv], cwd=tmp_path, preexec_fn=limit,
+                          capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX file-size limits")
+def test_a_real_write_that_fails_is_one_error_line_and_leaves_no_result(tmp_path):
+    """A kernel-refused write (no mock): the increments' HDF5 file cannot grow past 100 kB. HDF5
+    reports such a failure late and then crashes; the room is checked first, so the command
+    prints one ``error:`` line naming the file, exits 2, and its folder holds nothing."""
+    done = _limited_run(tmp_path, 100_000, "static", "simulate", "--resolution", "coarse", "--no-preview",
+                        "--out", "run")
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("error: ") == 1 and "Traceback" not in done.stderr, done.stderr
+    assert "increments.h5: File too large" in done.stderr and "(ulimit -f)" in done.stderr
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == []
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX file-size limits")
+def test_a_database_whose_merge_cannot_be_written_keeps_every_simulation(tmp_path):
+    """Each simulation's shard fits and is kept; the merged database cannot be written: one
+    ``error:`` line naming it, exit 2, and the same command without the limit merges the six
+    simulations without running them again."""
+    argv = ("static", "database", "--resolution", "coarse", "--plans", "6", "--workers", "0", "--out", "db.h5")
+    done = _limited_run(tmp_path, 400_000, *argv)
+    assert done.returncode == 2, done.stderr
+    errors = [line for line in done.stderr.splitlines() if "error: " in line]
+    assert len(errors) == 1 and errors[0].startswith("error: db.h5: File too large"), done.stderr
+    assert "Traceback" not in done.stderr
+    assert len(list((tmp_path / "db.h5.shards").glob("*.h5"))) == 6
+    again = subprocess.run([sys.executable, "-m", "toolkit", *argv], cwd=tmp_path, capture_output=True, text=True,
+                           timeout=300)
+    assert again.returncode == 0 and "0 simulations done, 6 already there" in again.stdout, again.stderr
+
+
 @pytest.mark.parametrize("argv, option", [
     (["static", "database", "--plans", "0", "--out", "db.h5"], "--plans"),
     (["impact", "simulate", "--velocity", "-30", "--out", "o"], "--velocity"),

@@ -22,8 +22,10 @@ and what was expected.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
+import shutil
 import tempfile
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -446,6 +448,7 @@ class TimeSeriesWriter:
                     if int(key) >= n_done:
                         del group[key]
         else:
+            ensure_room(self.h5_path, mesh.points.nbytes + sum(c.nbytes for c in mesh.cells.values()))
             self.h5 = h5py.File(self.h5_path, "w")
             self.h5["mesh/points"] = mesh.points
             if len(mesh.cells) == 1:
@@ -483,6 +486,9 @@ class TimeSeriesWriter:
                 raise ValueError(f"{name} at t = {time} s holds NaN/inf; refusing to write it to {self.path.name}")
             if self.fields.setdefault(name, arr.shape[1:]) != arr.shape[1:]:
                 raise ValueError(f"{name} changed shape from {self.fields[name]} to {arr.shape[1:]}")
+        ensure_room(self.h5_path, sum(np.asarray(a).nbytes for a in point_data.values()) + 8 * (k + 1))
+        for name, arr in point_data.items():
+            arr = np.asarray(arr)
             key = f"data/{name}/{k:06d}"
             if key in self.h5:
                 del self.h5[key]
@@ -543,6 +549,38 @@ class TimeSeriesWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+#: bytes an HDF5 write needs beyond its data (object headers, the metadata cache's flush), and the
+#: share of the data added for chunk and heap overhead
+_HDF5_OVERHEAD = (256 * 1024, 0.05)
+
+
+def ensure_room(path: str | os.PathLike, nbytes: int, *, anew: bool = False) -> None:
+    """Raise ``OSError`` (``ENOSPC``: the disk; ``EFBIG``: the process's file-size limit) when
+    ``path`` cannot grow by ``nbytes`` plus HDF5's overhead (``anew``: when a file of that size,
+    a copy written beside ``path``, cannot be written), before anything is written.
+
+    HDF5 buffers its writes: one that fails on a full disk is reported late or not at all, and
+    the next call into the library can crash the process. Checking the room first turns a full
+    disk into an error the caller handles (the command line's one ``error:`` line, its partial
+    files removed)."""
+    fixed, share = _HDF5_OVERHEAD
+    need = int(nbytes * (1 + share)) + fixed
+    path = Path(path)
+    free = shutil.disk_usage(path.parent if path.parent.exists() else Path.cwd()).free
+    if free < need:
+        raise OSError(errno.ENOSPC, f"No space left on device: {need / 2**20:.1f} MiB needed, "
+                                    f"{free / 2**20:.1f} MiB free", str(path))
+    try:
+        import resource
+    except ImportError:  # Windows: no file-size limit to read
+        return
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    size = path.stat().st_size if path.exists() and not anew else 0
+    if limit != resource.RLIM_INFINITY and size + need > limit:
+        raise OSError(errno.EFBIG, f"File too large: {size + need} bytes needed, the process may write files of "
+                                   f"{limit} bytes (ulimit -f)", str(path))
 
 
 def write_time_series(

@@ -65,7 +65,7 @@ import numpy as np
 
 from toolkit.common.config_diff import jsonable, require_same
 from toolkit.common.errors import ToolkitError
-from toolkit.common.meshes.io import atomic_path
+from toolkit.common.meshes.io import atomic_path, ensure_room
 from toolkit.common.runtime import count_finished, default_threads, deferred_interrupt, set_threads
 
 __all__ = ["Job", "Record", "RunReport", "DatabaseError", "Database", "run_jobs", "read_index", "read_failures",
@@ -239,6 +239,7 @@ class Database:
         if self.path.exists():
             self.check()
             return
+        ensure_room(self.path, sum(np.asarray(a).nbytes for a in (shared or {}).values()))
         with atomic_path(self.path) as tmp:
             with h5py.File(tmp, "w") as f:
                 f.attrs["format"] = self.kind
@@ -263,6 +264,7 @@ class Database:
         attrs = self.open_attrs(self.path)
         if attrs.get("planned") == planned and attrs.get("config") == config:
             return
+        ensure_room(self.path, self.path.stat().st_size, anew=True)
         with atomic_path(self.path) as tmp:
             shutil.copyfile(self.path, tmp)
             with h5py.File(tmp, "a") as f:
@@ -322,6 +324,8 @@ class Database:
 
 
         self.shards.mkdir(exist_ok=True)
+        if status == "done":
+            ensure_room(self.shards / f"{job.key}.h5", sum(np.asarray(a).nbytes for a in payload.arrays.values()))
         with atomic_path(self.shards / f"{job.key}.h5") as tmp:
             with h5py.File(tmp, "w") as s:
                 s.attrs["key"] = job.key
@@ -347,6 +351,8 @@ class Database:
             if self.shards.is_dir() else []
         if not shards:
             return 0
+        # the copy and every shard, checked first: HDF5 reports a full disk late, or crashes on it
+        ensure_room(self.path, self.path.stat().st_size + sum(p.stat().st_size for p in shards), anew=True)
         with atomic_path(self.path) as tmp:
             shutil.copyfile(self.path, tmp)
             with h5py.File(tmp, "a") as f:
