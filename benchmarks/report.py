@@ -379,6 +379,7 @@ def _ladder(data):
     return table(df, [
         ("resolution", "resolution"), ("material", "material"), ("increments", "increments"), ("sliding", "sliding"),
         ("status", "status"), ("wall_time_s", "time (s)"), ("peak_rss_mib", "peak memory (MiB)"),
+        ("p95_diff_mm", "p95 nodal difference (mm)", "{:.3f}"),
         ("skin_mean_diff_mm", "mean skin difference (mm)", "{:.3f}"),
         ("skin_max_diff_mm", "max skin difference (mm)", "{:.3f}"),
         ("min_scaled_jacobian", "min scaled Jacobian", "{:.3f}")])
@@ -423,6 +424,7 @@ def _impact_columns(extra: list[tuple] = ()):
             ("status", "status"), ("steps", "steps"), ("wall_time_s", "time (s)"),
             ("peak_rss_mib", "peak memory (MiB)"), ("max_displacement_mm", "max displacement (mm)", "{:.2f}"),
             ("max_von_mises_mpa", "max von Mises (MPa)", "{:.4f}"),
+            ("p95_displacement_mm", "p95 nodal difference (mm)", "{:.3f}"),
             ("rmse_displacement_mm", "RMSE to reference (mm)", "{:.3f}"),
             ("pearson_displacement", "Pearson", "{:.4f}"), ("rmse_mirrored_mm", "RMSE mirrored (mm)", "{:.3f}")]
 

@@ -4,12 +4,13 @@ Every combination of resolution x material x increments x sliding runs the same 
 (the packaged bimaxillary plan scaled by ``--plan-scale``) in a fresh process, which
 reports its wall time and peak resident memory. Each run is compared with the
 highest-fidelity run of its resolution (Neo-Hookean, 10 increments, mucosa+lip; where
-that one is skipped or fails, the best finished run in that order) by the mean and max
-difference of the skin-node displacements (mm).
+that one is skipped or fails, the best finished run in that order) by the 95th percentile over
+all nodes of the nodal displacement difference (``p95_diff_mm``, what ``--tolerance`` bounds) and
+by the mean and max difference of the skin-node displacements (mm).
 
 Results go to ``benchmarks/results/static_ladder.csv`` with its provenance sidecar (one row
 per run, written atomically after each run; a rerun skips rows already there, so an
-interrupted ladder resumes), the skin displacements to ``benchmarks/work/static_ladder/*.npz``
+interrupted ladder resumes), the displacements to ``benchmarks/work/static_ladder/*.npz``
 with the plot ``tradeoff.png`` (error vs wall time), and a table to stdout.
 
     python benchmarks/static_ladder.py                       # coarse + paper, all options
@@ -33,7 +34,8 @@ FIDELITY_ORDER = [("neo-hookean", 10), ("neo-hookean", 3), ("linear", 10), ("lin
 
 
 def run_one(resolution: str, material: str, increments: int, sliding: str, plan_scale: float, out: str) -> dict:
-    """One simulation in this (fresh) process; saves skin displacements to ``out``."""
+    """One simulation in this (fresh) process; saves the final displacements and the skin's node
+    ids to ``out``."""
     from toolkit.common import face_hex
     from toolkit.static import SimulationError, default_plan, simulate
 
@@ -48,7 +50,7 @@ def run_one(resolution: str, material: str, increments: int, sliding: str, plan_
         row.update(status="failed", error=str(exc)[:200], wall_time_s=time.perf_counter() - t0)
     else:
         skin = phantom.mesh.node_sets["skin"]
-        np.savez_compressed(out, skin_displacement=result.displacement[skin])
+        np.savez_compressed(out, displacement=result.displacement, skin=skin)
         s = result.summary()
         row.update(status="ok", error="", wall_time_s=time.perf_counter() - t0,
                    max_displacement_mm=s["max_displacement_mm"], min_scaled_jacobian=s["min_scaled_jacobian"],
@@ -63,9 +65,10 @@ def _key(r) -> str:
 
 
 def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
-    """Add the skin-displacement difference to the best reference of each resolution."""
+    """Add the displacement difference to the best reference of each resolution: its 95th
+    percentile over all nodes, and its mean and max over the skin."""
     df = df.copy()
-    for col in ("reference", "skin_mean_diff_mm", "skin_max_diff_mm"):
+    for col in ("reference", "p95_diff_mm", "skin_mean_diff_mm", "skin_max_diff_mm"):
         df[col] = np.nan if col != "reference" else ""
     for _, group in df.groupby("resolution"):
         ref = None
@@ -77,11 +80,13 @@ def compare(df: pd.DataFrame, folder: Path) -> pd.DataFrame:
                 break
         if ref is None:
             continue
-        u_ref = np.load(folder / f"{_key(ref)}.npz")["skin_displacement"]
+        reference = np.load(folder / f"{_key(ref)}.npz")
+        skin = reference["skin"]
         for i, r in group[group.status == "ok"].iterrows():
-            u = np.load(folder / f"{_key(r)}.npz")["skin_displacement"]
-            d = np.linalg.norm(u - u_ref, axis=1)
-            df.loc[i, ["skin_mean_diff_mm", "skin_max_diff_mm"]] = d.mean(), d.max()
+            u = np.load(folder / f"{_key(r)}.npz")["displacement"]
+            d = np.linalg.norm(u - reference["displacement"], axis=1)
+            df.loc[i, "p95_diff_mm"] = np.percentile(d, 95)
+            df.loc[i, ["skin_mean_diff_mm", "skin_max_diff_mm"]] = d[skin].mean(), d[skin].max()
             df.loc[i, "reference"] = _key(ref)
     return df
 
@@ -119,16 +124,16 @@ def main(argv=None) -> pd.DataFrame:
     df = compare(pd.DataFrame(rows), folder)
     write_result(args.out, df, extra={"plan_scale": args.plan_scale}, resumed=resumed)
     cols = ["resolution", "material", "increments", "sliding", "status", "wall_time_s", "peak_rss_mib",
-            "skin_mean_diff_mm", "skin_max_diff_mm", "min_scaled_jacobian", "max_penetration_mm"]
+            "p95_diff_mm", "skin_mean_diff_mm", "skin_max_diff_mm", "min_scaled_jacobian", "max_penetration_mm"]
     with pd.option_context("display.width", 200, "display.max_rows", 500, "display.float_format", "{:.3g}".format):
         print(df[cols].to_string(index=False))
-    ok = df[(df.status == "ok") & df.skin_mean_diff_mm.notna()]
+    ok = df[(df.status == "ok") & df.p95_diff_mm.notna()]
     if len(ok):
         from toolkit.common.plotting import plot_tradeoff
 
         labels = [f"{r.resolution[0]}/{r.material[:3]}/{r.increments}/{r.sliding}" for r in ok.itertuples()]
-        plot_tradeoff(ok.wall_time_s.to_numpy(), np.maximum(ok.skin_mean_diff_mm.to_numpy(), 1e-6), labels,
-                      ylabel="mean skin difference to the reference (mm)",
+        plot_tradeoff(ok.wall_time_s.to_numpy(), np.maximum(ok.p95_diff_mm.to_numpy(), 1e-6), labels,
+                      ylabel="95th percentile nodal difference to the reference (mm)",
                       title="static ladder (reference: best run per resolution)",
                       path=folder / "tradeoff.png")
     print(f"wrote {args.out} and {folder / 'tradeoff.png'}")

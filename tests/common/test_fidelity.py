@@ -29,12 +29,12 @@ def _scan_static(tolerance):
     """The answer by hand from the CSV files: (ladder difference + resolution's difference to
     fine) within the tolerance, least wall time."""
     ladder = pd.read_csv(RESULTS / "static_ladder.csv")
-    conv = pd.read_csv(RESULTS / "static_convergence.csv").set_index("pair")["mean_mm"]
+    conv = pd.read_csv(RESULTS / "static_convergence.csv").set_index("pair")["p95_mm"]
     best = None
     for r in ladder.itertuples():
-        if r.status != "ok" or math.isnan(r.skin_mean_diff_mm):
+        if r.status != "ok" or math.isnan(r.p95_diff_mm):
             continue
-        error = r.skin_mean_diff_mm + conv[f"{r.resolution}-fine"]
+        error = r.p95_diff_mm + conv[f"{r.resolution}-fine"]
         if error <= tolerance and (best is None or r.wall_time_s < best[0]):
             best = (r.wall_time_s, error, (r.resolution, r.material, r.increments, r.sliding))
     return best
@@ -42,12 +42,12 @@ def _scan_static(tolerance):
 
 def _scan_impact(tolerance):
     ladder = pd.read_csv(RESULTS / "impact_ladder.csv")
-    rows = ladder[ladder.rmse_displacement_mm.notna()]
-    ok = rows[rows.rmse_displacement_mm <= tolerance]
+    rows = ladder[ladder.p95_displacement_mm.notna()]
+    ok = rows[rows.p95_displacement_mm <= tolerance]
     if ok.empty:
         return None
     r = ok.loc[ok.wall_time_s.idxmin()]
-    return r.wall_time_s, r.rmse_displacement_mm, (r.order, r.ball, r.mass_scaling, r.integrator)
+    return r.wall_time_s, r.p95_displacement_mm, (r.order, r.ball, r.mass_scaling, r.integrator)
 
 
 @pytest.fixture(scope="module")
@@ -125,7 +125,7 @@ def test_a_tolerance_below_the_reference_uncertainty_is_refused_with_it(static_l
                                             r"sliding mucosa\+lip\): 0.126 mm .* at least 0.13 mm"):
         choose_fidelity("static", 0.1, ladder=static_ladder)
     assert static_ladder.uncertainty_mm == pytest.approx(
-        pd.read_csv(RESULTS / "static_convergence.csv").set_index("pair").loc["paper-fine", "mean_mm"])
+        pd.read_csv(RESULTS / "static_convergence.csv").set_index("pair").loc["paper-fine", "p95_mm"])
     with pytest.raises(FidelityError, match=r"below the uncertainty .* 0.765 mm \(the reference's own left-right "
                                             r"asymmetry"):
         choose_fidelity("impact", 0.5, ladder=impact_ladder)
@@ -145,7 +145,7 @@ def test_own_mesh_chooses_among_the_paper_phantoms_options_without_the_resolutio
     choice = choose_fidelity("static", 0.2, own_mesh=True, ladder=load_ladder("static", RESULTS, own_mesh=True))
     assert set(choice.options) == {"material", "increments", "sliding"}
     ladder = pd.read_csv(RESULTS / "static_ladder.csv")
-    paper = ladder[(ladder.resolution == "paper") & (ladder.skin_mean_diff_mm <= 0.2)]
+    paper = ladder[(ladder.resolution == "paper") & (ladder.p95_diff_mm <= 0.2)]
     fastest = paper.loc[paper.wall_time_s.idxmin()]
     assert (choice.options["material"], choice.options["increments"], choice.options["sliding"]) == (
         fastest.material, fastest.increments, fastest.sliding)
