@@ -9,6 +9,7 @@ import json
 import pytest
 
 from toolkit.cli import main
+from toolkit.common.fidelity import choose_fidelity, load_ladder
 
 RECORD_KEYS = {"tolerance_mm", "options", "fixed", "error_mm", "metric", "reference", "uncertainty_mm",
                "wall_time_s", "measured_on", "sources"}
@@ -45,46 +46,49 @@ def captured(monkeypatch):
 
 
 def test_static_tolerance_runs_the_choice_and_records_it(tmp_path, capsys):
-    """At 1 mm the coarse phantom, linear, 1 increment, mucosa + lip sliding is the fastest
-    measured option (0.64 mm); the run takes it and summary.json says why."""
+    """At 1 mm the run takes the option :func:`choose_fidelity` picks from the packaged ladder
+    (the fastest measured within it), prints it with its measured error, and summary.json says why."""
+    choice = choose_fidelity("static", 1.0)
     out = tmp_path / "run"
     assert main(["static", "simulate", "--tolerance", "1", "--no-preview", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert printed.startswith("fidelity for 1 mm: resolution coarse, material linear, increments 1, sliding "
-                              "mucosa+lip; measured error 0.644 mm")
+    options = ", ".join(f"{k} {v}" for k, v in choice.options.items())
+    assert printed.startswith(f"fidelity for 1 mm: {options}; measured error {choice.error_mm:.3g} mm"), printed
     summary = json.loads((out / "summary.json").read_text())
     record = summary["fidelity"]
     assert set(record) == RECORD_KEYS
-    assert record["options"] == {"resolution": "coarse", "material": "linear", "increments": 1,
-                                 "sliding": "mucosa+lip"}
+    assert record["options"] == choice.options
     assert record["error_mm"] <= 1.0 and record["tolerance_mm"] == 1.0 and record["fixed"] == {}
+    assert "95th percentile" in record["metric"]
     assert [s["file"] for s in record["sources"]] == ["static_ladder.csv", "static_convergence.csv"]
-    assert (summary["increments"], summary["material"], summary["sliding"]) == (1, "linear", "mucosa+lip")
-    assert summary["nodes"] < 2000  # the coarse phantom
+    assert (summary["increments"], summary["material"], summary["sliding"]) == (
+        choice.options["increments"], choice.options["material"], choice.options["sliding"])
 
 
 def test_impact_tolerance_runs_the_choice_and_records_it(tmp_path, capsys):
-    """At 1 mm the quasi-static tet10 run with a rigid ball is the fastest measured (0.455 mm).
-    The scene file (coarse face, 0.1 s in 4 load steps, deformable explicit) keeps the run short;
-    the tolerance replaces its ball and integrator."""
+    """At 2 mm the run takes the option :func:`choose_fidelity` picks. The scene file (coarse
+    face, 0.1 s in 4 load steps) keeps the run short; the tolerance replaces its ball and
+    integrator."""
     from dataclasses import replace
 
     from toolkit.impact import default_scene
 
+    choice = choose_fidelity("impact", 2.0)
     scene = replace(default_scene().with_face(resolution="coarse").with_fidelity(load_steps=4), duration=0.1,
                     n_frames=2)
     scene.write(tmp_path / "scene.toml")
     out = tmp_path / "run"
-    assert main(["impact", "simulate", "--scene", str(tmp_path / "scene.toml"), "--tolerance", "1", "--no-preview",
+    assert main(["impact", "simulate", "--scene", str(tmp_path / "scene.toml"), "--tolerance", "2", "--no-preview",
                  "--out", str(out)]) == 0
-    assert "fidelity for 1 mm: order 2, ball rigid" in capsys.readouterr().out
+    assert f"fidelity for 2 mm: order {choice.options['order']}, ball {choice.options['ball']}" in \
+        capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
     record = summary["fidelity"]
     assert set(record) == RECORD_KEYS
-    assert record["options"] == {"order": 2, "ball": "rigid", "mass_scaling": 1.0, "safety": 0.9,
-                                 "integrator": "quasi-static"}
-    assert record["error_mm"] <= 1.0 < record["uncertainty_mm"] + 1.0 and "coarse" in record["measured_on"]
-    assert summary["ball"] == "rigid" and summary["element"] == "tet10"
+    assert record["options"] == choice.options
+    assert record["error_mm"] <= 2.0 and "coarse" in record["measured_on"] and "95th percentile" in record["metric"]
+    assert summary["ball"] == choice.options["ball"]
+    assert summary["element"] == ("tet10" if choice.options["order"] == 2 else "tet4")
 
 
 def test_a_given_option_is_kept_and_the_choice_is_among_its_rows(captured, capsys):
@@ -103,25 +107,45 @@ def test_a_given_option_is_kept_and_the_choice_is_among_its_rows(captured, capsy
      "the static ladder did not measure increments = 5 (measured: 1, 3, 10)"),
     (["static", "simulate", "--tolerance", "1", "--resolution", "fine"],
      "the static ladder did not measure resolution = 'fine' (measured: coarse, paper)"),
-    (["static", "simulate", "--tolerance", "0.25", "--material", "linear"],
-     "no measured static option with material linear is within 0.25 mm"),
-    (["impact", "simulate", "--tolerance", "1", "--integrator", "explicit", "--mass-scaling", "100"],  # 1.26 mm at best
-     "no measured impact option with mass_scaling 100, integrator explicit is within 1 mm"),
 ])
-def test_a_given_option_the_ladder_cannot_meet_is_refused(argv, expected, no_compute, capsys):
+def test_an_option_the_ladder_did_not_measure_is_refused(argv, expected, no_compute, capsys):
     assert main([*argv, "--out", "unused"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and expected in err, err
 
 
-@pytest.mark.parametrize("workflow, tolerance, uncertainty", [("static", "0.1", "0.126 mm"),
-                                                               ("impact", "0.5", "0.765 mm")])
-def test_a_tolerance_below_the_reference_uncertainty_is_refused_before_computing(workflow, tolerance, uncertainty,
-                                                                                 no_compute, tmp_path, capsys):
+@pytest.mark.parametrize("workflow, fixed", [("static", {"material": "linear"}),
+                                             ("impact", {"mass_scaling": 100.0, "integrator": "explicit"})])
+def test_a_given_option_the_ladder_cannot_meet_is_refused(workflow, fixed, no_compute, capsys):
+    """A tolerance between the most faithful option's uncertainty and the best error of the rows
+    with the given options: refused, naming the options and the tolerance."""
+    ladder = load_ladder(workflow)
+    rows = ladder.rows
+    for key, value in fixed.items():
+        rows = rows[rows[key] == value]
+    best = float(rows["error_mm"].min())
+    assert ladder.uncertainty_mm < best, "the ladder leaves no tolerance to test this refusal with"
+    tolerance = float(f"{0.5 * (ladder.uncertainty_mm + best):.3g}")
+    options = {"material": "--material", "mass_scaling": "--mass-scaling", "integrator": "--integrator"}
+    argv = [workflow, "simulate", "--tolerance", f"{tolerance:g}"]
+    for key, value in fixed.items():
+        argv += [options[key], f"{value:g}" if isinstance(value, float) else str(value)]
+    assert main([*argv, "--out", "unused"]) == 2
+    err = capsys.readouterr().err
+    named = ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}" for k, v in fixed.items())
+    expected = f"no measured {workflow} option with {named} is within {tolerance:g} mm"
+    assert err.startswith("error: ") and expected in err, err
+
+
+@pytest.mark.parametrize("workflow", ["static", "impact"])
+def test_a_tolerance_below_the_reference_uncertainty_is_refused_before_computing(workflow, no_compute, tmp_path,
+                                                                                 capsys):
+    uncertainty = load_ladder(workflow).uncertainty_mm
+    tolerance = f"{0.8 * uncertainty:.2g}"
     out = tmp_path / "run"
     assert main([workflow, "simulate", "--tolerance", tolerance, "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert f"tolerance {tolerance} mm is below the uncertainty" in err and uncertainty in err
+    assert f"tolerance {tolerance} mm is below the uncertainty" in err and f"{uncertainty:.3g} mm" in err, err
     assert "Give a tolerance of at least" in err and not (out / "summary.json").exists()
 
 
