@@ -72,9 +72,10 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulated time, s (default: the scene's, 1.8; with --mesh, 0.36)")
     parser.add_argument("--tolerance", type=tolerance_mm, default=None, metavar="MM",
                         help="choose the ball, order, mass scaling, safety and integrator not given: the fastest "
-                             "measured in the impact ladder (coarse face, 30 mm/s) whose displacement RMSE to the "
-                             "explicit reference is within MM; refused below the reference's own uncertainty, its "
-                             "left-right asymmetry (default: none, the options above)")
+                             "measured in the impact ladder (coarse face, 30 mm/s) whose error (mm, 95th percentile "
+                             "of the nodal difference to the explicit reference over nodes and frames) is within MM; "
+                             "refused below the reference's own uncertainty, its left-right asymmetry (default: "
+                             "none, the options above)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--no-preview", action="store_true", help="skip preview.png")
 

@@ -55,9 +55,9 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
                              "--tolerance, chosen)")
     parser.add_argument("--tolerance", type=tolerance_mm, default=None, metavar="MM",
                         help="choose the resolution, material, increments and sliding not given: the fastest "
-                             "measured in the static ladder whose error (mean skin difference to the most faithful "
-                             "model, mm) is within MM; refused below the most faithful model's own uncertainty, its "
-                             "difference to the fine face (default: none, the options above)")
+                             "measured in the static ladder whose error (mm, 95th percentile of the nodal difference "
+                             "to the most faithful model) is within MM; refused below the most faithful model's own "
+                             "uncertainty, its difference to the fine face (default: none, the options above)")
     parser.add_argument("--solver", default="auto", choices=["auto", "superlu", "amg", "cholmod"],
                         help="linear solver (auto: chosen by the expected fill of the factor)")
     add_units(parser)
