@@ -61,6 +61,10 @@ from pathlib import Path
 import pandas as pd
 from _provenance import RESULTS, WORK, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/__main__.py", "toolkit/__init__.py", "toolkit/cli/", "toolkit/static/", "toolkit/impact/",
+            "toolkit/common/")
+
 FIXTURES = WORK / "bad_inputs" / "fixtures"
 PY = sys.executable
 #: coarse impact options (rigid ball, tet4): a bad input must be refused before any of it runs

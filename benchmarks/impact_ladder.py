@@ -55,6 +55,11 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, work_folder, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/impact/", "toolkit/common/fem/", "toolkit/common/meshes/", "toolkit/common/phantoms/",
+            "toolkit/common/analysis/surface_distance.py", "toolkit/common/analysis/symmetry.py",
+            "toolkit/common/papers.py")
+
 FIDELITY = ["integrator", "order", "ball", "mass_scaling", "safety"]
 PAPER_VELOCITY = 30.0  # mm/s, the impact paper's ball
 TOLERANCE = 3e-3  # the default Newton tolerance of the quasi-static runs (relative residual)

@@ -35,6 +35,10 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, WORK, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/impact/", "toolkit/common/training/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/analysis/", "toolkit/common/papers.py")
+
 #: the impact paper's reported figures (Abaqus FE, Keras LSTM hidden 5 / output 1, ~3 h training)
 PAPER = {"displacement_rmse_mm": 3.13, "displacement_pearson": 0.98, "von_mises_rmse_mpa": 0.001,
             "von_mises_pearson": 0.94, "train_seconds": 3 * 3600.0}

@@ -30,6 +30,10 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/__main__.py", "toolkit/cli/", "toolkit/common/runtime.py", "toolkit/common/training/database.py",
+            "toolkit/common/meshes/io.py", "toolkit/static/database.py")
+
 COMMAND = ["static", "database", "--resolution", "coarse", "--plans", "300", "--seed", "1", "--workers", "1",
            "--out", "db.h5"]
 

@@ -37,6 +37,11 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, WORK, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/mesh/", "toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py",
+            "toolkit/common/defaults.py")
+
 #: mm, the 95th percentile of the skin displacement's difference from the finest size within
 #: which a size counts as converged
 TOLERANCE_MM = 0.2

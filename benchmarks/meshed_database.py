@@ -27,6 +27,11 @@ from pathlib import Path
 import pandas as pd
 from _provenance import RESULTS, ROOT, work_folder, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/mesh/", "toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/training/database.py",
+            "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py")
+
 HEADSQ = ROOT / "tests" / "data" / "headsq" / "quarter.nhdr"
 
 

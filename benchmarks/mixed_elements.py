@@ -31,6 +31,11 @@ from toolkit.static.constraints import Constraints
 from toolkit.static.problem import StaticProblem
 from toolkit.static.stiffness import MaterialAssignment
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/static/problem.py", "toolkit/static/stiffness.py", "toolkit/static/constraints.py",
+            "toolkit/common/fem/", "toolkit/common/meshes/", "toolkit/common/phantoms/mixed_bar.py",
+            "toolkit/common/phantoms/phantom.py")
+
 CENTRE = np.array([-12.0, 5.0, 5.0])  # cavity centre, mm
 B = 20.0  # p a^3 / (4 mu), mm^3
 _VTK_BITS = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]

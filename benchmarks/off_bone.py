@@ -30,6 +30,10 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/", "toolkit/common/phantoms/",
+            "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py")
+
 
 def _distances(face, plan, nodes, bc, x):
     """Distance of ``nodes`` at ``x`` to their bone surface moved by ``plan`` (extended beyond its

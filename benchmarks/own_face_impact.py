@@ -28,6 +28,10 @@ import pandas as pd
 from _provenance import RESULTS, WORK, write_result
 from own_face import skin_difference
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/mesh/", "toolkit/impact/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py")
+
 
 def run(scene) -> tuple[object, float]:
     from toolkit.impact import SceneGeometryWarning, simulate

@@ -93,6 +93,10 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, ROOT, WORK, read_sidecar, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/mesh/", "toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py")
+
 HEADSQ = ROOT / "tests" / "data" / "headsq" / "quarter.nhdr"
 CACHE = WORK / "peers"
 SIZES = ("7", "3.5", "ct")

@@ -21,6 +21,10 @@ from _provenance import RESULTS, write_result
 
 from toolkit.common.phantoms.phantom import ball, face_hex, face_tet
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/common/phantoms/", "toolkit/common/meshes/", "toolkit/common/fem/reference.py",
+            "toolkit/common/papers.py")
+
 CASES = [
     *[("face_hex", r, lambda r=r: face_hex(r).mesh) for r in ("coarse", "paper", "fine")],
     *[(f"face_tet{4 if o == 1 else 10}", r, lambda r=r, o=o: face_tet(r, o))

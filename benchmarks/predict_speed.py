@@ -36,6 +36,9 @@ from pathlib import Path
 import pandas as pd
 from _provenance import RESULTS, WORK, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/__init__.py", "toolkit/cli/", "toolkit/static/", "toolkit/common/")
+
 PLAN = Path(__file__).resolve().parent.parent / "toolkit" / "static" / "data" / "default_plan.toml"
 ONE_THREAD = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 

@@ -29,6 +29,11 @@ from pathlib import Path
 import pandas as pd
 from _provenance import RESULTS, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/mesh/", "toolkit/static/", "toolkit/impact/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py",
+            "toolkit/common/defaults.py")
+
 PATHS = ("static-meshed", "static-phantom", "impact-quasistatic")
 
 

@@ -44,6 +44,10 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, ROOT, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/mesh/", "toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py", "toolkit/common/defaults.py")
+
 HEADSQ = ROOT / "tests" / "data" / "headsq" / "quarter.nhdr"
 
 

@@ -15,6 +15,12 @@ figure that was not measured.
 
     python benchmarks/report.py            # rewrite the blocks and docs/benchmarks.md
     python benchmarks/report.py --check    # exit 1 naming each block (or file) that differs
+    python benchmarks/report.py --stale    # exit 1 naming each result its measured code has changed since
+
+``--stale`` reads, for every result, the commits of the runs that measured it (its sidecar) and
+the code its benchmark measures (the script's ``MEASURES``), and names the results measured on a
+modified tree, or before a later commit changed that code (``git diff``); such a figure is due to
+be measured again. It needs the repository's history (a shallow clone cannot tell).
 
 It also copies the ladder results :mod:`toolkit.common.fidelity` chooses from into the package
 (:data:`PACKAGE_COPIES`, ``toolkit/common/data/ladders/``), so that an installed toolkit has them;
@@ -26,9 +32,11 @@ It also copies the ladder results :mod:`toolkit.common.fidelity` chooses from in
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import math
 import re
+import subprocess
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -1325,7 +1333,8 @@ def benchmarks_page(blocks: dict[str, str], data: dict) -> str:
            "library versions, commit, command, date). The same tables fill the blocks of the README and the "
            "other pages. To measure again, run the command under a table (each takes the time it says on "
            f"{MACHINE}), then `python benchmarks/report.py`; `python benchmarks/report.py --check` fails when a "
-           "page differs from the results.", ""]
+           "page differs from the results, and `python benchmarks/report.py --stale` names each result whose "
+           "measured code (its benchmark's `MEASURES`) changed after the commit it was measured on.", ""]
     for name, block in BLOCKS.items():
         out += [f"## {block.title}", "", block.about, "", f"<!-- results: {name} -->", "", blocks[name], "",
                 "<!-- /results -->", ""]
@@ -1393,13 +1402,77 @@ def run(root: Path, results: Path, check: bool) -> list[str]:
     return problems + copy_into_package(root, results, check)
 
 
+def measured_paths(script: Path) -> tuple[str, ...]:
+    """The ``MEASURES`` tuple of a benchmark script (read without importing it); ``()`` when it
+    states none."""
+    for node in ast.parse(script.read_text()).body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "MEASURES" for t in node.targets):
+            return tuple(ast.literal_eval(node.value))
+    return ()
+
+
+def _changed_since(root: Path, commit: str, paths: tuple[str, ...]) -> list[str] | None:
+    """Files among ``paths`` that differ between ``commit`` and HEAD, or None when git does not
+    know ``commit`` (a shallow clone, another repository)."""
+    known = subprocess.run(["git", "cat-file", "-e", f"{commit}^{{commit}}"], cwd=root, capture_output=True)
+    if known.returncode != 0:
+        return None
+    out = subprocess.run(["git", "diff", "--name-only", commit, "HEAD", "--", *paths], cwd=root,
+                         capture_output=True, text=True, check=True)
+    return out.stdout.split()
+
+
+def stale_results(root: Path, results: Path) -> list[str]:
+    """One line per result due to be measured again: measured on a modified tree, by a script that
+    states no ``MEASURES``, on a commit git does not know, or before a later commit changed the
+    code it measures (naming up to three of the files)."""
+    problems = []
+    for sidecar in sorted(Path(results).glob("*.json")):
+        try:
+            doc = json.loads(sidecar.read_text())
+        except json.JSONDecodeError:
+            continue
+        runs = doc.get("runs") or ([doc["provenance"]] if "provenance" in doc else [])
+        if not runs:
+            continue
+        name = sidecar.stem
+        words = [str(r.get("command", "")).split() for r in runs]
+        commands = {w[1] for w in words if len(w) > 1 and w[1].startswith("benchmarks/")}
+        scripts = [root / c for c in commands if (root / c).exists()]
+        paths = tuple(sorted({p for s in scripts for p in measured_paths(s)}))
+        if not paths:
+            problems.append(f"{name}: its benchmark ({', '.join(sorted(commands)) or 'unknown'}) states no MEASURES")
+            continue
+        if any(r.get("dirty") for r in runs):
+            problems.append(f"{name}: measured on a modified tree")
+            continue
+        for commit in sorted({r.get("commit") for r in runs if r.get("commit")}):
+            changed = _changed_since(root, commit, paths)
+            if changed is None:
+                problems.append(f"{name}: commit {commit[:9]} is not in this repository's history")
+            elif changed:
+                more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
+                problems.append(f"{name}: measured on {commit[:9]}; since then {', '.join(changed[:3])}{more} changed")
+    return problems
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--check", action="store_true", help="compare only; exit 1 naming each block that differs")
+    ap.add_argument("--stale", action="store_true",
+                    help="name each result whose measured code changed after the commit it was measured on; exit 1 "
+                         "if any")
     ap.add_argument("--root", type=Path, default=ROOT, help="repository root holding README.md and docs/")
     ap.add_argument("--results", type=Path, default=None, help="results folder (default: ROOT/benchmarks/results)")
     args = ap.parse_args(argv)
     results = args.results or args.root / "benchmarks" / "results"
+    if args.stale:
+        stale = stale_results(args.root, results)
+        for line in stale:
+            print(line)
+        names = {line.split(":")[0] for line in stale}
+        print(f"{len(names)} of {len(list(results.glob('*.json')))} results due to be measured again", file=sys.stderr)
+        return 1 if stale else 0
     problems = run(args.root, results, args.check)
     if args.check:
         for p in problems:

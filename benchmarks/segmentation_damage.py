@@ -35,6 +35,10 @@ import pandas as pd
 from _provenance import RESULTS, write_result
 from own_face import skin_difference
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/mesh/", "toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py")
+
 SETS = ("fixed", "maxilla", "mandible", "mucosa_lefort", "mucosa_distal", "mucosa_proximal_left",
         "mucosa_proximal_right", "mucosa_skull", "mucosa_sliding", "bone", "skin")
 

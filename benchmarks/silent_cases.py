@@ -34,6 +34,11 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/__main__.py", "toolkit/cli/", "toolkit/mesh/", "toolkit/static/", "toolkit/common/fem/",
+            "toolkit/common/meshes/", "toolkit/common/phantoms/", "toolkit/common/analysis/surface_distance.py",
+            "toolkit/common/papers.py", "toolkit/common/defaults.py")
+
 PY = sys.executable
 
 

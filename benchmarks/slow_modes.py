@@ -31,6 +31,10 @@ import pandas as pd
 from _provenance import RESULTS, write_result
 from static_meshed_speed import prepare
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/mesh/", "toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py")
+
 
 class _Captured(Exception):
     pass

@@ -26,6 +26,10 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/", "toolkit/common/phantoms/",
+            "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py", "toolkit/common/defaults.py")
+
 
 def skin_triangles(mesh):
     """Outward skin triangles ``(t, 3)`` of a phantom (boundary faces whose nodes are all skin)."""

@@ -30,6 +30,10 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, work_folder, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/", "toolkit/common/phantoms/",
+            "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py")
+
 FIDELITY_ORDER = [("neo-hookean", 10), ("neo-hookean", 3), ("linear", 10), ("linear", 3)]
 
 

@@ -35,6 +35,10 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/mesh/", "toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py")
+
 WORK = Path(__file__).resolve().parent / "work" / "static_meshed_speed"
 HERE = Path(__file__).resolve().parent
 

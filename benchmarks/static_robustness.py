@@ -27,6 +27,10 @@ from pathlib import Path
 import pandas as pd
 from _provenance import RESULTS, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/", "toolkit/common/phantoms/",
+            "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py")
+
 COLUMNS = ["resolution", "material", "sliding", "mode", "max_jaw_closing_mm", "plan", "jaw_closing_mm", "status",
            "seconds", "min_scaled_jacobian", "substeps", "linear_solves", "max_displacement_mm", "release_width_mm",
            "freed_cut_nodes", "message"]

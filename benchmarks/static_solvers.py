@@ -35,6 +35,10 @@ import pandas as pd
 import scipy.sparse as sp
 from _provenance import RESULTS, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/mesh/", "toolkit/static/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/analysis/surface_distance.py", "toolkit/common/papers.py")
+
 MESHES = ("coarse", "paper", "fine", "paper-tet4", "bulk-tet4", "meshed-5mm", "meshed-3mm")
 METHODS = ("superlu", "pardiso", "amg", "amg-sa", "cholmod", "auto")
 

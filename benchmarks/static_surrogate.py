@@ -44,6 +44,10 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, WORK, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/static/", "toolkit/common/training/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/analysis/", "toolkit/common/papers.py")
+
 #: the PointNet++ paper's reported test mean errors (mm), and the targets the table is read against
 PAPER_ERRORS_MM = (0.159, 0.642)
 GOALS = {"one subject": 0.2, "unseen subject": 0.4, "inference_ms": 20.0}

@@ -38,6 +38,11 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, WORK, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/mesh/", "toolkit/static/", "toolkit/common/training/", "toolkit/common/fem/",
+            "toolkit/common/meshes/", "toolkit/common/phantoms/", "toolkit/common/analysis/",
+            "toolkit/common/papers.py")
+
 
 def add_training_arguments(ap: argparse.ArgumentParser) -> None:
     """The options :func:`stage_database` and :func:`stage_model` read (``surrogate_trust.py`` shares them)."""

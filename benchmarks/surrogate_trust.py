@@ -60,6 +60,11 @@ import pandas as pd
 from _provenance import RESULTS, WORK, write_result
 from surrogate_remeshed import add_training_arguments, stage_database, stage_model
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/static/", "toolkit/impact/", "toolkit/common/training/", "toolkit/common/fem/",
+            "toolkit/common/meshes/", "toolkit/common/phantoms/", "toolkit/common/analysis/",
+            "toolkit/common/papers.py")
+
 FIGURES = Path(__file__).resolve().parent.parent / "docs" / "figures"
 COVERAGES = (0.9, 0.95)
 #: whose answer each row bounds: PointNet++ or the sliding response + POD residual baseline

@@ -53,6 +53,10 @@ import numpy as np
 import pandas as pd
 from _provenance import RESULTS, WORK, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/impact/", "toolkit/common/training/", "toolkit/common/fem/", "toolkit/common/meshes/",
+            "toolkit/common/phantoms/", "toolkit/common/analysis/", "toolkit/common/papers.py")
+
 FIGURES = Path(__file__).resolve().parent.parent / "docs" / "figures"
 TRAIN_VELOCITIES = (20.0, 26.0, 32.0, 38.0, 44.0, 50.0)
 HELD_OUT = (23.0, 35.0, 47.0)

@@ -24,6 +24,9 @@ from pathlib import Path
 import pandas as pd
 from _provenance import RESULTS, write_result
 
+#: the code this benchmark measures: a result is stale once any of these changed after its commit
+MEASURES = ("toolkit/common/runtime.py",)
+
 KERNELS = """
 import json, statistics, sys, time
 import numpy as np

@@ -115,3 +115,57 @@ def test_provenance_records_machine_versions_commit_and_command(tmp_path, proven
     provenance.write_result(path, pd.DataFrame({"a": [1, 2]}), argv=["benchmarks/x.py", "--n", "3"], resumed=True)
     assert [r["command"] for r in provenance.read_sidecar(path)["runs"]] == [
         "python benchmarks/x.py --n 2", "python benchmarks/x.py --n 3"]
+
+
+def test_every_benchmark_states_the_code_it_measures(report):
+    """``--stale`` reads each benchmark's ``MEASURES``: every script states it, with paths that exist."""
+    for script in sorted(BENCHMARKS.glob("*.py")):
+        if script.name in ("report.py", "_provenance.py"):
+            continue
+        paths = report.measured_paths(script)
+        assert paths, f"{script.name} states no MEASURES"
+        missing = [p for p in paths if not (ROOT / p).exists()]
+        assert not missing, f"{script.name}: MEASURES names {missing}, which do not exist"
+
+
+def test_a_result_is_stale_once_the_code_it_measures_changes(report, tmp_path):
+    """In a throw-away repository: a result measured on the current commit is fresh; a change to
+    a file its benchmark does not measure leaves it fresh; a change to one it measures makes it
+    stale, naming the file; a modified tree and an unknown commit are named as such."""
+    import json
+    import subprocess
+
+    def git(*args):
+        return subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True, text=True).stdout.strip()
+
+    git("init", "-q")
+    git("config", "user.email", "t@example.org")
+    git("config", "user.name", "t")
+    (tmp_path / "benchmarks" / "results").mkdir(parents=True)
+    (tmp_path / "toolkit").mkdir()
+    (tmp_path / "benchmarks" / "speed.py").write_text('MEASURES = ("toolkit/solver.py",)\n')
+    (tmp_path / "toolkit" / "solver.py").write_text("x = 1\n")
+    (tmp_path / "toolkit" / "other.py").write_text("y = 1\n")
+    git("add", "-A")
+    git("commit", "-qm", "first")
+    first = git("rev-parse", "HEAD")
+    results = tmp_path / "benchmarks" / "results"
+
+    def sidecar(name, commit, dirty=False):
+        run = {"command": "python benchmarks/speed.py", "commit": commit, "dirty": dirty}
+        (results / f"{name}.json").write_text(json.dumps({"name": name, "runs": [run]}))
+
+    sidecar("speed", first)
+    assert report.stale_results(tmp_path, results) == []
+    (tmp_path / "toolkit" / "other.py").write_text("y = 2\n")
+    git("commit", "-qam", "other")
+    assert report.stale_results(tmp_path, results) == []
+    (tmp_path / "toolkit" / "solver.py").write_text("x = 2\n")
+    git("commit", "-qam", "solver")
+    assert report.stale_results(tmp_path, results) == [
+        f"speed: measured on {first[:9]}; since then toolkit/solver.py changed"]
+    sidecar("speed", git("rev-parse", "HEAD"), dirty=True)
+    assert report.stale_results(tmp_path, results) == ["speed: measured on a modified tree"]
+    sidecar("speed", "0" * 40)
+    assert report.stale_results(tmp_path, results) == [
+        "speed: commit 000000000 is not in this repository's history"]
