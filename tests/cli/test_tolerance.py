@@ -66,27 +66,27 @@ def test_static_tolerance_runs_the_choice_and_records_it(tmp_path, capsys):
 
 
 def test_impact_tolerance_runs_the_choice_and_records_it(tmp_path, capsys):
-    """At 2 mm the run takes the option :func:`choose_fidelity` picks. The scene file (coarse
+    """At 3 mm the run takes the option :func:`choose_fidelity` picks. The scene file (coarse
     face, 0.1 s in 4 load steps) keeps the run short; the tolerance replaces its ball and
     integrator."""
     from dataclasses import replace
 
     from toolkit.impact import default_scene
 
-    choice = choose_fidelity("impact", 2.0)
+    choice = choose_fidelity("impact", 3.0)
     scene = replace(default_scene().with_face(resolution="coarse").with_fidelity(load_steps=4), duration=0.1,
                     n_frames=2)
     scene.write(tmp_path / "scene.toml")
     out = tmp_path / "run"
-    assert main(["impact", "simulate", "--scene", str(tmp_path / "scene.toml"), "--tolerance", "2", "--no-preview",
+    assert main(["impact", "simulate", "--scene", str(tmp_path / "scene.toml"), "--tolerance", "3", "--no-preview",
                  "--out", str(out)]) == 0
-    assert f"fidelity for 2 mm: order {choice.options['order']}, ball {choice.options['ball']}" in \
+    assert f"fidelity for 3 mm: order {choice.options['order']}, ball {choice.options['ball']}" in \
         capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
     record = summary["fidelity"]
     assert set(record) == RECORD_KEYS
     assert record["options"] == choice.options
-    assert record["error_mm"] <= 2.0 and "coarse" in record["measured_on"] and "95th percentile" in record["metric"]
+    assert record["error_mm"] <= 3.0 and "coarse" in record["measured_on"] and "95th percentile" in record["metric"]
     assert summary["ball"] == choice.options["ball"]
     assert summary["element"] == ("tet10" if choice.options["order"] == 2 else "tet4")
 
@@ -95,7 +95,7 @@ def test_a_given_option_is_kept_and_the_choice_is_among_its_rows(captured, capsy
     assert main(["static", "simulate", "--tolerance", "1", "--material", "neo-hookean", "--out", "unused"]) == 2
     assert captured["material"] == "neo-hookean" and captured["fidelity"].fixed == {"material": "neo-hookean"}
     assert captured["fidelity"].error_mm <= 1.0
-    assert main(["impact", "simulate", "--tolerance", "1", "--ball", "deformable", "--out", "unused"]) == 2
+    assert main(["impact", "simulate", "--tolerance", "3", "--ball", "deformable", "--out", "unused"]) == 2
     scene = captured["scene"]
     assert scene.ball.rigid is False and scene.fidelity.integrator == "quasi-static" and scene.fidelity.order == 2
     assert captured["fidelity"].options["ball"] == "deformable"
