@@ -50,6 +50,7 @@ __all__ = [
     "FORMATS",
     "UNIT_SCALES",
     "atomic_path",
+    "ensure_room",
 ]
 
 #: suffix -> meshio format name
