@@ -408,13 +408,11 @@ class _Model:
     def __post_init__(self):
         self.quality0 = element_quality(self.mesh, self.mesh.points)
         self.rims = {name: rim_edges(surf.cells["tri3"]) for name, surf in self.surfaces.items()}
-        # every node freed node by node (release bands, the cut, far mucosa) frees the middle of its edges
-        self.bc = self.bc.with_mid_edges_of_corners(self.mesh)
         mucosa = self.bc.nodes(NodeType.MUCOSA_SLIDING)
         offset, side = self._offsets(mucosa)
         far = offset > self.options.max_mucosa_offset
         self.mucosa_offset, self.far_mucosa = offset, mucosa[far]
-        if far.any():
+        if far.any():  # freed far mucosa frees the middle of its edges, as the bands and the cut do
             self.bc = self.bc.with_freed(self.far_mucosa).with_mid_edges_of_corners(self.mesh)
         self.moving = self.bc.nodes(NodeType.MOVING)
         self.fixed = self.bc.nodes(NodeType.FIXED)

@@ -479,17 +479,16 @@ class TimeSeriesWriter:
         k = len(self.times)
         if self.times and not time > self.times[-1]:
             raise ValueError(f"frame times must increase; got {time} after {self.times[-1]}")
-        for name, arr in point_data.items():
-            arr = np.asarray(arr)
+        arrays = {name: np.asarray(arr) for name, arr in point_data.items()}
+        for name, arr in arrays.items():
             if arr.shape[:1] != (self.mesh.n_points,):
                 raise ValueError(f"{name} has shape {arr.shape}, expected ({self.mesh.n_points}, ...)")
             if not np.isfinite(arr).all():
                 raise ValueError(f"{name} at t = {time} s holds NaN/inf; refusing to write it to {self.path.name}")
             if self.fields.setdefault(name, arr.shape[1:]) != arr.shape[1:]:
                 raise ValueError(f"{name} changed shape from {self.fields[name]} to {arr.shape[1:]}")
-        ensure_room(self.h5_path, sum(np.asarray(a).nbytes for a in point_data.values()) + 8 * (k + 1))
-        for name, arr in point_data.items():
-            arr = np.asarray(arr)
+        ensure_room(self.h5_path, sum(arr.nbytes for arr in arrays.values()) + 8 * (k + 1))
+        for name, arr in arrays.items():
             key = f"data/{name}/{k:06d}"
             if key in self.h5:
                 del self.h5[key]
