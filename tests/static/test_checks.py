@@ -76,6 +76,29 @@ def test_a_segment_that_carries_one_node_is_refused_before_the_solve(phantom):
         simulate(mesh, _advance(5.0), segments=phantom.segments)
 
 
+def test_a_segment_that_carries_a_strip_of_its_front_is_refused_by_its_share(phantom):
+    """A mandible set cut down to the most anterior nodes covering 100-150 mm^2 passes the area
+    minimum (40 mm^2) but carries under 0.05 of the tissue on the distal bone (the phantom's
+    carries 0.36): refused, naming the share; with ``min_carried_share=0`` the same plan passes
+    the check, which lists the share."""
+    from toolkit.static.checks import carried_area
+
+    mandible = phantom.mesh.node_sets["mandible"]
+    front = mandible[np.argsort(-phantom.mesh.points[mandible, 1])]
+    areas = np.cumsum([carried_area(phantom.mesh, [i]) for i in front])
+    strip = front[:int(np.searchsorted(areas, 100.0)) + 1]
+    assert 100.0 <= carried_area(phantom.mesh, strip) <= 150.0
+    mesh = _with_set(phantom.mesh, "mandible", strip)
+    bc = BoundaryConditions.from_mesh(mesh, phantom.segments)
+    with pytest.raises(PlanError, match=r"'mandible' set.*a share of 0\.0[0-4]\d.*and a share of 0\.05"):
+        check_plan(mesh, bc, phantom.segments, _advance(5.0))
+    row = check_plan(mesh, bc, phantom.segments, _advance(5.0), min_carried_share=0.0)["distal"]
+    assert row["carried_share"] < 0.05 and row["attached_area_mm2"] >= 100.0
+    full = check_plan(phantom.mesh, BoundaryConditions.from_mesh(phantom.mesh, phantom.segments), phantom.segments,
+                      _advance(5.0))["distal"]
+    assert full["carried_share"] > 0.25
+
+
 def test_an_empty_attached_set_is_refused_even_without_a_minimum(phantom):
     from toolkit.static.simulate import SimulationOptions
 

@@ -260,18 +260,21 @@ def carried_report(mesh: Mesh, rules: LabelRules) -> dict:
 
 
 def _check_carried(segments: Mapping[str, dict], rules: LabelRules, names: Mapping[str, str]) -> None:
-    """A moving segment ruled to carry tissue must carry at least ``rules.min_carried_mm2``."""
+    """A moving segment ruled to carry tissue must carry at least ``rules.min_carried_mm2`` and a
+    share of at least ``rules.min_carried_share`` of the tissue lying on its bone."""
     for name in ("lefort", "distal"):
         rule = rules.segments[name]
         if name not in names or rule.attach in ("none", "fixed"):
             continue
-        got = segments.get(name, {"attached_nodes": 0, "attached_area_mm2": 0.0, "facing_area_mm2": 0.0})
-        if got["attached_area_mm2"] < rules.min_carried_mm2:
+        got = segments.get(name, {"attached_nodes": 0, "attached_area_mm2": 0.0, "facing_area_mm2": 0.0,
+                                  "carried_share": 0.0})
+        if got["attached_area_mm2"] < rules.min_carried_mm2 or got["carried_share"] < rules.min_carried_share:
             raise FaceInputError(
                 f"segment {name} ({names[name]}) carries {got['attached_nodes']} nodes, {got['attached_area_mm2']:.1f} "
-                f"mm^2 of tissue (of {got['facing_area_mm2']:.1f} mm^2 lying on its bone); expected at least "
-                f"{rules.min_carried_mm2:g} mm^2 (rules key min_carried_mm2): a plan moving it would leave the tissue "
-                f"behind. Check that the bone lies against the tissue's inner side in the same axes and units, raise "
+                f"mm^2 of tissue, a share of {got['carried_share']:.3f} of the {got['facing_area_mm2']:.1f} mm^2 lying "
+                f"on its bone; expected at least {rules.min_carried_mm2:g} mm^2 (rules key min_carried_mm2) and a "
+                f"share of {rules.min_carried_share:g} (rules key min_carried_share): a plan moving it would leave "
+                f"the tissue behind. Check that the bone lies against the tissue's inner side in the same axes and units, raise "
                 f"contact_mm if the tissue stands off the bone, or choose what it carries with segments.{name}.attach "
                 f"in --rules")
 

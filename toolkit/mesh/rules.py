@@ -25,6 +25,7 @@ import math
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
+from toolkit.common.defaults import MIN_CARRIED_MM2, MIN_CARRIED_SHARE
 from toolkit.common.errors import ToolkitError
 
 __all__ = ["RulesError", "SegmentRule", "CutRule", "LabelRules", "read_rules", "ATTACH_MODES", "SEGMENTS"]
@@ -103,7 +104,10 @@ class LabelRules:
     min_carried_mm2 : the least tissue boundary area (mm^2, lumped nodal area) that the Le Fort I
         and distal segments must carry when ruled to carry any (``attach`` other than ``none``
         and ``fixed``); less fails the labelling (see
-        :data:`toolkit.static.checks.MIN_CARRIED_MM2` for how it was set)
+        :data:`toolkit.common.defaults.MIN_CARRIED_MM2` for how it was set)
+    min_carried_share : the least share of the tissue lying on such a segment's bone that it
+        must carry (``carried_share`` in ``labels.json``); less fails the labelling (see
+        :data:`toolkit.common.defaults.MIN_CARRIED_SHARE`)
     """
 
     contact_mm: float = 6.0
@@ -113,7 +117,8 @@ class LabelRules:
     cuts: CutRule = field(default_factory=CutRule)
     lip_muscle_mm: float = 18.0
     lip_muscle_lateral: float = 0.125
-    min_carried_mm2: float = 40.0
+    min_carried_mm2: float = MIN_CARRIED_MM2
+    min_carried_share: float = MIN_CARRIED_SHARE
 
     def __post_init__(self):
         for key in ("contact_mm", "touch_mm", "lip_muscle_mm"):
@@ -122,6 +127,8 @@ class LabelRules:
                 raise RulesError(f"{key} = {v!r}; expected a positive number of mm")
         if not (isinstance(self.min_carried_mm2, (int, float)) and self.min_carried_mm2 >= 0):
             raise RulesError(f"min_carried_mm2 = {self.min_carried_mm2!r}; expected an area >= 0 mm^2")
+        if not (isinstance(self.min_carried_share, (int, float)) and 0 <= self.min_carried_share <= 1):
+            raise RulesError(f"min_carried_share = {self.min_carried_share!r}; expected a share in [0, 1]")
         if not (isinstance(self.lip_muscle_lateral, (int, float)) and 0 <= self.lip_muscle_lateral <= 1):
             raise RulesError(f"lip_muscle_lateral = {self.lip_muscle_lateral!r}; expected a fraction of the mouth's "
                              "width in [0, 1]")

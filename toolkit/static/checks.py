@@ -5,7 +5,9 @@ plan before it is given.
 
 - every segment the plan moves carries tissue: its attached node set (``maxilla`` for the Le Fort
   I segment, ``mandible`` for the distal mandible) is not empty and covers at least
-  ``min_carried_mm2`` of the tissue's boundary (:data:`MIN_CARRIED_MM2`). A face whose labels gave
+  ``min_carried_mm2`` of the tissue's boundary (:data:`MIN_CARRIED_MM2`) and at least
+  ``min_carried_share`` of the tissue lying on its bone (its attached and sliding sets;
+  :data:`MIN_CARRIED_SHARE`). A face whose labels gave
   a moving segment no tissue would move nothing and look like an answer;
 - a rotating segment's pivot lies within :data:`PIVOT_REACH_MM` of its bone: a pivot far from the
   bone turns a small angle into a large translation (2 degrees about a pivot 10 m away move the
@@ -30,6 +32,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from toolkit.common.defaults import MIN_CARRIED_MM2, MIN_CARRIED_SHARE
 from toolkit.common.errors import AnswerError
 from toolkit.common.meshes.mesh import Mesh
 from toolkit.common.meshes.topology import lumped_boundary_area
@@ -37,15 +40,9 @@ from toolkit.static.boundary import NodeType
 from toolkit.static.plan import PHYSIOLOGICAL_RANGES, PlanError, SurgicalPlan
 
 __all__ = ["AnswerError", "check_plan", "check_answer", "answer_checks", "with_answer_checks", "carried_area",
-           "reach_bound", "MIN_CARRIED_MM2",
+           "reach_bound", "MIN_CARRIED_MM2", "MIN_CARRIED_SHARE",
            "PIVOT_REACH_MM", "ATTACHED_TOLERANCE_MM", "SKIN_RESPONSE", "MOVING_MM"]
 
-#: mm^2, the least tissue boundary area a moving segment must carry (lumped nodal area of its
-#: attached set). The phantoms' Le Fort I segments carry 640 (coarse) and 940 mm^2 (paper), their
-#: distal mandibles 1,870 and 1,450 mm^2; a real jaw carries the attached gingiva and periosteum of
-#: its front, several cm^2. A segment below 40 mm^2 holds a few nodes at most: a labelling that
-#: failed, not an anatomy.
-MIN_CARRIED_MM2 = 40.0
 #: mm, the farthest a rotating segment's pivot may lie from its bone. The farthest anatomical pivot
 #: is the distal mandible's: the middle of the intercondylar axis, 56 mm from the distal segment
 #: on the phantoms (half the intercondylar width, about 50 mm, on an adult); twice that
@@ -79,11 +76,11 @@ def _moved(plan: SurgicalPlan, name: str, points: np.ndarray) -> np.ndarray:
 
 
 def check_plan(mesh: Mesh, bc, segments: Mapping, plan: SurgicalPlan,
-               min_carried_mm2: float = MIN_CARRIED_MM2) -> dict:
+               min_carried_mm2: float = MIN_CARRIED_MM2, min_carried_share: float = MIN_CARRIED_SHARE) -> dict:
     """Check ``plan`` against the face it moves (see the module); ``bc`` is the face's
     :class:`~toolkit.static.boundary.BoundaryConditions` as read from its node sets. Returns
     ``{segment: {"reach_mm", "reach_bound_mm", "pivot_to_bone_mm", "attached_nodes",
-    "attached_area_mm2"}}`` for every segment the plan moves."""
+    "attached_area_mm2", "carried_share"}}`` for every segment the plan moves."""
 
     out = {}
     for name in bc.segment_names:
@@ -109,16 +106,20 @@ def check_plan(mesh: Mesh, bc, segments: Mapping, plan: SurgicalPlan,
                             "this bone's size): check the plan's translation_mm, rotation and pivot_mm")
         if name in ("lefort", "distal"):
             attached = bc.segment_nodes(NodeType.MOVING, name)
+            facing = np.union1d(attached, bc.segment_nodes(NodeType.MUCOSA_SLIDING, name))
             area = carried_area(mesh, attached) if attached.size else 0.0
-            row.update(attached_nodes=int(attached.size), attached_area_mm2=area)
-            if not attached.size or area < min_carried_mm2:
+            share = area / carried_area(mesh, facing) if attached.size else 0.0
+            row.update(attached_nodes=int(attached.size), attached_area_mm2=area, carried_share=share)
+            if not attached.size or area < min_carried_mm2 or share < min_carried_share:
                 carried = {"lefort": "maxilla", "distal": "mandible"}[name]
                 raise PlanError(
                     f"the plan moves {name} by up to {reach:.1f} mm, but the face's {carried!r} set, the tissue "
-                    f"that segment carries, has {attached.size} nodes covering {area:.1f} mm^2; expected at least "
-                    f"{min_carried_mm2:g} mm^2. The answer would leave the tissue behind. Relabel the face "
-                    f"(toolkit mesh; its labels.json reports what each segment carries, and --rules key "
-                    f"segments.{name}.attach chooses which tissue it carries) or give the mesh a {carried!r} set")
+                    f"that segment carries, has {attached.size} nodes covering {area:.1f} mm^2, a share of "
+                    f"{share:.3f} of the tissue on its bone (with its sliding mucosa); expected at least "
+                    f"{min_carried_mm2:g} mm^2 and a share of {min_carried_share:g}. The answer would leave the "
+                    f"tissue behind. Relabel the face (toolkit mesh; its labels.json reports what each segment "
+                    f"carries, and --rules key segments.{name}.attach chooses which tissue it carries) or give the "
+                    f"mesh a {carried!r} set")
         out[name] = row
     return out
 
