@@ -130,6 +130,61 @@ def test_failing_steps_are_cut_and_increments_stay_where_they_were(coarse, monke
     np.testing.assert_allclose(cut.displacements, six.displacements[::2], rtol=0, atol=1e-9)
 
 
+def test_a_step_that_folds_the_mucosa_frees_it_around_the_element(coarse, monkeypatch):
+    """A step is made to fail on an element beside the sliding mucosa until mucosa near it is
+    freed: the first quarter of the first increment fails after two cuts, the sliding mucosa
+    within ``free_mucosa_radius`` of the element's centroid is freed, and the run goes on without
+    another cut (3 sub-steps: two quarters and a half; 3 failed attempts). The result lists exactly those nodes, free in its boundary; every other
+    node keeps its type; the nodes still sliding keep their own pre-operative offset, and end on
+    their bone at it. With ``free_mucosa_radius=0`` the same run fails, its remedy naming the
+    option."""
+    plan = default_plan(coarse)
+    as_built = simulate_module._build_model(coarse, "linear", "mucosa+lip", None, SimulationOptions())
+    mucosa = as_built.mucosa
+    X = coarse.mesh.points
+    # an element with a sliding node, on the maxilla's side (where the plan moves the bone)
+    elements = coarse.mesh.volume_blocks[0].cells
+    sliding = np.isin(elements, mucosa).any(axis=1)
+    element = int(np.flatnonzero(sliding)[0])
+    centroid = X[elements[element]].mean(axis=0)
+    expected = mucosa[np.linalg.norm(X[mucosa] - centroid, axis=1) < 6.0]
+    real_step = simulate_module._step
+
+    def step(model, state, target, guess=None, predicted=None):
+        if not model.freed_mucosa.size:
+            raise simulate_module._StepFailure("folds (test)", element)
+        return real_step(model, state, target, guess, predicted)
+
+    monkeypatch.setattr(simulate_module, "_step", step)
+    result = simulate(coarse, plan, 3, options=SimulationOptions(wider_release=()))
+    assert [(r.substeps, r.failed_attempts) for r in result.reports] == [(3, 3), (1, 0), (1, 0)]
+    np.testing.assert_array_equal(result.freed_mucosa, expected)
+    assert result.summary()["freed_mucosa_nodes"] == expected.size > 0
+    types = result.boundary.types
+    assert (types[expected] == NodeType.FREE).all()
+    others = np.setdiff1d(np.arange(coarse.mesh.n_points), expected)
+    np.testing.assert_array_equal(types[others], as_built.bc.types[others])
+
+    model = simulate_module._build_model(coarse, "linear", "mucosa+lip", None, SimulationOptions())
+    assert model.free_mucosa_near(element)
+    np.testing.assert_allclose(model.offset, model._offsets(model.mucosa)[0], atol=1e-12)
+    still = model.mucosa
+    x = X + result.displacement
+    for s, name in enumerate(model.bc.segment_names):
+        sel = model.bc.segment[still] == s
+        if sel.any():
+            surface = coarse.segments[name].surface
+            moved = plan.motion(name).apply(surface.points)
+            ext = simulate_module._on_extended(x[still[sel]], moved, surface, model.rims[name])
+            np.testing.assert_allclose(ext.distance, model.offset[sel], atol=1e-6)
+
+    with pytest.raises(SimulationError, match="folds") as info:
+        simulate(coarse, plan, 3, options=SimulationOptions(wider_release=(), free_mucosa_radius=0.0))
+    assert "free_mucosa_radius" in info.value.suggestion
+    with pytest.raises(ValueError, match=r"free_mucosa_radius = -1.0 mm"):
+        SimulationOptions(free_mucosa_radius=-1.0)
+
+
 def test_a_plan_that_cannot_be_simulated_names_increment_element_and_remedy(coarse):
     """Driving the mandible 40 mm up into the maxilla (3.5 times the range, forced) crushes
     the tissue between the jaws whatever the step: SimulationError names the increment, the

@@ -285,8 +285,9 @@ def simulate_job(params: dict) -> Record:
     motions = {k: v for k, v in params["motions"].items() if k != "force"}
     plan = SurgicalPlan.from_dict(motions)
     t0 = time.perf_counter()
-    # the simulation's own retries (a wider release band, freed nodes of the truncation cut) are
-    # allowed: the record keeps the boundary types the plan was simulated with
+    # the simulation's own retries (a wider release band, freed nodes of the truncation cut, freed
+    # mucosa around a folding element) are allowed: the record keeps the boundary types the plan
+    # ended with
     result = simulate(face, plan, cfg.increments, material_for(cfg.material, params.get("poisson"), phantom.mesh),
                       cfg.sliding, segments=phantom.segments, options=SimulationOptions())
     seconds = time.perf_counter() - t0
@@ -311,6 +312,7 @@ def simulate_job(params: dict) -> Record:
     assert result.release_width is not None  # simulate() reports the release band it used
     attrs["release_width_mm"] = float(result.release_width)
     attrs["freed_cut_nodes"] = int(np.size(result.freed_cut))
+    attrs["freed_mucosa_nodes"] = int(np.size(result.freed_mucosa))
     return Record({"displacements": U.astype(np.float32), "bone": bone.astype(np.float32),
                    "types": bc.types.astype(np.int8), "segment": bc.segment.astype(np.int8),
                    "seconds_per_increment": np.array(summary["seconds_per_increment"]),

@@ -89,7 +89,7 @@ from toolkit.common.meshes.topology import rim_edges, tet10_mid_edges
 from toolkit.common.phantoms.phantom import FacePhantom
 from toolkit.common.runtime import count_finished
 from toolkit.static.boundary import DEFAULT_RELEASE_WIDTH, BoundaryConditions, NodeType
-from toolkit.static.checks import MIN_CARRIED_MM2, check_answer, check_plan
+from toolkit.static.checks import MIN_CARRIED_MM2, MIN_CARRIED_SHARE, check_answer, check_plan
 from toolkit.static.constraints import Constraints
 from toolkit.static.plan import PlanRangeWarning, SurgicalPlan
 from toolkit.static.problem import ConvergenceError, StaticProblem, solve_with_lip_contact
@@ -104,6 +104,8 @@ log = logging.getLogger(__name__)
 SLIDING_MODELS = ("none", "mucosa", "mucosa+lip")
 MATERIALS = ("linear", "neo-hookean")
 _MAX_CUT_FREEINGS = 3  # retries of one plan that free more of the cut (each a full run)
+_MAX_MUCOSA_FREEINGS = 6  # releases of sliding mucosa around a folding element, per run
+_CUTS_BEFORE_FREEING = 2  # a step is cut this many times before the mucosa around its failure is freed
 _OFFSET_ITERATIONS = 20  # most repeated projections onto the offset surface of a mucosa node (_onto_offset)
 
 
@@ -155,9 +157,15 @@ class SimulationOptions:
         freed and the plan is run again, before any wider release band (0: never)
     max_mucosa_offset : mm; a mucosa node farther than this from its bone surface on the
         pre-operative mesh is left free instead of sliding (inf: every mucosa node slides)
+    free_mucosa_radius : mm; when a step cut twice (or ``max_cuts`` times, if fewer) still
+        inverts an element, the sliding mucosa nodes within this distance of that element's
+        centroid are freed for the rest of the run and the step is tried again (at most
+        six times per run; the result's ``freed_mucosa`` lists them; 0: never)
     min_carried_mm2 : mm^2; a plan that moves the Le Fort I or distal segment is refused before
         any solve when that segment's attached set covers less of the tissue's boundary
         (:func:`~toolkit.static.checks.check_plan`; 0: only an empty set is refused)
+    min_carried_share : the same when the attached set covers less than this share of the tissue
+        on the segment's bone (its attached and sliding mucosa sets; 0: no share is required)
     progress : show a tqdm bar over increments
     """
 
@@ -170,7 +178,9 @@ class SimulationOptions:
     max_cuts: int = 4
     free_cut_radius: float = 6.0
     max_mucosa_offset: float = 5.0
+    free_mucosa_radius: float = 6.0
     min_carried_mm2: float = MIN_CARRIED_MM2
+    min_carried_share: float = MIN_CARRIED_SHARE
     progress: bool = False
 
     def __post_init__(self):
@@ -181,6 +191,10 @@ class SimulationOptions:
             raise ValueError(f"release_width = {self.release_width!r} mm; expected a finite number >= 0")
         if not np.isfinite(self.free_cut_radius) or self.free_cut_radius < 0:
             raise ValueError(f"free_cut_radius = {self.free_cut_radius!r} mm; expected a finite number >= 0")
+        if not np.isfinite(self.free_mucosa_radius) or self.free_mucosa_radius < 0:
+            raise ValueError(f"free_mucosa_radius = {self.free_mucosa_radius!r} mm; expected a finite number >= 0")
+        if not 0 <= self.min_carried_share <= 1:
+            raise ValueError(f"min_carried_share = {self.min_carried_share!r}; expected a share in [0, 1]")
         if not self.max_mucosa_offset >= 0:
             raise ValueError(f"max_mucosa_offset = {self.max_mucosa_offset!r} mm; expected a number >= 0 (inf: "
                              f"no limit)")
@@ -240,6 +254,9 @@ class SimulationResult:
         the pre-operative mesh; empty without mucosa sliding
     far_mucosa : (f,) int64 — mucosa nodes left free as farther than
         ``SimulationOptions.max_mucosa_offset`` from their bone
+    freed_mucosa : (g,) int64 — sliding mucosa nodes freed during the run around elements that
+        would otherwise have folded (``SimulationOptions.free_mucosa_radius``; sliding before the
+        increment that freed them, free after it; ``boundary`` has them free)
     fidelity : the record of the :class:`~toolkit.common.fidelity.FidelityChoice` the run took
         its options from (``summary()["fidelity"]``), or None
     checks : ``{"plan": ..., "answer": ...}``, the values :func:`~toolkit.static.checks.check_plan`
@@ -258,6 +275,7 @@ class SimulationResult:
     freed_cut: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     mucosa_offset: np.ndarray = field(default_factory=lambda: np.zeros(0))
     far_mucosa: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    freed_mucosa: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     fidelity: dict | None = None
     checks: dict | None = None
     plan: SurgicalPlan | None = None
@@ -304,6 +322,7 @@ class SimulationResult:
             "released_nodes": int(self.boundary.released.size),
             "release_width_mm": self.release_width,
             "freed_cut_nodes": int(np.size(self.freed_cut)),
+            "freed_mucosa_nodes": int(np.size(self.freed_mucosa)),
             "substeps": int(sum(r.substeps for r in self.reports)),
             "increments_cut": int(sum(r.substeps > 1 for r in self.reports)),
             "regulated_nodes": int(sum(r.regulated_nodes for r in self.reports)),
@@ -404,6 +423,9 @@ class _Model:
     side: np.ndarray = field(init=False)  # (m,) +-1, side of its bone triangle's normal it lies on
     # tet10 mid-edge mucosa nodes and their edges (:func:`_edge_followers`)
     edge_followers: tuple = field(init=False)
+    # sliding mucosa nodes freed during the run around elements that folded (:meth:`free_mucosa_near`)
+    freed_mucosa: np.ndarray = field(init=False)
+    mucosa_freeings: int = field(init=False)
 
     def __post_init__(self):
         self.quality0 = element_quality(self.mesh, self.mesh.points)
@@ -420,6 +442,7 @@ class _Model:
         sliding = np.isin(mucosa, self.mucosa)  # the offsets of the nodes still sliding, in their order
         self.offset, self.side = offset[sliding], side[sliding]
         self.edge_followers = _edge_followers(self.mesh, self.mucosa)
+        self.freed_mucosa, self.mucosa_freeings = np.zeros(0, np.int64), 0
         # what regulation may move: free nodes off the skin (the prediction) and off the lip pairs,
         # and mucosa nodes along their bone (they are put back on it exactly afterwards)
         movable = np.isin(self.bc.types, (NodeType.FREE, NodeType.MUCOSA_SLIDING))
@@ -432,6 +455,36 @@ class _Model:
         movable[self.bc_all.upper_lip] = False
         movable[self.bc_all.lower_lip] = False
         self.movable = movable
+
+    def free_mucosa_near(self, element: int | None) -> bool:
+        """Free the sliding mucosa nodes within ``options.free_mucosa_radius`` mm of the
+        pre-operative centroid of ``element`` (and the ``tet10`` mid-edge nodes of their edges)
+        for the rest of the run. Returns False, changing nothing, when there is no element, no
+        sliding node that close, or the run has already freed mucosa ``_MAX_MUCOSA_FREEINGS``
+        times.
+
+        Where the tissue between two bone segments moving apart or past each other is held on
+        both bones, the thin elements bridging them have no shape left to take: freeing that
+        patch of mucosa lets the tissue part from the bone there, as mucosa does, instead of
+        folding."""
+        radius, X = self.options.free_mucosa_radius, self.mesh.points
+        if element is None or radius <= 0 or self.mucosa_freeings >= _MAX_MUCOSA_FREEINGS or not self.mucosa.size:
+            return False
+        centroid = X[_element_nodes(self.mesh, element)].mean(axis=0)
+        near = self.mucosa[np.linalg.norm(X[self.mucosa] - centroid, axis=1) < radius]
+        if not near.size:
+            return False
+        before = self.mucosa
+        self.bc = self.bc.with_freed(near).with_mid_edges_of_corners(self.mesh)
+        self.moving = self.bc.nodes(NodeType.MOVING)
+        self.fixed = self.bc.nodes(NodeType.FIXED)
+        self.mucosa = self.bc.nodes(NodeType.MUCOSA_SLIDING)
+        sliding = np.isin(before, self.mucosa)
+        self.offset, self.side = self.offset[sliding], self.side[sliding]
+        self.edge_followers = _edge_followers(self.mesh, self.mucosa)
+        self.freed_mucosa = np.union1d(self.freed_mucosa, before[~sliding])
+        self.mucosa_freeings += 1
+        return True
 
     def _offsets(self, mucosa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distance (mm) of the ``mucosa`` nodes to their bone surface extended beyond its rim
@@ -759,7 +812,9 @@ def _step(model: _Model, state: _State, plan: SurgicalPlan, guess: np.ndarray | 
 
 # ------------------------------------------------------ increments and cutting
 def _advance(model: _Model, plan: SurgicalPlan, state: _State, fraction: float, depth: int = 0):
-    """Step from ``state`` to ``fraction`` of ``plan``, halving the step on failure.
+    """Step from ``state`` to ``fraction`` of ``plan``, halving the step on failure; a step
+    already cut twice that still fails frees the sliding mucosa around the failing element
+    (:meth:`_Model.free_mucosa_near`) and is tried again before it is cut further.
 
     Returns the new state, the diagnostics of every successful sub-step and the number of
     failed attempts. Raises :class:`_StepFailure` when ``max_cuts`` halvings do not help.
@@ -772,6 +827,12 @@ def _advance(model: _Model, plan: SurgicalPlan, state: _State, fraction: float, 
         rate = None if model.total_lagrangian else (new.u - state.u) / share
         return replace(new, fraction=fraction, rate=rate), [diag], 0
     except _StepFailure as exc:
+        if depth >= min(_CUTS_BEFORE_FREEING, model.options.max_cuts) and model.free_mucosa_near(exc.element):
+            log.warning("step %.4g -> %.4g failed (%s); freed the sliding mucosa within %g mm of that element "
+                        "(%d nodes freed so far) and trying it again", state.fraction, fraction, exc,
+                        model.options.free_mucosa_radius, model.freed_mucosa.size)
+            new, diags, failed = _advance(model, plan, state, fraction, depth)
+            return new, diags, failed + 1
         if depth >= model.options.max_cuts:
             raise
         log.info("step %.4g -> %.4g failed (%s); cutting it in two", state.fraction, fraction, exc)
@@ -847,7 +908,7 @@ def simulate(
                              f"{n}, 3) mm (the total displacement before and after each increment)")
     mesh, segs = face_mesh_and_segments(face, segments)
     plan_checks = check_plan(mesh, BoundaryConditions.from_mesh(mesh, segs, lip_threshold=options.lip_threshold),
-                             segs, plan, options.min_carried_mm2)
+                             segs, plan, options.min_carried_mm2, options.min_carried_share)
     widths = (options.release_width, *(w for w in options.wider_release if w > options.release_width))
     attempt, freeings, freed = 0, 0, np.zeros(0, np.int64)
     while True:
@@ -872,7 +933,8 @@ def simulate(
                 if attempt or freed.size:
                     tried = ", ".join(f"{w:g}" for w in widths)
                     raise SimulationError(f"{exc.reason} (with each release band tried: {tried} mm; "
-                                          f"{freed.size} fixed nodes of the cut freed)", exc.increment,
+                                          f"{freed.size} fixed nodes of the cut freed; "
+                                          f"{model.freed_mucosa.size} sliding mucosa nodes freed)", exc.increment,
                                           exc.element, exc.suggestion) from exc
                 raise
             attempt += 1
@@ -882,6 +944,7 @@ def simulate(
     return SimulationResult(model.mesh, displacements, model.bc, reports, time.perf_counter() - t_start,
                             material_name, sliding, release_width=width, freed_cut=freed,
                             mucosa_offset=model.mucosa_offset, far_mucosa=model.far_mucosa,
+                            freed_mucosa=model.freed_mucosa,
                             checks={"plan": plan_checks, "answer": checks}, plan=plan)
 
 
@@ -969,6 +1032,7 @@ def _remedy(model: _Model, increments: int) -> str:
     return (f"the step was already cut {cuts} times ({2 ** cuts} sub-steps); use more increments than {increments}, "
             f"a wider release band than {model.options.release_width:g} mm, a smaller movement, a larger "
             f"free_cut_radius than {model.options.free_cut_radius:g} mm if the element is near the fixed cut, "
+            f"a larger free_mucosa_radius than {model.options.free_mucosa_radius:g} mm if it is on the sliding mucosa, "
             f"or check the boundary node sets near that element")
 
 

@@ -245,7 +245,8 @@ def arch_nodes(db) -> np.ndarray:
 #: summary keys of a FE run that a prediction does not compute (solver, contact, sliding and
 #: regulation records)
 FE_ONLY = ("max_penetration_mm", "max_mucosa_gap_mm", "mucosa_offset_mm", "far_mucosa_nodes", "release_width_mm",
-           "freed_cut_nodes", "substeps", "increments_cut", "regulated_nodes", "max_regulation_shift_mm")
+           "freed_cut_nodes", "freed_mucosa_nodes", "substeps", "increments_cut", "regulated_nodes",
+           "max_regulation_shift_mm")
 
 
 @dataclass(frozen=True, eq=False)
