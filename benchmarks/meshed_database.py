@@ -6,9 +6,9 @@ as the proximal segments' pivots), are meshed by ``toolkit mesh`` (:func:`toolki
 at ``--size`` and ``--order``, written with their bone surfaces, and
 ``toolkit static database --mesh`` (:func:`toolkit.static.database.build_database`) runs ``--plans``
 sampled plans of each ``--modes`` on it, as a user would. Per simulation: status, reason, time,
-the release band it used and the cut nodes it freed (the retries a plan may need, stored with its
-own boundary types). Writes ``benchmarks/results/meshed_database.csv``; a rerun resumes on the mesh
-and databases in ``benchmarks/work/meshed_database/`` (delete the folder to start afresh).
+the release band it used, the cut nodes and the mucosa nodes it freed (the retries a plan may
+need, stored with its own boundary types). Writes ``benchmarks/results/meshed_database.csv``; a
+rerun resumes on the mesh and databases in ``benchmarks/work/meshed_database/`` (delete the folder to start afresh).
 
 Usage::
 
@@ -106,13 +106,15 @@ def main(argv=None):
                          "mode": mode, "key": key, "status": status,
                          "reason": str(failed.get(key, ""))[:200], "seconds": a.get("seconds"),
                          "release_width_mm": a.get("release_width_mm"), "freed_cut_nodes": a.get("freed_cut_nodes"),
+                         "freed_mucosa_nodes": a.get("freed_mucosa_nodes"),
                          "min_scaled_jacobian": a.get("min_scaled_jacobian")})
     table = pd.DataFrame(rows)
     write_result(args.out, table, argv=argv)
     print(table.groupby("mode").agg(plans=("status", "size"), completed=("status", lambda s: (s == "ok").sum()),
                                     median_s=("seconds", "median"), wider_band=("release_width_mm",
                                                                                 lambda s: (s > 10).sum()),
-                                    freed=("freed_cut_nodes", lambda s: (s > 0).sum())).to_string())
+                                    freed=("freed_cut_nodes", lambda s: (s > 0).sum()),
+                                    mucosa=("freed_mucosa_nodes", lambda s: (s > 0).sum())).to_string())
     return table
 
 

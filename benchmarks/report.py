@@ -687,18 +687,23 @@ def _meshed_database(data):
         t["face"] = t["face"].fillna(t.pop("resolution")) if "face" in t.columns else t.pop("resolution")
     t["face"] = t["face"].map(lambda f: "head CT" if f == "ct" else f"{f} phantom's surfaces")
     t["order"] = t["order"].fillna(2).astype(int).map({1: "tet4", 2: "tet10"}) if "order" in t else "tet10"
+    if "freed_mucosa_nodes" not in t:  # results measured before the mucosa could be freed
+        t["freed_mucosa_nodes"] = 0
+    t["freed_mucosa_nodes"] = t["freed_mucosa_nodes"].fillna(0)
     g = t.groupby(["face", "size_mm", "order", "nodes", "mode"], sort=False).agg(
         plans=("status", "size"), completed=("status", lambda s: int((s == "ok").sum())),
         failed=("status", lambda s: int((s == "failed").sum())),
         not_run=("status", lambda s: int((s == "not run").sum())),
         median_s=("seconds", "median"), wider_band=("release_width_mm", lambda s: int((s > 10).sum())),
-        freed=("freed_cut_nodes", lambda s: int((s > 0).sum())), min_sj=("min_scaled_jacobian", "min")).reset_index()
+        freed=("freed_cut_nodes", lambda s: int((s > 0).sum())),
+        mucosa=("freed_mucosa_nodes", lambda s: int((s > 0).sum())),
+        min_sj=("min_scaled_jacobian", "min")).reset_index()
     return table(g, [("face", "face"), ("size_mm", "size (mm)"), ("order", "elements"), ("nodes", "nodes"),
                      ("mode", "mode"),
                      ("plans", "plans"), ("completed", "completed"), ("failed", "failed"), ("not_run", "not run"),
                      ("median_s", "median time (s)", "{:.0f}"),
                      ("wider_band", "wider release band"), ("freed", "freed cut nodes"),
-                     ("min_sj", "min scaled Jacobian", "{:.2g}")])
+                     ("mucosa", "freed mucosa nodes"), ("min_sj", "min scaled Jacobian", "{:.2g}")])
 
 
 def _silent_cases(data):

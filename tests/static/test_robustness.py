@@ -134,10 +134,12 @@ def test_a_step_that_folds_the_mucosa_frees_it_around_the_element(coarse, monkey
     """A step is made to fail on an element beside the sliding mucosa until mucosa near it is
     freed: the first quarter of the first increment fails after two cuts, the sliding mucosa
     within ``free_mucosa_radius`` of the element's centroid is freed, and the run goes on without
-    another cut (3 sub-steps: two quarters and a half; 3 failed attempts). The result lists exactly those nodes, free in its boundary; every other
-    node keeps its type; the nodes still sliding keep their own pre-operative offset, and end on
-    their bone at it. With ``free_mucosa_radius=0`` the same run fails, its remedy naming the
-    option."""
+    another cut (3 sub-steps: two quarters and a half; 3 failed attempts). The result lists
+    exactly those nodes, free in its boundary; every other node keeps its type; the nodes still
+    sliding keep their own pre-operative offset, and end on their bone at it. With
+    ``free_mucosa_radius=0`` the same run fails, its remedy naming the option; a step that folds
+    wherever the mucosa still slides frees it patch by patch, up to a tenth of the sliding
+    mucosa, and then fails."""
     plan = default_plan(coarse)
     as_built = simulate_module._build_model(coarse, "linear", "mucosa+lip", None, SimulationOptions())
     mucosa = as_built.mucosa
@@ -166,7 +168,7 @@ def test_a_step_that_folds_the_mucosa_frees_it_around_the_element(coarse, monkey
     np.testing.assert_array_equal(types[others], as_built.bc.types[others])
 
     model = simulate_module._build_model(coarse, "linear", "mucosa+lip", None, SimulationOptions())
-    assert model.free_mucosa_near(element)
+    assert "sliding mucosa nodes" in model.free_near(element)
     np.testing.assert_allclose(model.offset, model._offsets(model.mucosa)[0], atol=1e-12)
     still = model.mucosa
     x = X + result.displacement
@@ -181,6 +183,20 @@ def test_a_step_that_folds_the_mucosa_frees_it_around_the_element(coarse, monkey
     with pytest.raises(SimulationError, match="folds") as info:
         simulate(coarse, plan, 3, options=SimulationOptions(wider_release=(), free_mucosa_radius=0.0))
     assert "free_mucosa_radius" in info.value.suggestion
+
+    # a step that folds wherever the mucosa still slides: freed patch by patch up to a tenth of it
+    models = []
+
+    def always(model, state, target, guess=None, predicted=None):
+        models.append(model)
+        still = np.isin(elements, model.mucosa).any(axis=1)
+        raise simulate_module._StepFailure("folds (test)", int(np.flatnonzero(still)[0]))
+
+    monkeypatch.setattr(simulate_module, "_step", always)
+    with pytest.raises(SimulationError, match="folds"):
+        simulate(coarse, plan, 3, options=SimulationOptions(wider_release=()))
+    freed = models[-1].freed_mucosa.size
+    assert 0.05 * mucosa.size < freed <= 0.1 * mucosa.size
     with pytest.raises(ValueError, match=r"free_mucosa_radius = -1.0 mm"):
         SimulationOptions(free_mucosa_radius=-1.0)
 

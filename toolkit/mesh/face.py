@@ -274,9 +274,9 @@ def _check_carried(segments: Mapping[str, dict], rules: LabelRules, names: Mappi
                 f"mm^2 of tissue, a share of {got['carried_share']:.3f} of the {got['facing_area_mm2']:.1f} mm^2 lying "
                 f"on its bone; expected at least {rules.min_carried_mm2:g} mm^2 (rules key min_carried_mm2) and a "
                 f"share of {rules.min_carried_share:g} (rules key min_carried_share): a plan moving it would leave "
-                f"the tissue behind. Check that the bone lies against the tissue's inner side in the same axes and units, raise "
-                f"contact_mm if the tissue stands off the bone, or choose what it carries with segments.{name}.attach "
-                f"in --rules")
+                f"the tissue behind. Check that the bone lies against the tissue's inner side in the same axes and "
+                f"units, raise contact_mm if the tissue stands off the bone, or choose what it carries with "
+                f"segments.{name}.attach in --rules")
 
 
 def mesh_face(tissue, bones: Mapping, commissures=None, *, size_mm: float = MESH["size_mm"],

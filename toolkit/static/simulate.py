@@ -59,9 +59,9 @@ These safeguards keep the physiological plan space simulable (``benchmarks/stati
   worse as the mesh is refined (plan 10 of the full sampler at ``fine``); on a meshed face the
   held upper cut pins the cheek above a lifted maxilla alike. When the element that blocks a
   plan lies within ``free_cut_radius`` of a fixed node off the bone (the ``bone`` node set),
-  the fixed nodes off the bone within that distance of it are freed and the plan is run again:
-  the truncation moves locally, the bony boundary conditions do not change. The result
-  lists them (``freed_cut_nodes``).
+  the fixed nodes off the bone within that distance of it are freed for the rest of the run and
+  the step is tried again: the truncation moves locally, the bony boundary conditions do not
+  change. The result lists them (``freed_cut_nodes``).
 """
 
 from __future__ import annotations
@@ -103,9 +103,9 @@ log = logging.getLogger(__name__)
 
 SLIDING_MODELS = ("none", "mucosa", "mucosa+lip")
 MATERIALS = ("linear", "neo-hookean")
-_MAX_CUT_FREEINGS = 3  # retries of one plan that free more of the cut (each a full run)
-_MAX_MUCOSA_FREEINGS = 6  # releases of sliding mucosa around a folding element, per run
-_CUTS_BEFORE_FREEING = 2  # a step is cut this many times before the mucosa around its failure is freed
+_MAX_CUT_FREEINGS = 3  # times a run may free more of the cut
+_MAX_MUCOSA_FREED = 0.1  # share of the sliding mucosa a run may free around folding elements
+_CUTS_BEFORE_FREEING = 2  # a step is cut this many times before the cut or mucosa around its failure is freed
 _OFFSET_ITERATIONS = 20  # most repeated projections onto the offset surface of a mucosa node (_onto_offset)
 
 
@@ -153,14 +153,15 @@ class SimulationOptions:
     max_cuts : how many times a failing increment may be halved (``2 ** max_cuts`` sub-steps)
     free_cut_radius : mm; when the element that blocks a plan lies within this distance of a
         fixed node off the bone (the truncation cut of the face; meshes without a ``bone`` node
-        set have none), the fixed nodes off the bone within this distance of its centroid are
-        freed and the plan is run again, before any wider release band (0: never)
+        set have none) and a step cut twice still fails there, the fixed nodes off the bone within
+        this distance of its centroid are freed for the rest of the run and the step is tried
+        again (at most three times a run; 0: never)
     max_mucosa_offset : mm; a mucosa node farther than this from its bone surface on the
         pre-operative mesh is left free instead of sliding (inf: every mucosa node slides)
     free_mucosa_radius : mm; when a step cut twice (or ``max_cuts`` times, if fewer) still
         inverts an element, the sliding mucosa nodes within this distance of that element's
         centroid are freed for the rest of the run and the step is tried again (at most
-        six times per run; the result's ``freed_mucosa`` lists them; 0: never)
+        a tenth of the sliding mucosa per run; the result's ``freed_mucosa`` lists them; 0: never)
     min_carried_mm2 : mm^2; a plan that moves the Le Fort I or distal segment is refused before
         any solve when that segment's attached set covers less of the tissue's boundary
         (:func:`~toolkit.static.checks.check_plan`; 0: only an empty set is refused)
@@ -423,9 +424,11 @@ class _Model:
     side: np.ndarray = field(init=False)  # (m,) +-1, side of its bone triangle's normal it lies on
     # tet10 mid-edge mucosa nodes and their edges (:func:`_edge_followers`)
     edge_followers: tuple = field(init=False)
-    # sliding mucosa nodes freed during the run around elements that folded (:meth:`free_mucosa_near`)
+    # nodes freed during the run around elements that folded (:meth:`free_near`)
+    freed_cut: np.ndarray = field(init=False)
+    cut_freeings: int = field(init=False)
     freed_mucosa: np.ndarray = field(init=False)
-    mucosa_freeings: int = field(init=False)
+    sliding_at_start: int = field(init=False)  # sliding mucosa nodes before any was freed
 
     def __post_init__(self):
         self.quality0 = element_quality(self.mesh, self.mesh.points)
@@ -442,7 +445,8 @@ class _Model:
         sliding = np.isin(mucosa, self.mucosa)  # the offsets of the nodes still sliding, in their order
         self.offset, self.side = offset[sliding], side[sliding]
         self.edge_followers = _edge_followers(self.mesh, self.mucosa)
-        self.freed_mucosa, self.mucosa_freeings = np.zeros(0, np.int64), 0
+        self.freed_mucosa, self.sliding_at_start = np.zeros(0, np.int64), self.mucosa.size
+        self.freed_cut, self.cut_freeings = np.zeros(0, np.int64), 0
         # what regulation may move: free nodes off the skin (the prediction) and off the lip pairs,
         # and mucosa nodes along their bone (they are put back on it exactly afterwards)
         movable = np.isin(self.bc.types, (NodeType.FREE, NodeType.MUCOSA_SLIDING))
@@ -456,26 +460,43 @@ class _Model:
         movable[self.bc_all.lower_lip] = False
         self.movable = movable
 
-    def free_mucosa_near(self, element: int | None) -> bool:
-        """Free the sliding mucosa nodes within ``options.free_mucosa_radius`` mm of the
-        pre-operative centroid of ``element`` (and the ``tet10`` mid-edge nodes of their edges)
-        for the rest of the run. Returns False, changing nothing, when there is no element, no
-        sliding node that close, or the run has already freed mucosa ``_MAX_MUCOSA_FREEINGS``
-        times.
+    def free_near(self, element: int | None) -> str | None:
+        """Free, for the rest of the run, what holds the tissue around ``element`` (its
+        pre-operative centroid): the fixed nodes of the truncation cut within
+        ``options.free_cut_radius`` mm (:func:`_cut_near`; at most ``_MAX_CUT_FREEINGS`` times a
+        run) or else the sliding mucosa nodes within ``options.free_mucosa_radius`` mm (until
+        ``_MAX_MUCOSA_FREED`` of the mucosa sliding at the start is free), with the ``tet10``
+        mid-edge nodes of their edges. Returns what was freed, in words, or None, changing
+        nothing, when neither applies.
 
-        Where the tissue between two bone segments moving apart or past each other is held on
-        both bones, the thin elements bridging them have no shape left to take: freeing that
-        patch of mucosa lets the tissue part from the bone there, as mucosa does, instead of
-        folding."""
+        The truncation is where the model ends, not anatomy: freeing it near the element moves
+        the model's edge locally. Where a real face's mucosa is thinner than one element, an
+        element has two to four corners sliding on the bone, and a moving curved or sharp bone
+        can leave it no shape to take: freeing that patch lets the mucosa part from the bone
+        there instead of folding."""
+        if element is None:
+            return None
+        cut = _cut_near(self, element)
+        if cut.size and self.cut_freeings < _MAX_CUT_FREEINGS:
+            self._free(cut)
+            self.freed_cut, self.cut_freeings = np.union1d(self.freed_cut, cut), self.cut_freeings + 1
+            return f"{cut.size} fixed nodes of the cut within {self.options.free_cut_radius:g} mm of that element"
         radius, X = self.options.free_mucosa_radius, self.mesh.points
-        if element is None or radius <= 0 or self.mucosa_freeings >= _MAX_MUCOSA_FREEINGS or not self.mucosa.size:
-            return False
+        if radius <= 0 or not self.mucosa.size:
+            return None
         centroid = X[_element_nodes(self.mesh, element)].mean(axis=0)
         near = self.mucosa[np.linalg.norm(X[self.mucosa] - centroid, axis=1) < radius]
-        if not near.size:
-            return False
+        if not near.size or self.freed_mucosa.size + near.size > _MAX_MUCOSA_FREED * self.sliding_at_start:
+            return None
+        self._free(near)
+        return f"{near.size} sliding mucosa nodes within {radius:g} mm of that element ({self.freed_mucosa.size} " \
+               f"freed so far)"
+
+    def _free(self, nodes: np.ndarray) -> None:
+        """Make ``nodes`` free (and the ``tet10`` mid-edge nodes of their edges), keeping the
+        offsets of the mucosa nodes still sliding; the sliding nodes freed join ``freed_mucosa``."""
         before = self.mucosa
-        self.bc = self.bc.with_freed(near).with_mid_edges_of_corners(self.mesh)
+        self.bc = self.bc.with_freed(nodes).with_mid_edges_of_corners(self.mesh)
         self.moving = self.bc.nodes(NodeType.MOVING)
         self.fixed = self.bc.nodes(NodeType.FIXED)
         self.mucosa = self.bc.nodes(NodeType.MUCOSA_SLIDING)
@@ -483,8 +504,6 @@ class _Model:
         self.offset, self.side = self.offset[sliding], self.side[sliding]
         self.edge_followers = _edge_followers(self.mesh, self.mucosa)
         self.freed_mucosa = np.union1d(self.freed_mucosa, before[~sliding])
-        self.mucosa_freeings += 1
-        return True
 
     def _offsets(self, mucosa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distance (mm) of the ``mucosa`` nodes to their bone surface extended beyond its rim
@@ -813,8 +832,8 @@ def _step(model: _Model, state: _State, plan: SurgicalPlan, guess: np.ndarray | 
 # ------------------------------------------------------ increments and cutting
 def _advance(model: _Model, plan: SurgicalPlan, state: _State, fraction: float, depth: int = 0):
     """Step from ``state`` to ``fraction`` of ``plan``, halving the step on failure; a step
-    already cut twice that still fails frees the sliding mucosa around the failing element
-    (:meth:`_Model.free_mucosa_near`) and is tried again before it is cut further.
+    already cut twice that still fails frees the held cut or the sliding mucosa around the
+    failing element (:meth:`_Model.free_near`) and is tried again before it is cut further.
 
     Returns the new state, the diagnostics of every successful sub-step and the number of
     failed attempts. Raises :class:`_StepFailure` when ``max_cuts`` halvings do not help.
@@ -827,10 +846,10 @@ def _advance(model: _Model, plan: SurgicalPlan, state: _State, fraction: float, 
         rate = None if model.total_lagrangian else (new.u - state.u) / share
         return replace(new, fraction=fraction, rate=rate), [diag], 0
     except _StepFailure as exc:
-        if depth >= min(_CUTS_BEFORE_FREEING, model.options.max_cuts) and model.free_mucosa_near(exc.element):
-            log.warning("step %.4g -> %.4g failed (%s); freed the sliding mucosa within %g mm of that element "
-                        "(%d nodes freed so far) and trying it again", state.fraction, fraction, exc,
-                        model.options.free_mucosa_radius, model.freed_mucosa.size)
+        freed = model.free_near(exc.element) if depth >= min(_CUTS_BEFORE_FREEING, model.options.max_cuts) else None
+        if freed:
+            log.warning("step %.4g -> %.4g failed (%s); freed %s and trying it again",
+                        state.fraction, fraction, exc, freed)
             new, diags, failed = _advance(model, plan, state, fraction, depth)
             return new, diags, failed + 1
         if depth >= model.options.max_cuts:
@@ -893,8 +912,9 @@ def simulate(
     Raises
     ------
     SimulationError naming the increment, the worst element and a suggestion (after the
-    retries: fixed nodes of the cut freed near the element that failed,
-    ``options.free_cut_radius``; then each of ``options.wider_release``).
+    retries: within the run, fixed nodes of the cut or sliding mucosa freed near an element that
+    failed, ``options.free_cut_radius`` and ``options.free_mucosa_radius``; then the run again with
+    each of ``options.wider_release``, the cut freed so far freed from its start).
     """
     t_start = time.perf_counter()
     options = options or SimulationOptions()
@@ -910,12 +930,12 @@ def simulate(
     plan_checks = check_plan(mesh, BoundaryConditions.from_mesh(mesh, segs, lip_threshold=options.lip_threshold),
                              segs, plan, options.min_carried_mm2, options.min_carried_share)
     widths = (options.release_width, *(w for w in options.wider_release if w > options.release_width))
-    attempt, freeings, freed = 0, 0, np.zeros(0, np.int64)
+    attempt, freed = 0, np.zeros(0, np.int64)
     while True:
         width = widths[attempt]
         model = _build_model(face, material, sliding, segments,
                              replace(options, release_width=width, wider_release=()), freed)
-        model.guess = initial_guess
+        model.guess, model.freed_cut = initial_guess, freed
         try:
             with warnings.catch_warnings():
                 # the plan warned of a movement beyond the physiological range where it was built;
@@ -924,11 +944,7 @@ def simulate(
                 displacements, reports = _increments(model, plan, int(increments))
             break
         except SimulationError as exc:
-            cut = _cut_near(model, exc.element)
-            if cut.size and freeings < _MAX_CUT_FREEINGS:
-                freed, freeings = np.union1d(freed, cut), freeings + 1
-                log.warning("%s; retrying with %d fixed nodes of the cut near it freed", exc, cut.size)
-                continue
+            freed = model.freed_cut
             if attempt + 1 == len(widths):
                 if attempt or freed.size:
                     tried = ", ".join(f"{w:g}" for w in widths)
@@ -942,7 +958,7 @@ def simulate(
     material_name = material if isinstance(material, str) else "custom"
     checks = check_answer(model.mesh, model.bc, plan, displacements[-1], min(r.min_scaled_jacobian for r in reports))
     return SimulationResult(model.mesh, displacements, model.bc, reports, time.perf_counter() - t_start,
-                            material_name, sliding, release_width=width, freed_cut=freed,
+                            material_name, sliding, release_width=width, freed_cut=model.freed_cut,
                             mucosa_offset=model.mucosa_offset, far_mucosa=model.far_mucosa,
                             freed_mucosa=model.freed_mucosa,
                             checks={"plan": plan_checks, "answer": checks}, plan=plan)
