@@ -669,8 +669,12 @@ def _segmentation_damage(data):
     areas = [c for c in t.columns if c.startswith(("facing_", "carried_")) and c.endswith("_ratio")]
     t["worst_area"] = (t[areas] - 1).abs().max(axis=1)
     t["run"] = t["run"].fillna(1).astype(int) if "run" in t.columns else 1
+    # damaged bones labelled on the first clean meshing's tetrahedra, or a meshing of their own
+    t["draw"] = (t["draw"] if "draw" in t.columns else pd.Series("own", index=t.index)).fillna("own").map(
+        {"clean": "first clean", "own": "own"})
     return table(t, [
-        ("size_mm", "size (mm)", "{:g}"), ("run", "run"), ("damage", "damage"), ("nodes", "nodes"),
+        ("size_mm", "size (mm)", "{:g}"), ("run", "run"), ("damage", "damage"), ("draw", "tetrahedra"),
+        ("nodes", "nodes"),
         ("worst_count", "largest set count change", "{:.0%}"),
         ("worst_area", "largest area change", "{:.0%}"), ("carried_lefort_mm2_ratio", "Le Fort I carried", "{:.2f}"),
         ("carried_distal_mm2_ratio", "distal carried", "{:.2f}"), ("diff_mean_mm", "skin difference mean (mm)",
