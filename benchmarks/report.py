@@ -670,8 +670,7 @@ def _segmentation_damage(data):
     t["worst_area"] = (t[areas] - 1).abs().max(axis=1)
     t["run"] = t["run"].fillna(1).astype(int) if "run" in t.columns else 1
     # damaged bones labelled on the first clean meshing's tetrahedra, or a meshing of their own
-    t["draw"] = (t["draw"] if "draw" in t.columns else pd.Series("own", index=t.index)).fillna("own").map(
-        {"clean": "first clean", "own": "own"})
+    t["draw"] = t.get("draw", pd.Series("own", index=t.index)).fillna("own").map({"clean": "first clean", "own": "own"})
     return table(t, [
         ("size_mm", "size (mm)", "{:g}"), ("run", "run"), ("damage", "damage"), ("draw", "tetrahedra"),
         ("nodes", "nodes"),
@@ -691,9 +690,8 @@ def _meshed_database(data):
         t["face"] = t["face"].fillna(t.pop("resolution")) if "face" in t.columns else t.pop("resolution")
     t["face"] = t["face"].map(lambda f: "head CT" if f == "ct" else f"{f} phantom's surfaces")
     t["order"] = t["order"].fillna(2).astype(int).map({1: "tet4", 2: "tet10"}) if "order" in t else "tet10"
-    if "freed_mucosa_nodes" not in t:  # results measured before the mucosa could be freed
-        t["freed_mucosa_nodes"] = 0
-    t["freed_mucosa_nodes"] = t["freed_mucosa_nodes"].fillna(0)
+    # results measured before the mucosa could be freed have no such column
+    t["freed_mucosa_nodes"] = t.get("freed_mucosa_nodes", pd.Series(0, index=t.index)).fillna(0)
     g = t.groupby(["face", "size_mm", "order", "nodes", "mode"], sort=False).agg(
         plans=("status", "size"), completed=("status", lambda s: int((s == "ok").sum())),
         failed=("status", lambda s: int((s == "failed").sum())),

@@ -83,6 +83,7 @@ def check_plan(mesh: Mesh, bc, segments: Mapping, plan: SurgicalPlan,
     "attached_area_mm2", "carried_share"}}`` for every segment the plan moves."""
 
     out = {}
+    area = None  # lumped boundary area of every node, mm^2, once a moving segment needs it
     for name in bc.segment_names:
         if name not in PHYSIOLOGICAL_RANGES or name not in segments:
             continue
@@ -107,14 +108,16 @@ def check_plan(mesh: Mesh, bc, segments: Mapping, plan: SurgicalPlan,
         if name in ("lefort", "distal"):
             attached = bc.segment_nodes(NodeType.MOVING, name)
             facing = np.union1d(attached, bc.segment_nodes(NodeType.MUCOSA_SLIDING, name))
-            area = carried_area(mesh, attached) if attached.size else 0.0
-            share = area / carried_area(mesh, facing) if attached.size else 0.0
-            row.update(attached_nodes=int(attached.size), attached_area_mm2=area, carried_share=share)
-            if not attached.size or area < min_carried_mm2 or share < min_carried_share:
+            if area is None:
+                area = lumped_boundary_area(mesh.points, mesh.cells)
+            held = float(area[attached].sum())
+            share = held / float(area[facing].sum()) if attached.size else 0.0
+            row.update(attached_nodes=int(attached.size), attached_area_mm2=held, carried_share=share)
+            if not attached.size or held < min_carried_mm2 or share < min_carried_share:
                 carried = {"lefort": "maxilla", "distal": "mandible"}[name]
                 raise PlanError(
                     f"the plan moves {name} by up to {reach:.1f} mm, but the face's {carried!r} set, the tissue "
-                    f"that segment carries, has {attached.size} nodes covering {area:.1f} mm^2, a share of "
+                    f"that segment carries, has {attached.size} nodes covering {held:.1f} mm^2, a share of "
                     f"{share:.3f} of the tissue on its bone (with its sliding mucosa); expected at least "
                     f"{min_carried_mm2:g} mm^2 and a share of {min_carried_share:g}. The answer would leave the "
                     f"tissue behind. Relabel the face (toolkit mesh; its labels.json reports what each segment "

@@ -428,7 +428,6 @@ class _Model:
     freed_cut: np.ndarray = field(init=False)
     cut_freeings: int = field(init=False)
     freed_mucosa: np.ndarray = field(init=False)
-    sliding_at_start: int = field(init=False)  # sliding mucosa nodes before any was freed
 
     def __post_init__(self):
         self.quality0 = element_quality(self.mesh, self.mesh.points)
@@ -445,7 +444,7 @@ class _Model:
         sliding = np.isin(mucosa, self.mucosa)  # the offsets of the nodes still sliding, in their order
         self.offset, self.side = offset[sliding], side[sliding]
         self.edge_followers = _edge_followers(self.mesh, self.mucosa)
-        self.freed_mucosa, self.sliding_at_start = np.zeros(0, np.int64), self.mucosa.size
+        self.freed_mucosa = np.zeros(0, np.int64)
         self.freed_cut, self.cut_freeings = np.zeros(0, np.int64), 0
         # what regulation may move: free nodes off the skin (the prediction) and off the lip pairs,
         # and mucosa nodes along their bone (they are put back on it exactly afterwards)
@@ -486,7 +485,8 @@ class _Model:
             return None
         centroid = X[_element_nodes(self.mesh, element)].mean(axis=0)
         near = self.mucosa[np.linalg.norm(X[self.mucosa] - centroid, axis=1) < radius]
-        if not near.size or self.freed_mucosa.size + near.size > _MAX_MUCOSA_FREED * self.sliding_at_start:
+        sliding_at_start = self.mucosa.size + self.freed_mucosa.size  # _free moves each freed one there
+        if not near.size or self.freed_mucosa.size + near.size > _MAX_MUCOSA_FREED * sliding_at_start:
             return None
         self._free(near)
         return f"{near.size} sliding mucosa nodes within {radius:g} mm of that element ({self.freed_mucosa.size} " \
